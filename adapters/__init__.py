@@ -1,0 +1,1 @@
+"""ControlNet-style tactile adapters mapping frozen touch embeddings to the privileged latent."""

@@ -1,0 +1,311 @@
+"""The batched RotateCup core: N MuJoCo simulations of one model on `mujoco.batch.Batch` threads.
+
+One class does the whole task (randomization, actuation, reward, termination, observations) for N envs at once
+with numpy; the gymnasium env is this core with N = 1, and the vector adapters wrap it without a per-env Python
+loop. Env i of a batch seeded s behaves exactly like a single env seeded s + i (see envs.rng).
+"""
+
+from __future__ import annotations
+
+import os
+
+import gymnasium as gym
+import mujoco
+import mujoco.batch
+import numpy as np
+
+from envs import constants as C
+from envs.config import EnvConfig
+from envs.grasps import GraspCache, load_default_cache
+from envs.objects import get_object
+from envs.observation import ProprioHistory
+from envs.rng import CounterRNG, env_keys
+from envs.scene import OBJECT_BODY, build_model
+
+# Random streams (see envs.rng): one id per use, so adding a draw never shifts another.
+_STREAM_RESET, _STREAM_NOISE, _STREAM_PUSH_P, _STREAM_PUSH_F = 1, 2, 3, 4
+PUSH_DECAY_PERIOD = 0.08
+"""Hora decays pushes by `push_decay` every 0.08 s."""
+
+
+def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of (..., 4) quaternions in MuJoCo's (w, x, y, z) order."""
+    w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
+    w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        axis=-1,
+    )
+
+
+def angular_velocity(q0: np.ndarray, q1: np.ndarray, dt: float) -> np.ndarray:
+    """World-frame angular velocity (rad/s, (..., 3)) taking orientation q0 to q1 in dt seconds."""
+    rel = quat_mul(q1, q0 * np.array([1.0, -1.0, -1.0, -1.0]))  # (..., 4), q1 * conj(q0)
+    rel = np.where(rel[..., :1] < 0, -rel, rel)  # shortest arc
+    vec = rel[..., 1:]
+    s = np.linalg.norm(vec, axis=-1, keepdims=True)
+    factor = np.where(s > 1e-9, 2.0 * np.arctan2(s, rel[..., :1]) / np.maximum(s, 1e-12), 2.0)
+    return vec * factor / dt
+
+
+class RotateCupVec:
+    """N RotateCup simulations stepped together; observations and rewards are (N, ...) numpy arrays."""
+
+    def __init__(self, cfg: EnvConfig | None = None, num_envs: int = 1, seed: int = 0, nthread: int | None = None,
+                 grasps: GraspCache | None = None):
+        self.cfg = cfg = cfg if cfg is not None else EnvConfig()
+        if not isinstance(cfg, EnvConfig):
+            raise ValueError(f"cfg must be an EnvConfig, got {type(cfg).__name__}")
+        if int(num_envs) < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.num_envs = n = int(num_envs)
+        self.obj = get_object(cfg.object)
+        rc = cfg.randomization
+        self.max_scale = (max(rc.scales) + rc.scale_jitter) if rc.enabled else self._nominal_scale()
+        self.model = build_model(self.obj, self.max_scale, cfg.physics_dt)
+        m = self.model
+        m.actuator_forcerange[:] = [-cfg.torque_limit, cfg.torque_limit]
+        self._set_gains(m.actuator_gainprm[None], m.actuator_biasprm[None], np.full((1, C.NUM_JOINTS), cfg.kp),
+                        np.full((1, C.NUM_JOINTS), cfg.kd))
+        self.nthread = nthread if nthread is not None else max(1, min(os.cpu_count() or 1, n))
+        self.batch = mujoco.batch.Batch(m, n, self.nthread, persistent=True)
+
+        # model indices
+        self.obj_body = m.body(OBJECT_BODY).id
+        self.obj_geoms = np.flatnonzero(m.geom_bodyid == self.obj_body)
+        self.hand_geoms = np.flatnonzero((m.geom_bodyid != self.obj_body) & (m.geom_bodyid != 0))
+        jnt = m.joint("object_free")
+        self.obj_qpos = int(jnt.qposadr[0])
+        self.obj_dof = int(jnt.dofadr[0])
+        # object geometry at scale 1 (the model was compiled at max_scale)
+        self._geom_size1 = m.geom_size[self.obj_geoms].copy() / self.max_scale
+        self._geom_pos1 = m.geom_pos[self.obj_geoms].copy() / self.max_scale
+
+        # per-simulation model fields written at reset
+        b = self.batch
+        self._geom_size = b.expand("geom_size")
+        self._geom_pos = b.expand("geom_pos")
+        self._geom_friction = b.expand("geom_friction")
+        self._body_mass = b.expand("body_mass")
+        self._body_ipos = b.expand("body_ipos")
+        self._body_inertia = b.expand("body_inertia")
+        self._gainprm = b.expand("actuator_gainprm")
+        self._biasprm = b.expand("actuator_biasprm")
+        # live state views
+        self._qpos = b.bind("qpos")
+        self._qvel = b.bind("qvel")
+        self._ctrl = b.bind("ctrl")
+        self._xfrc = b.bind("xfrc_applied")
+        self._act_force = b.bind("actuator_force")
+
+        self.grasps = grasps if grasps is not None else load_default_cache(cfg.object, cfg.grasp_cache)
+        self.rng = CounterRNG(env_keys(seed, n))
+        self.episode = np.zeros(n, dtype=np.int64)
+        self.steps = np.zeros(n, dtype=np.int64)
+        self.targets = np.zeros((n, C.NUM_JOINTS))
+        self.grasp_q = np.zeros((n, C.NUM_JOINTS))
+        self.start_z = np.zeros(n)
+        self.push = np.zeros((n, 3))
+        self.params = {k: np.zeros(s) for k, s in
+                       (("scale", n), ("mass", n), ("friction", n), ("com", (n, 3)), ("kp", (n, 16)), ("kd", (n, 16)))}
+        self.history = ProprioHistory(n)
+        self._axis = np.asarray(cfg.reward.axis, dtype=np.float64)
+        self._needs_reset = True
+
+        self.single_observation_space = gym.spaces.Dict(
+            {
+                "proprio": gym.spaces.Box(-np.inf, np.inf, (C.PROPRIO_STEPS, C.PROPRIO_DIM), np.float32),
+                "proprio_hist": gym.spaces.Box(-np.inf, np.inf, (C.HISTORY_STEPS, C.PROPRIO_DIM), np.float32),
+                "priv": gym.spaces.Box(-np.inf, np.inf, (C.PRIV_DIM,), np.float32),
+            }
+        )
+        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (C.NUM_JOINTS,), np.float32)
+
+    # ------------------------------------------------------------------ helpers
+    def _nominal_scale(self) -> float:
+        scales = self.cfg.randomization.scales
+        return float(scales[len(scales) // 2])
+
+    @staticmethod
+    def _set_gains(gainprm: np.ndarray, biasprm: np.ndarray, kp: np.ndarray, kd: np.ndarray) -> None:
+        """Position actuator: force = kp * ctrl - kp * q - kd * qdot (MuJoCo's position actuator with kv)."""
+        gainprm[..., 0] = kp
+        biasprm[..., 1] = -kp
+        biasprm[..., 2] = -kd
+
+    def _sample_params(self, ids: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-env physical parameters for envs ``ids`` (vectorized, keyed by env and episode)."""
+        rc, k = self.cfg.randomization, len(ids)
+        u = self.rng.uniform(ids, self.episode[ids], np.zeros(k, np.int64), _STREAM_RESET, 40)  # (k, 40)
+
+        def lerp(lo_hi, x):
+            return lo_hi[0] + (lo_hi[1] - lo_hi[0]) * x
+
+        if rc.enabled:
+            bucket = np.minimum((u[:, 0] * len(rc.scales)).astype(np.int64), len(rc.scales) - 1)
+            scale = np.asarray(rc.scales)[bucket] + (2 * u[:, 1] - 1) * rc.scale_jitter
+            p = dict(scale=scale, bucket=bucket, mass=lerp(rc.mass, u[:, 2]), com=lerp(rc.com, u[:, 3:6]),
+                     friction=lerp(rc.friction, u[:, 6]), kp=lerp(rc.kp, u[:, 7:23]), kd=lerp(rc.kd, u[:, 23:39]))
+        else:
+            bucket = np.full(k, len(rc.scales) // 2)
+            p = dict(scale=np.asarray(rc.scales, dtype=np.float64)[bucket], bucket=bucket,
+                     mass=np.full(k, np.mean(rc.mass)), com=np.zeros((k, 3)), friction=np.full(k, np.mean(rc.friction)),
+                     kp=np.full((k, 16), self.cfg.kp), kd=np.full((k, 16), self.cfg.kd))
+        pert = self.cfg.perturb
+        p["friction"] = p["friction"] * pert.friction_scale
+        p["mass"] = p["mass"] + pert.added_mass
+        p["com"] = p["com"] + np.asarray(pert.com_shift)
+        p["grasp_u"] = u[:, 39]
+        return p
+
+    def _write_params(self, ids: np.ndarray, p: dict[str, np.ndarray]) -> None:
+        s = p["scale"][:, None, None]
+        self._geom_size[np.ix_(ids, self.obj_geoms)] = self._geom_size1[None] * s
+        self._geom_pos[np.ix_(ids, self.obj_geoms)] = self._geom_pos1[None] * s
+        fr = self._geom_friction[ids]
+        fr[:, :, 0] = p["friction"][:, None]
+        self._geom_friction[ids] = fr
+        self._body_mass[ids, self.obj_body] = p["mass"]
+        self._body_ipos[ids, self.obj_body] = p["com"]
+        # solid-cylinder inertia about the body frame (cylinder axis: y for Hora's cylinders, z for cups)
+        r, h, mass = self.obj.radius * p["scale"], self.obj.length * p["scale"], p["mass"]
+        i_axis, i_perp = 0.5 * mass * r**2, mass * (3 * r**2 + h**2) / 12.0
+        axis = 1 if self.obj.kind == "cylinder" else 2
+        inertia = np.repeat(i_perp[:, None], 3, axis=1)
+        inertia[:, axis] = i_axis
+        self._body_inertia[ids, self.obj_body] = inertia
+        gain, bias = self._gainprm[ids], self._biasprm[ids]
+        self._set_gains(gain, bias, p["kp"], p["kd"])
+        self._gainprm[ids], self._biasprm[ids] = gain, bias
+        self.batch.set_const(ids)
+        for key in ("scale", "mass", "friction", "com", "kp", "kd"):
+            self.params[key][ids] = p[key]
+
+    # ------------------------------------------------------------------ API
+    def reset(self, seed: int | None = None, ids: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Reset envs ``ids`` (all by default); a seed re-keys every env (env i gets seed + i)."""
+        if seed is not None:
+            self.rng = CounterRNG(env_keys(int(seed), self.num_envs))
+            self.episode[:] = -1
+            ids = None
+        ids = np.arange(self.num_envs) if ids is None else np.asarray(ids, dtype=np.int64)
+        self._reset_ids(ids)
+        self._needs_reset = False
+        return self._observe()
+
+    def _reset_ids(self, ids: np.ndarray) -> None:
+        if len(ids) == 0:
+            return
+        self.episode[ids] += 1
+        p = self._sample_params(ids)
+        self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
+        self._write_params(ids, p)
+        q, pose = self.grasps.sample(p["bucket"], p["scale"], p["grasp_u"])  # (k, 16), (k, 7)
+        qpos = self._qpos[ids]
+        qpos[:, : C.NUM_JOINTS] = q
+        qpos[:, self.obj_qpos : self.obj_qpos + 7] = pose
+        self._qpos[ids] = qpos
+        self._qvel[ids] = 0.0
+        self._ctrl[ids] = q
+        xfrc = self._xfrc[ids]
+        xfrc[:] = 0.0
+        self._xfrc[ids] = xfrc
+        self.batch.forward(ids)
+        self.targets[ids] = q
+        self.grasp_q[ids] = q
+        self.start_z[ids] = pose[:, 2]
+        self.steps[ids] = 0
+        self.push[ids] = 0.0
+        self.history.reset(ids, q)
+
+    def _priv(self) -> np.ndarray:
+        pos = self._qpos[:, self.obj_qpos : self.obj_qpos + 3]
+        pr = self.params
+        return np.concatenate(
+            [pos, pr["scale"][:, None], pr["mass"][:, None], pr["friction"][:, None], pr["com"]], axis=1
+        ).astype(np.float32)
+
+    def _observe(self) -> dict[str, np.ndarray]:
+        return {"proprio": self.history.proprio, "proprio_hist": self.history.history, "priv": self._priv()}
+
+    def step(self, actions: np.ndarray):
+        """Advance every env one policy step. Returns (obs, reward, terminated, truncated, info)."""
+        if self._needs_reset:
+            raise RuntimeError("call reset() before step()")
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (self.num_envs, C.NUM_JOINTS):
+            raise ValueError(f"actions must have shape ({self.num_envs}, {C.NUM_JOINTS}), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            bad = np.argwhere(~np.isfinite(a))[0]
+            raise ValueError(f"actions must be finite; env {bad[0]} joint {bad[1]} is {a[tuple(bad)]}")
+        cfg, rc, n, all_ids = self.cfg, self.cfg.randomization, self.num_envs, np.arange(self.num_envs)
+        a = np.clip(a, -1.0, 1.0)
+        self.targets = np.clip(self.targets + a * cfg.action_scale, C.JOINT_LOWER, C.JOINT_UPPER)
+        self._ctrl[:] = self.targets
+
+        # random pushes on the object (Hora): new with probability p, otherwise decaying
+        if rc.enabled and rc.push_prob > 0:
+            new = self.rng.uniform(all_ids, self.episode, self.steps, _STREAM_PUSH_P, 1)[:, 0] < rc.push_prob
+            force = self.rng.normal(all_ids, self.episode, self.steps, _STREAM_PUSH_F, 3)
+            force *= (self.params["mass"] * rc.push_scale)[:, None]
+            self.push = np.where(new[:, None], force, self.push * rc.push_decay ** (cfg.control_dt / PUSH_DECAY_PERIOD))
+            xfrc = self._xfrc
+            xfrc[:, self.obj_body, :3] = self.push
+            self._xfrc[:] = xfrc
+
+        o = self.obj_qpos
+        pos0 = self._qpos[:, o : o + 3].copy()
+        quat0 = self._qpos[:, o + 3 : o + 7].copy()
+        self.batch.step(nstep=cfg.substeps)
+        qpos, qvel = self._qpos, self._qvel
+        q, qdot = qpos[:, : C.NUM_JOINTS], qvel[:, : C.NUM_JOINTS]
+        pos, quat = qpos[:, o : o + 3], qpos[:, o + 3 : o + 7]
+        tau = self._act_force
+
+        dt = cfg.control_dt
+        omega = angular_velocity(quat0, quat, dt)  # (N, 3), measured once per policy step (Hora v0.0.2)
+        spin = omega @ self._axis
+        lin_vel = (pos - pos0) / dt
+        rw = cfg.reward
+        terms = {
+            "rotate": rw.rotate * np.clip(spin, -rw.rotate_clip, rw.rotate_clip),
+            "obj_linvel": rw.obj_linvel * np.abs(lin_vel).sum(-1),
+            "pose_diff": rw.pose_diff * ((q - self.grasp_q) ** 2).sum(-1),
+            "torque": rw.torque * (tau**2).sum(-1),
+            "work": rw.work * (tau * qdot).sum(-1) ** 2,
+        }
+        finite = np.all(np.isfinite(qpos), axis=1) & np.all(np.isfinite(qvel), axis=1)
+        fell = (pos[:, 2] < self.start_z - cfg.fall_drop) | ~finite
+        terms["fall"] = rw.fall * fell
+        reward = sum(terms.values())
+        reward = np.where(finite, reward, 0.0)
+
+        self.steps += 1
+        terminated = fell
+        truncated = (self.steps >= cfg.episode_steps) & ~terminated
+
+        noise = (2.0 * self.rng.uniform(all_ids, self.episode, self.steps, _STREAM_NOISE, 16) - 1.0) * rc.joint_noise
+        self.history.push(np.where(finite[:, None], q, self.grasp_q) + (noise if rc.enabled else 0.0), self.targets)
+        info = {f"rew_{k}": v for k, v in terms.items()}
+        info.update(
+            rotation=spin * dt,
+            height=pos[:, 2].copy(),
+            lin_vel=np.linalg.norm(lin_vel, axis=1),
+            torque=np.abs(tau).mean(axis=1),
+            fell=fell,
+            elapsed_steps=self.steps.copy(),
+        )
+        return self._observe(), reward.astype(np.float64), terminated, truncated, info
+
+    # ------------------------------------------------------------------ tools
+    def get_data(self, i: int = 0) -> tuple[mujoco.MjModel, mujoco.MjData]:
+        """Model and data of simulation i, e.g. for rendering."""
+        return self.batch.get_model(i), self.batch.get_data(i)
+
+    def close(self) -> None:
+        self.batch = None  # type: ignore[assignment]

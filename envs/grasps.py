@@ -1,0 +1,211 @@
+"""Initial grasps: generation with Hora's acceptance rule, a cache file, and sampling at reset.
+
+Generation (reference/hora.md "Grasp cache"): sample a canonical closed pose + U(-0.25, 0.25) rad per joint, start
+with the fingers opened a little and the object floating at its nominal place, close the fingers on it, release
+it under gravity, run 50 policy steps, and keep the grasp if all four fingertips are within 10 cm of the object
+centre, at least two touch it, and it did not fall. A cached row is 16 joint positions + 7 object pose numbers.
+
+The cache file (.npz) holds `object` (name), `scales` (S,), `grasps` (S, G, 23) and `seed`; one bucket per
+randomization scale. Reset picks the bucket of the env's scale and a row uniformly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import mujoco.batch
+import numpy as np
+
+from envs import constants as C
+from envs.objects import ObjectSpec, get_object
+from envs.scene import OBJECT_BODY, OBJECT_START, build_model
+
+GRASP_DIM = C.NUM_JOINTS + 7
+CANONICAL_POSE = np.array(
+    [0.05, 0.34, 0.60, 0.89, -0.03, 0.42, 0.38, 0.80, -0.19, 0.70, -0.07, 1.04, 1.34, 0.02, 0.35, 1.17]
+)
+"""Pose putting three fingertips on the +x side and the thumb on the -x side of an object at OBJECT_START
+(found by a sampling IK on fingertip targets); grasps are sampled around it."""
+TIP_RADIUS = 0.014
+"""Digit 360 dome radius (m), the fingertip geoms in the hand MJCF."""
+
+
+@dataclass
+class GraspCache:
+    """Cached grasps per object scale bucket."""
+
+    object: str
+    scales: np.ndarray
+    """(S,) bucket scales."""
+    grasps: np.ndarray
+    """(S, G, 23): 16 joint positions (rad, bus order) + object position (3, m) and quaternion (4, wxyz)."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        self.scales = np.asarray(self.scales, dtype=np.float64)
+        self.grasps = np.asarray(self.grasps, dtype=np.float64)
+        if self.grasps.ndim != 3 or self.grasps.shape[2] != GRASP_DIM or self.grasps.shape[0] != len(self.scales):
+            raise ValueError(
+                f"grasp cache for {self.object!r}: grasps must have shape (S={len(self.scales)}, G, {GRASP_DIM}), "
+                f"got {self.grasps.shape}"
+            )
+        if self.grasps.shape[1] == 0:
+            raise ValueError(f"grasp cache for {self.object!r} is empty")
+        if not np.all(np.isfinite(self.grasps)):
+            raise ValueError(f"grasp cache for {self.object!r} holds non-finite values")
+
+    def sample(self, bucket: np.ndarray, scale: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows for envs with the given scales; ``u`` in [0, 1) picks the row. Returns q (k, 16), pose (k, 7)."""
+        b = np.abs(self.scales[None, :] - np.asarray(scale)[:, None]).argmin(axis=1)  # nearest cached bucket
+        g = np.minimum((u * self.grasps.shape[1]).astype(np.int64), self.grasps.shape[1] - 1)
+        rows = self.grasps[b, g]  # (k, 23)
+        return rows[:, : C.NUM_JOINTS].copy(), rows[:, C.NUM_JOINTS :].copy()
+
+    def save(self, path: str | Path) -> None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, object=self.object, scales=self.scales, grasps=self.grasps.astype(np.float32),
+                            seed=self.seed)
+
+    @classmethod
+    def load(cls, path: str | Path) -> GraspCache:
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"grasp cache {path} does not exist (generate one with `rotate grasps`)")
+        with np.load(path, allow_pickle=False) as f:
+            missing = {"object", "scales", "grasps"} - set(f.files)
+            if missing:
+                raise ValueError(f"grasp cache {path} is missing {sorted(missing)}")
+            return cls(str(f["object"]), f["scales"], f["grasps"], int(f["seed"]) if "seed" in f.files else 0)
+
+
+def default_cache_path(object_name: str) -> Path:
+    return Path(__file__).resolve().parent / "assets" / f"grasps_{object_name}.npz"
+
+
+def load_default_cache(object_name: str, path: str = "") -> GraspCache:
+    """The cache at ``path``, or the one shipped for ``object_name``; errors name the object and the fix."""
+    if path:
+        cache = GraspCache.load(path)
+    else:
+        shipped = default_cache_path(object_name)
+        if not shipped.is_file():
+            have = sorted(p.stem.removeprefix("grasps_") for p in shipped.parent.glob("grasps_*.npz"))
+            raise ValueError(
+                f"no grasp cache ships for object {object_name!r} (shipped: {', '.join(have) or 'none'}); "
+                f"generate one with `rotate grasps --objects {object_name} --out FILE` and pass grasp_cache=FILE"
+            )
+        cache = GraspCache.load(shipped)
+    if cache.object != object_name:
+        raise ValueError(f"grasp cache was generated for {cache.object!r}, not for {object_name!r}")
+    return cache
+
+
+def surface_distance(obj: ObjectSpec, scale: np.ndarray, pos: np.ndarray, quat: np.ndarray, points: np.ndarray):
+    """Signed distance (m) from points (k, P, 3) to the object's main cylinder (k envs with pose and scale)."""
+    rot = np.zeros((len(quat), 9))
+    for i, qu in enumerate(quat):
+        mujoco.mju_quat2Mat(rot[i], qu)
+    rot = rot.reshape(-1, 3, 3)
+    local = np.einsum("kji,kpj->kpi", rot, points - pos[:, None, :])  # (k, P, 3) in the object frame
+    axis = 1 if obj.kind == "cylinder" else 2
+    r, h = obj.radius * scale[:, None], obj.length * scale[:, None] / 2
+    radial = np.linalg.norm(np.delete(local, axis, axis=2), axis=2) - r
+    axial = np.abs(local[:, :, axis]) - h
+    outside = np.sqrt(np.maximum(radial, 0) ** 2 + np.maximum(axial, 0) ** 2)
+    return np.where((radial > 0) | (axial > 0), outside, np.maximum(radial, axial))
+
+
+FLEX_JOINTS = [1, 2, 3, 5, 6, 7, 9, 10, 11, 13, 14, 15]
+"""Joints that close the hand (all but the three finger abductions and the thumb rotation)."""
+
+
+def _penetration(model: mujoco.MjModel, data: mujoco.MjData, q: np.ndarray, pos: np.ndarray, o: int) -> float:
+    """Deepest contact distance (m, negative = penetration) of the hand at q with the object at pos."""
+    data.qpos[:16] = q
+    data.qpos[o : o + 3] = pos
+    data.qpos[o + 3 : o + 7] = [1, 0, 0, 0]
+    mujoco.mj_kinematics(model, data)
+    mujoco.mj_collision(model, data)
+    return min((data.contact[i].dist for i in range(data.ncon)), default=1.0)
+
+
+def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int, seed: int = 0,
+                    batch_size: int = 128, max_rounds: int = 200, noise: float = 0.25, nthread: int | None = None,
+                    progress=None) -> GraspCache:
+    """Generate ``per_scale`` accepted grasps for each scale (see the module docstring for the rule)."""
+    if per_scale < 1:
+        raise ValueError(f"per_scale must be >= 1, got {per_scale}")
+    obj = get_object(object_name)
+    model = build_model(obj, max(scales))
+    rng = np.random.default_rng(seed)
+    batch = mujoco.batch.Batch(model, batch_size, nthread or 0, persistent=True)
+    geom_size, geom_pos = batch.expand("geom_size"), batch.expand("geom_pos")
+    body_mass = batch.expand("body_mass")
+    obj_body = model.body(OBJECT_BODY).id
+    obj_geoms = np.flatnonzero(model.geom_bodyid == obj_body)
+    size1, pos1 = model.geom_size[obj_geoms] / max(scales), model.geom_pos[obj_geoms] / max(scales)
+    qpos, qvel, ctrl, xfrc = batch.bind("qpos"), batch.bind("qvel"), batch.bind("ctrl"), batch.bind("xfrc_applied")
+    tip_sites = [model.site(s).id for s in C.FINGERTIP_SITES]
+    probe = mujoco.MjData(model)
+    site_xpos = batch.bind("site_xpos")
+    o = int(model.joint("object_free").qposadr[0])
+    substeps = round(0.05 / model.opt.timestep)
+    mass = 0.1
+    out = []
+    for scale in scales:
+        accepted: list[np.ndarray] = []
+        geom_size[:, obj_geoms] = size1[None] * scale
+        geom_pos[:, obj_geoms] = pos1[None] * scale
+        body_mass[:, obj_body] = mass
+        batch.set_const()
+        for _ in range(max_rounds):
+            if len(accepted) >= per_scale:
+                break
+            pose = np.clip(CANONICAL_POSE + rng.uniform(-noise, noise, (batch_size, 16)), C.JOINT_LOWER, C.JOINT_UPPER)
+            start = OBJECT_START + rng.uniform(-0.004, 0.004, (batch_size, 3))
+            # open the fingers of samples that cut into the object until they only touch it
+            clear = np.zeros(batch_size, dtype=bool)
+            for i in range(batch_size):
+                for _ in range(10):
+                    if _penetration(model, probe, pose[i], start[i], o) > -0.004:
+                        clear[i] = True
+                        break
+                    pose[i, FLEX_JOINTS] = np.maximum(pose[i, FLEX_JOINTS] - 0.05, C.JOINT_LOWER[FLEX_JOINTS])
+            batch.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
+            qp = qpos.copy()
+            qp[:, :16] = pose
+            qp[:, o : o + 3] = start
+            qp[:, o + 3 : o + 7] = [1, 0, 0, 0]
+            qpos[:] = qp
+            qvel[:] = 0
+            squeeze = pose.copy()
+            squeeze[:, FLEX_JOINTS] += 0.3  # close further than the pose: the fingers close onto the object
+            ctrl[:] = np.clip(squeeze, C.JOINT_LOWER, C.JOINT_UPPER)
+            f = np.zeros(xfrc.shape)
+            f[:, obj_body, 2] = mass * 9.81  # float the object while the fingers close
+            xfrc[:] = f
+            batch.forward()
+            batch.step(nstep=6 * substeps)
+            xfrc[:] = 0.0
+            z0 = qpos[:, o + 2].copy()
+            batch.step(nstep=50 * substeps)  # 50 policy steps under gravity
+            batch.forward()
+            pos, quat = qpos[:, o : o + 3], qpos[:, o + 3 : o + 7]
+            tips = site_xpos[:, tip_sites]  # (B, 4, 3)
+            near = np.linalg.norm(tips - pos[:, None], axis=2).max(axis=1) < 0.10
+            touching = (surface_distance(obj, np.full(batch_size, scale), pos, quat, tips) < TIP_RADIUS + 0.004).sum(1)
+            still = np.linalg.norm(qvel[:, 16:19], axis=1) < 0.05
+            ok = clear & near & (touching >= 2) & (pos[:, 2] > z0 - 0.02) & still & np.all(np.isfinite(qpos), axis=1)
+            for i in np.flatnonzero(ok):
+                accepted.append(np.concatenate([qpos[i, :16], qpos[i, o : o + 7]]))
+            if progress is not None:
+                progress(scale, len(accepted), per_scale)
+        if len(accepted) < per_scale:
+            raise RuntimeError(
+                f"only {len(accepted)} of {per_scale} grasps accepted for {object_name} at scale {scale} after "
+                f"{max_rounds} rounds of {batch_size}; the canonical pose may not fit this object"
+            )
+        out.append(np.stack(accepted[:per_scale]))
+    return GraspCache(object_name, np.asarray(scales), np.stack(out), seed)

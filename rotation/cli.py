@@ -1,0 +1,86 @@
+"""The ``rotate`` command: one subcommand per job of the workflow.
+
+Each subcommand lives in a module that exposes a config dataclass ``Config`` (one docstring per field, which
+becomes the option's help) and ``run(cfg)``; modules with options that do not fit a dataclass field also define
+``add_arguments(parser)`` and ``config_from_args(args)``. The module docstring is the subcommand's description.
+Modules are imported only when their subcommand runs, so ``rotate --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from rotation.configs import add_dataclass_arguments, dataclass_from_args
+
+COMMANDS: dict[str, tuple[str, str]] = {
+    # name: (module, one-line summary)
+    "grasps": ("rotation.jobs.grasps", "generate the initial-grasp cache for objects and scales"),
+    "view": ("rotation.jobs.view", "render an object/grasp (PNG) or a rollout (MP4) headless"),
+    "train-teacher": ("rotation.train.teacher", "train the privileged teacher with PPO on the batched env"),
+    "train-student": ("rotation.train.student", "distill the proprioceptive student from a frozen teacher"),
+    "evaluate": ("rotation.evaluate.run", "compare policies under friction, mass and CoM perturbations"),
+    "demo": ("rotation.jobs.demo", "the end-to-end demo on the shipped defaults"),
+}
+"""Subcommand registry; later issues add their jobs here."""
+
+
+def _load(name: str):
+    module_name, _ = COMMANDS[name]
+    return importlib.import_module(module_name)
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="rotate",
+        description="Tactile in-hand rotation: simulate, train, evaluate and deploy on an Allegro or LEAP hand.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, summary) in COMMANDS.items():
+        if only is not None and name != only:
+            sub.add_parser(name, help=summary)
+            continue
+        module = _load(name)
+        p = sub.add_parser(
+            name, help=summary, description=module.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        )
+        if hasattr(module, "add_arguments"):
+            module.add_arguments(p)
+        else:
+            add_dataclass_arguments(p, module.Config)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    if command is not None and command not in COMMANDS:
+        print(f"rotate: unknown command {command!r}; choose one of: {', '.join(COMMANDS)}", file=sys.stderr)
+        return 2
+    parser = build_parser(only=command)
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    module = _load(args.command)
+    if hasattr(module, "config_from_args"):
+        cfg = module.config_from_args(args)
+    else:
+        cfg = dataclass_from_args(module.Config, args)
+    try:
+        module.run(cfg)
+    except KeyboardInterrupt:
+        print("rotate: interrupted", file=sys.stderr)
+        return 130
+    except ValueError as err:
+        # bad input: one clear line instead of a traceback
+        print(f"rotate {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

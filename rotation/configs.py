@@ -1,0 +1,163 @@
+"""Typed config dataclasses -> argparse, with per-field help taken from the field's docstring.
+
+A config is a plain dataclass whose fields carry a docstring on the line after them (the style used across the
+project). :func:`add_dataclass_arguments` turns it into argparse options (``field_name`` -> ``--field-name``),
+:func:`dataclass_from_args` builds the instance back, and :func:`save_config` writes it as JSON beside a
+checkpoint or report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import inspect
+import json
+import textwrap
+import types
+import typing
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+
+@cache
+def field_docs(cls: type) -> dict[str, str]:
+    """Map field name -> the docstring written right after it in the class body (or its trailing comment)."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        try:
+            source = textwrap.dedent(inspect.getsource(klass))
+        except (OSError, TypeError):
+            continue
+        body = ast.parse(source).body[0].body  # type: ignore[attr-defined]
+        lines = source.splitlines()
+        for node, nxt in zip(body, [*body[1:], None], strict=True):
+            if not isinstance(node, ast.AnnAssign) or not isinstance(node.target, ast.Name):
+                continue
+            name = node.target.id
+            if isinstance(nxt, ast.Expr) and isinstance(getattr(nxt, "value", None), ast.Constant):
+                docs[name] = " ".join(str(nxt.value.value).split())
+            elif "#" in lines[node.lineno - 1]:
+                docs[name] = lines[node.lineno - 1].split("#", 1)[1].strip()
+    return docs
+
+
+def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if len(args) == 1:
+            return args[0], True
+    return tp, False
+
+
+def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:
+    """Add one option per field of dataclass ``cls``; nested dataclasses become ``--outer.inner-field``."""
+    hints = typing.get_type_hints(cls)
+    docs = field_docs(cls)
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        tp, optional = _unwrap_optional(hints[f.name])
+        dest = prefix + f.name
+        flag = "--" + dest.replace("_", "-")
+        default = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)  # type: ignore[misc]
+        if dataclasses.is_dataclass(tp):
+            add_dataclass_arguments(parser, tp, prefix=dest + ".")
+            continue
+        help_text = docs.get(f.name, "")
+        kw: dict[str, Any] = dict(dest=dest, default=argparse.SUPPRESS)
+        show = "" if default is None and optional else f" (default: {default})"
+        origin = typing.get_origin(tp)
+        if tp is bool:
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, help=help_text + show, **kw)
+            continue
+        if origin in (tuple, list):
+            args = typing.get_args(tp)
+            elem = args[0] if args else str
+            nargs: Any = "+" if origin is list or (len(args) == 2 and args[1] is Ellipsis) else len(args)
+            parser.add_argument(flag, type=_scalar_type(elem), nargs=nargs, help=help_text + show, **kw)
+            continue
+        if typing.get_origin(tp) is typing.Literal:
+            choices = typing.get_args(tp)
+            parser.add_argument(flag, type=type(choices[0]), choices=choices, help=help_text + show, **kw)
+            continue
+        parser.add_argument(flag, type=_scalar_type(tp), help=help_text + show, **kw)
+
+
+def _scalar_type(tp: Any) -> Any:
+    if tp in (int, float, str):
+        return tp
+    if tp is Path:
+        return Path
+    return str
+
+
+def dataclass_from_args(cls: type, args: argparse.Namespace, prefix: str = "", **overrides: Any) -> Any:
+    """Build ``cls`` from parsed options (fields not given on the command line keep their defaults)."""
+    hints = typing.get_type_hints(cls)
+    values: dict[str, Any] = {}
+    ns = vars(args)
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        tp, _ = _unwrap_optional(hints[f.name])
+        dest = prefix + f.name
+        if dataclasses.is_dataclass(tp):
+            if any(k.startswith(dest + ".") for k in ns):
+                base = getattr(cls, f.name, None) if f.default is dataclasses.MISSING else f.default
+                nested = dataclass_from_args(tp, args, prefix=dest + ".")
+                values[f.name] = nested if base is None else nested
+            continue
+        if dest in ns:
+            value = ns[dest]
+            if typing.get_origin(tp) is tuple:
+                value = tuple(value)
+            values[f.name] = value
+    values.update(overrides)
+    return cls(**values)
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Dataclasses, paths, tuples and numpy scalars -> plain JSON types."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    return obj
+
+
+def from_jsonable(cls: type, data: dict[str, Any]) -> Any:
+    """Inverse of :func:`to_jsonable` for a (possibly nested) config dataclass; unknown keys are an error."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown config keys {sorted(unknown)}; expected some of {sorted(names)}")
+    values: dict[str, Any] = {}
+    for key, value in data.items():
+        tp, _ = _unwrap_optional(hints[key])
+        if dataclasses.is_dataclass(tp) and isinstance(value, dict):
+            value = from_jsonable(tp, value)
+        elif typing.get_origin(tp) is tuple and value is not None:
+            value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
+        elif tp is Path and value is not None:
+            value = Path(value)
+        values[key] = value
+    return cls(**values)
+
+
+def save_config(cfg: Any, path: str | Path) -> None:
+    """Write a config dataclass as indented JSON (beside a checkpoint or report)."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(to_jsonable(cfg), indent=2) + "\n")

@@ -1,0 +1,1 @@
+"""Job modules behind the `rotate` subcommands (one per workflow step)."""

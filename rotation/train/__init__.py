@@ -1,0 +1,1 @@
+"""Training: teacher PPO on the batched env, student distillation."""

@@ -1,0 +1,273 @@
+"""Distill a proprioceptive student from a frozen teacher (Hora stage 2, DAgger-style).
+
+The student is the teacher's actor with its latent z estimated by the adaptation module phi from 30 steps of
+proprioception. Only phi (and its history normalization) learns: Adam on MSE(phi(proprio_hist), z_teacher(priv)),
+one gradient step per batched env step, while the student acts with phi's own estimate, so it learns on the states
+its own mistakes lead to (reference/hora.md "Stage 2"). Writes TensorBoard logs, periodic checkpoints with the
+config beside them, and a student bundle (latent source `adaptation`).
+
+    rotate train-student --teacher runs/teacher/bundle --out runs/student --num-envs 64 --total-steps 2000000
+    rotate train-student --teacher runs/teacher/bundle --out runs/student --resume   # continue where it stopped
+
+Exact resume: training is cut into checkpoint intervals and every interval starts from fresh resets of all envs
+(seeded from the interval's first iteration), so a run resumed from a checkpoint is bit-identical to one that was
+never interrupted. Keep checkpoint_every well above num_envs x episode_steps so few episodes are cut short.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from envs.config import EnvConfig
+from envs.core import RotateCupVec
+from rotation.configs import from_jsonable, save_config, to_jsonable
+from rotation.evaluate.metrics import EpisodeTracker, summarize
+from rotation.policy.bundle import PolicyBundle, load_bundle, resolve_bundle
+from rotation.policy.features import StudentExtractor
+from rotation.policy.networks import AdaptationConfig
+
+CHECKPOINT_GLOB = "ckpt_*.pt"
+
+
+@dataclass
+class Config:
+    """Student distillation (`rotate train-student`)."""
+
+    teacher: str = "teacher"
+    """Teacher bundle: a directory or a shipped bundle name (latent source 'privileged')."""
+    out: Path = Path("runs/student")
+    """Run directory: config.json, checkpoints, TensorBoard logs (tb/) and the student bundle (bundle/)."""
+    total_steps: int = 2_000_000
+    """Env transitions to train on (num_envs per iteration, one gradient step per iteration)."""
+    num_envs: int = 64
+    """Simulations stepped together; also the batch size of each gradient step."""
+    lr: float = 3e-4
+    """Adam learning rate for the adaptation module (Hora: 3e-4)."""
+    checkpoint_every: int = 200_000
+    """Env transitions between checkpoints (rounded to whole iterations); each interval starts with fresh resets."""
+    log_every: int = 20
+    """Iterations between TensorBoard points."""
+    seed: int = 0
+    """Seed of the envs (env i of an interval starting at iteration t is seeded seed + t * num_envs + i) and of phi."""
+    resume: bool = False
+    """Continue from the latest checkpoint in `out` (the saved config must match, except total_steps)."""
+    adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
+    """Sizes of the adaptation module phi."""
+    env: EnvConfig = field(default_factory=EnvConfig)
+    """The env the student trains in; use the teacher's training env (object, randomization, grasp cache)."""
+    nthread: int = 0
+    """MuJoCo threads of the batched env (0 = one per CPU core, at most num_envs)."""
+    torch_threads: int = 1
+    """torch CPU threads (the env steps on its own threads)."""
+    device: str = "cpu"
+    """torch device of the networks ('cpu' or 'cuda')."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+RESUMABLE_CHANGES = {"out", "total_steps", "resume", "progress", "nthread", "torch_threads", "device"}
+"""Config fields that may differ between a run and its resumption without breaking exactness of the result."""
+
+
+@dataclass
+class Result:
+    """What `run` returns: where the student went and the logged history."""
+
+    bundle_dir: Path
+    history: list[dict[str, float]]
+    """One dict per log point: iteration, env_steps, latent_mse and the episode means of that interval."""
+
+
+def _file_digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+
+
+def _obs_tensors(obs: dict[str, np.ndarray], keys: set[str], device: str) -> dict[str, torch.Tensor]:
+    return {k: torch.as_tensor(obs[k], device=device) for k in keys}
+
+
+def _latest_checkpoint(out: Path) -> Path | None:
+    ckpts = sorted(out.glob(CHECKPOINT_GLOB))
+    return ckpts[-1] if ckpts else None
+
+
+def _check_resumable(cfg: Config, out: Path) -> None:
+    saved = json.loads((out / "config.json").read_text())
+    now = to_jsonable(cfg)
+    diff = sorted(k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k])
+    if diff:
+        raise ValueError(f"--resume: the config differs from the one saved in {out / 'config.json'} in {diff}; "
+                         f"only {sorted(RESUMABLE_CHANGES)} may change on resume")
+
+
+def run(cfg: Config) -> Result:
+    """Distill the student; returns the bundle directory and the logged history."""
+    if cfg.total_steps < 1 or cfg.num_envs < 1 or cfg.checkpoint_every < 1 or cfg.log_every < 1:
+        raise ValueError("total_steps, num_envs, checkpoint_every and log_every must all be >= 1")
+    if not (math.isfinite(cfg.lr) and cfg.lr > 0):
+        raise ValueError(f"lr must be finite and > 0, got {cfg.lr}")
+    torch.set_num_threads(cfg.torch_threads)
+    out = Path(cfg.out)
+    teacher_dir = resolve_bundle(cfg.teacher)
+    teacher = load_bundle(teacher_dir)
+    if teacher.config.latent_source != "privileged":
+        raise ValueError(f"--teacher {cfg.teacher}: needs a teacher bundle (latent_source 'privileged'), got "
+                         f"{teacher.config.latent_source!r}")
+    if cfg.adaptation.latent_dim != teacher.config.latent_dim:
+        raise ValueError(f"adaptation.latent_dim {cfg.adaptation.latent_dim} != the teacher's latent size "
+                         f"{teacher.config.latent_dim}")
+    teacher_digest = _file_digest(teacher_dir / "model.safetensors")
+
+    # the student: teacher's actor and proprio normalization, fresh phi; only phi and its normalization train
+    torch.manual_seed(cfg.seed)
+    student = teacher.to_student(cfg.adaptation)
+    teacher.net.to(cfg.device).eval().requires_grad_(False)
+    student.net.to(cfg.device).eval().requires_grad_(False)
+    ext = student.net.extractor
+    assert isinstance(ext, StudentExtractor)
+    ext.adaptation.train().requires_grad_(True)
+    ext.hist_norm.train()
+    optim = torch.optim.Adam(ext.adaptation.parameters(), lr=cfg.lr)
+
+    n = cfg.num_envs
+    total_iters = math.ceil(cfg.total_steps / n)
+    interval = max(1, round(cfg.checkpoint_every / n))
+    start_iter = 0
+    if cfg.resume:
+        ckpt_path = _latest_checkpoint(out)
+        if ckpt_path is None or not (out / "config.json").is_file():
+            raise ValueError(f"--resume: no checkpoint ({CHECKPOINT_GLOB}) and config.json in {out}")
+        _check_resumable(cfg, out)
+        ckpt = torch.load(ckpt_path, map_location=cfg.device, weights_only=True)
+        if ckpt["teacher_digest"] != teacher_digest:
+            raise ValueError(f"--resume: {ckpt_path} was trained with another teacher (weights digest "
+                             f"{ckpt['teacher_digest']}, this teacher {teacher_digest})")
+        student.net.load_state_dict(ckpt["student"])
+        optim.load_state_dict(ckpt["optim"])
+        start_iter = int(ckpt["iteration"])
+    elif _latest_checkpoint(out) is not None:
+        raise ValueError(f"{out} already holds checkpoints; pass --resume to continue or choose another --out")
+    save_config(cfg, out / "config.json")
+
+    env = RotateCupVec(cfg.env, num_envs=n, seed=cfg.seed, nthread=cfg.nthread or None)
+    tracker = EpisodeTracker(n, cfg.env.control_dt, cfg.env.episode_steps)
+    keys = set(teacher.config.obs_groups) | set(student.config.obs_groups)
+    writer = _summary_writer(out / "tb", purge_step=start_iter * n)
+    history: list[dict[str, float]] = []
+    mse_sum, mse_count, episodes = 0.0, 0, []
+    bar = tqdm(total=total_iters * n, initial=start_iter * n, unit="step", disable=not cfg.progress,
+               desc="train-student", dynamic_ncols=True)
+    t_log = time.perf_counter()
+    obs: dict[str, np.ndarray] = {}
+    try:
+        for it in range(start_iter, total_iters):
+            if it == start_iter or it % interval == 0:
+                # each checkpoint interval starts from fresh resets (what makes resume exact)
+                obs = env.reset(seed=cfg.seed + it * n)
+                tracker.begin(obs)
+            t_obs = _obs_tensors(obs, keys, cfg.device)
+            with torch.no_grad():
+                z_teacher = teacher.net.extractor.z(t_obs)  # (N, Z)
+            z_student = ext.z(t_obs)  # (N, Z), updates the history normalization (train mode)
+            loss = torch.nn.functional.mse_loss(z_student, z_teacher)
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            optim.step()
+            # act with phi's estimate (DAgger: the student visits its own states)
+            with torch.no_grad():
+                actions = student.net.mean(t_obs, z_student.detach()).clamp(-1.0, 1.0)  # (N, 16)
+            obs, reward, terminated, truncated, info = env.step(actions.cpu().numpy())
+            episodes += tracker.step(reward, terminated, truncated, info)
+            done = np.flatnonzero(terminated | truncated)
+            if len(done):
+                obs = env.reset(ids=done)
+                tracker.begin(obs, done)
+
+            mse_sum, mse_count = mse_sum + loss.item(), mse_count + 1
+            bar.update(n)
+            step = (it + 1) * n
+            if (it + 1) % cfg.log_every == 0 or it + 1 == total_iters:
+                point: dict[str, float] = {"iteration": it + 1, "env_steps": step, "latent_mse": mse_sum / mse_count}
+                now = time.perf_counter()
+                point["steps_per_s"] = mse_count * n / max(now - t_log, 1e-9)
+                if episodes:
+                    s = summarize(episodes)
+                    point.update(ep_reward=s["reward"], ep_length=s["length"], rotation_rate=s["rotation_rate"],
+                                 ttf=s["ttf"])
+                _log(writer, point)
+                history.append(point)
+                bar.set_postfix(latent_mse=f"{point['latent_mse']:.4f}")
+                mse_sum, mse_count, episodes, t_log = 0.0, 0, [], now
+            if (it + 1) % interval == 0 or it + 1 == total_iters:
+                _save_checkpoint(out, student, optim, it + 1, teacher_digest)
+    finally:
+        bar.close()
+        writer.close()
+        env.close()
+
+    student.config = dataclasses.replace(student.config, card=_card(cfg, teacher_digest, history))
+    bundle_dir = student.save(out / "bundle")
+    return Result(bundle_dir, history)
+
+
+def _card(cfg: Config, digest: str, history: list[dict[str, float]]) -> dict[str, Any]:
+    last = history[-1] if history else {}
+    return {
+        "kind": "student",
+        "trained_by": "rotate train-student",
+        "teacher": cfg.teacher,
+        "teacher_weights_sha256_16": digest,
+        "env_steps": int(last.get("env_steps", 0)),
+        "final_latent_mse": last.get("latent_mse"),
+        "config": to_jsonable(cfg),
+    }
+
+
+def _save_checkpoint(out: Path, student: PolicyBundle, optim: torch.optim.Optimizer, iteration: int,
+                     teacher_digest: str) -> Path:
+    path = out / f"ckpt_{iteration:09d}.pt"
+    tmp = path.with_suffix(".tmp")
+    state = {k: v.detach().cpu() for k, v in student.net.state_dict().items()}
+    torch.save({"student": state, "optim": optim.state_dict(), "iteration": iteration,
+                "teacher_digest": teacher_digest}, tmp)
+    tmp.replace(path)  # atomic: a crash never leaves a half-written checkpoint as the latest
+    return path
+
+
+def _summary_writer(log_dir: Path, purge_step: int):
+    from torch.utils.tensorboard import SummaryWriter
+
+    # purge_step drops points a crashed run logged after its last checkpoint, so curves stay continuous on resume
+    return SummaryWriter(log_dir=str(log_dir), purge_step=purge_step or None)
+
+
+_TB_TAGS = {
+    "latent_mse": "student/latent_mse",
+    "ep_reward": "rollout/episode_reward",
+    "rotation_rate": "rollout/rotation_rate",
+    "ep_length": "rollout/episode_length",
+    "ttf": "rollout/ttf",
+    "steps_per_s": "time/steps_per_s",
+}
+
+
+def _log(writer, point: dict[str, float]) -> None:
+    for key, tag in _TB_TAGS.items():
+        if key in point:
+            writer.add_scalar(tag, point[key], global_step=int(point["env_steps"]))
+
+
+def load_config(path: str | Path) -> Config:
+    """The Config a run saved (``<out>/config.json``)."""
+    return from_jsonable(Config, json.loads(Path(path).read_text()))

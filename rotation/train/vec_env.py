@@ -1,0 +1,101 @@
+"""The batched core as a stable-baselines3 VecEnv (lives here because SB3 imports torch; envs never does).
+
+Auto-reset follows SB3's contract: a finished env is reset in the same step, its last observation goes to
+`infos[i]["terminal_observation"]`, and a time-limit end sets `infos[i]["TimeLimit.truncated"]` so PPO bootstraps
+it. Per-episode statistics (return, length, each reward term, rotation) are reported in `infos[i]["episode"]` when
+an episode ends, which SB3's logger and the training callbacks read.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv
+
+from envs.config import EnvConfig
+from envs.core import RotateCupVec
+
+
+class RotateCupSB3VecEnv(VecEnv):
+    """SB3 view of a :class:`RotateCupVec`; ``reward_scale`` multiplies rewards seen by the learner only."""
+
+    def __init__(self, cfg: EnvConfig, num_envs: int, seed: int = 0, nthread: int | None = None,
+                 reward_scale: float = 1.0):
+        self.core = RotateCupVec(cfg, num_envs=num_envs, seed=seed, nthread=nthread)
+        super().__init__(num_envs, self.core.single_observation_space, self.core.single_action_space)
+        self.reward_scale = float(reward_scale)
+        self._seed = seed
+        self._actions: np.ndarray | None = None
+        self._ep_return = np.zeros(num_envs)
+        self._ep_terms: dict[str, np.ndarray] = {}
+        self._ep_rotation = np.zeros(num_envs)
+
+    # -- VecEnv API
+    def reset(self):
+        seed = self._seed if self._seed is not None else None
+        self._seed = None  # later resets continue the episode counters
+        obs = self.core.reset(seed=seed)
+        self._ep_return[:] = 0
+        self._ep_rotation[:] = 0
+        self._ep_terms = {}
+        return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions)
+
+    def step_wait(self):
+        assert self._actions is not None, "step_async must come first"
+        obs, reward, terminated, truncated, info = self.core.step(self._actions)
+        self._ep_return += reward
+        self._ep_rotation += info["rotation"]
+        for k, v in info.items():
+            if k.startswith("rew_"):
+                self._ep_terms.setdefault(k, np.zeros(self.num_envs))
+                self._ep_terms[k] += v
+        done = terminated | truncated
+        infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        ids = np.flatnonzero(done)
+        if len(ids):
+            for i in ids:
+                steps = int(info["elapsed_steps"][i])
+                ep = {"r": float(self._ep_return[i]), "l": steps,
+                      "rotation": float(self._ep_rotation[i]),
+                      "rotation_rate": float(self._ep_rotation[i] / (steps * self.core.cfg.control_dt)),
+                      "ttf": steps / self.core.cfg.episode_steps if terminated[i] else 1.0}
+                ep.update({k: float(v[i]) for k, v in self._ep_terms.items()})
+                infos[i] = {"terminal_observation": {k: v[i].copy() for k, v in obs.items()},
+                            "TimeLimit.truncated": bool(truncated[i] and not terminated[i]), "episode": ep}
+            self._ep_return[ids] = 0
+            self._ep_rotation[ids] = 0
+            for v in self._ep_terms.values():
+                v[ids] = 0
+            self.core._reset_ids(ids)
+            obs = self.core._observe()
+        return obs, (reward * self.reward_scale).astype(np.float32), done, infos
+
+    def close(self) -> None:
+        self.core.close()
+
+    def seed(self, seed: int | None = None):
+        self._seed = seed
+        return [None if seed is None else seed + i for i in range(self.num_envs)]
+
+    def get_attr(self, attr_name: str, indices=None):
+        return [getattr(self.core, attr_name) for _ in self._indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        setattr(self.core, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs):
+        return [getattr(self.core, method_name)(*method_args, **method_kwargs) for _ in self._indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class, indices=None):
+        return [False for _ in self._indices(indices)]
+
+    def _indices(self, indices) -> list[int]:
+        if indices is None:
+            return list(range(self.num_envs))
+        if isinstance(indices, int):
+            return [indices]
+        return list(indices)
