@@ -14,13 +14,15 @@ from envs.objects import OBJECTS
 
 
 def _check_range(name: str, lo_hi: tuple[float, float], low: float = -math.inf, high: float = math.inf) -> None:
-    if len(lo_hi) != 2:
-        raise ValueError(f"{name} must be a (low, high) pair, got {lo_hi!r}")
-    lo, hi = float(lo_hi[0]), float(lo_hi[1])
+    allowed = f"a (low, high) pair with low <= high within [{low}, {high}]"
+    try:
+        lo, hi = (float(v) for v in lo_hi)
+    except (TypeError, ValueError):  # not a pair of numbers: a scalar, one or three values, text
+        raise ValueError(f"{name} must be {allowed}, got {lo_hi!r}") from None
     if not (math.isfinite(lo) and math.isfinite(hi)):
         raise ValueError(f"{name} must be finite, got {lo_hi!r}")
     if lo > hi:
-        raise ValueError(f"{name} is inverted: low {lo} > high {hi}")
+        raise ValueError(f"{name} is inverted: low {lo} > high {hi}; expected {allowed}")
     if lo < low or hi > high:
         raise ValueError(f"{name}={lo_hi!r} is outside the allowed interval [{low}, {high}]")
 
@@ -30,7 +32,8 @@ class RandomizationConfig:
     """Domain randomization (reference/hora.md "Domain randomization"). Ranges are (low, high), sampled uniformly."""
 
     enabled: bool = True
-    """Master switch; when False every env uses the nominal values below (first scale, mid ranges)."""
+    """Master switch; when False every env uses the nominal values: the middle scale bucket without jitter, the
+    middle of the mass and friction ranges, no CoM offset, the env's kp / kd, no observation noise, no pushes."""
     scales: tuple[float, ...] = (0.70, 0.72, 0.74, 0.76, 0.78, 0.80, 0.82, 0.84, 0.86)
     """Object scale buckets (Hora: 9 values 0.70..0.86), one picked per env at reset."""
     scale_jitter: float = 0.025
@@ -91,8 +94,9 @@ class RewardConfig:
     """Squared norm of the joint torques (N^2 m^2)."""
     work: float = -2.0
     """(tau . qdot)^2, the mechanical power penalty."""
-    fall: float = 0.0
-    """One-off reward when the object falls (0 in Hora)."""
+    fall: float = -20.0
+    """One-off reward when the object falls. Hora has none; without it, a CPU-budget teacher learned to drop the
+    object early (every other term is a penalty, so ending the episode looked good): ttf fell from 0.7 to 0.2."""
     axis: tuple[float, float, float] = (0.0, 0.0, -1.0)
     """Commanded rotation axis in the world frame (Hora: -z, palm up)."""
 
@@ -119,7 +123,8 @@ class Perturbation:
             raise ValueError(f"perturb.friction_scale must be finite and > 0, got {self.friction_scale}")
         if not (math.isfinite(self.added_mass) and self.added_mass >= 0):
             raise ValueError(f"perturb.added_mass must be finite and >= 0 kg, got {self.added_mass}")
-        if len(self.com_shift) != 3 or not all(math.isfinite(c) and abs(c) <= 0.05 for c in self.com_shift):
+        shift = self.com_shift if hasattr(self.com_shift, "__len__") else ()  # a scalar is a bad shift too
+        if len(shift) != 3 or not all(math.isfinite(c) and abs(c) <= 0.05 for c in shift):
             raise ValueError(f"perturb.com_shift must be 3 finite values within +-0.05 m, got {self.com_shift!r}")
 
     @property
@@ -131,8 +136,8 @@ class Perturbation:
 class EnvConfig:
     """RotateCup-v0: rotate the object about the vertical axis in a palm-up Allegro hand."""
 
-    object: str = "cylinder"
-    """Object name (see envs.objects.OBJECTS): Hora's cylinders 'cylinder_0'..'cylinder_8', 'cylinder', cups."""
+    object: str = "cup"
+    """Object name (see envs.objects.OBJECTS): 'cup' (default), 'cup_small', 'cup_large', Hora's 'cylinder_0'..'8'."""
     physics_dt: float = 0.01
     """Physics step (s). 10 ms with implicitfast integration keeps the PD and contacts stable at 5 substeps."""
     control_hz: float = C.CONTROL_HZ
@@ -149,6 +154,8 @@ class EnvConfig:
     """Actuator torque limit (N m), the real hand's clamp."""
     fall_drop: float = 0.05
     """The object has fallen when its centre is this far (m) below its grasp height."""
+    max_distance: float = 0.12
+    """The object has also fallen when its centre is this far (m) from where the episode started."""
     grasp_cache: str = ""
     """Path to a grasp cache (.npz) from `rotate grasps`; empty = the cache shipped with the package."""
     tactile: bool = False
@@ -172,7 +179,7 @@ class EnvConfig:
             )
         if self.episode_steps < 1:
             raise ValueError(f"episode_steps must be >= 1, got {self.episode_steps}")
-        for name in ("action_scale", "kp", "torque_limit", "fall_drop"):
+        for name in ("action_scale", "kp", "torque_limit", "fall_drop", "max_distance"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {value}")

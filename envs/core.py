@@ -8,6 +8,7 @@ loop. Env i of a batch seeded s behaves exactly like a single env seeded s + i (
 from __future__ import annotations
 
 import os
+from functools import partial
 
 import gymnasium as gym
 import mujoco
@@ -21,6 +22,8 @@ from envs.objects import get_object
 from envs.observation import ProprioHistory
 from envs.rng import CounterRNG, env_keys
 from envs.scene import OBJECT_BODY, build_model
+from envs.sensors.digit360 import add_digit360_sensors
+from envs.sensors.tactile_obs import TouchState, tactile_space
 
 # Random streams (see envs.rng): one id per use, so adding a draw never shifts another.
 _STREAM_RESET, _STREAM_NOISE, _STREAM_PUSH_P, _STREAM_PUSH_F = 1, 2, 3, 4
@@ -67,13 +70,17 @@ class RotateCupVec:
         self.obj = get_object(cfg.object)
         rc = cfg.randomization
         self.max_scale = (max(rc.scales) + rc.scale_jitter) if rc.enabled else self._nominal_scale()
-        self.model = build_model(self.obj, self.max_scale, cfg.physics_dt)
+        # [touch, issue 4] the Digit 360 sensors exist only with tactile=True; the plain model is unchanged
+        touch_sensors = partial(add_digit360_sensors, history=cfg.substeps) if cfg.tactile else None
+        self.model = build_model(self.obj, self.max_scale, cfg.physics_dt, edit=touch_sensors)
         m = self.model
         m.actuator_forcerange[:] = [-cfg.torque_limit, cfg.torque_limit]
         self._set_gains(m.actuator_gainprm[None], m.actuator_biasprm[None], np.full((1, C.NUM_JOINTS), cfg.kp),
                         np.full((1, C.NUM_JOINTS), cfg.kd))
         self.nthread = nthread if nthread is not None else max(1, min(os.cpu_count() or 1, n))
         self.batch = mujoco.batch.Batch(m, n, self.nthread, persistent=True)
+        # [touch, issue 4] per-env contact history feeding obs["tactile"]; None keeps the plain path as it was
+        self.touch = TouchState(m, n, cfg.physics_dt, cfg.substeps) if cfg.tactile else None
 
         # model indices
         self.obj_body = m.body(OBJECT_BODY).id
@@ -109,7 +116,7 @@ class RotateCupVec:
         self.steps = np.zeros(n, dtype=np.int64)
         self.targets = np.zeros((n, C.NUM_JOINTS))
         self.grasp_q = np.zeros((n, C.NUM_JOINTS))
-        self.start_z = np.zeros(n)
+        self.start_pos = np.zeros((n, 3))
         self.push = np.zeros((n, 3))
         self.params = {k: np.zeros(s) for k, s in
                        (("scale", n), ("mass", n), ("friction", n), ("com", (n, 3)), ("kp", (n, 16)), ("kd", (n, 16)))}
@@ -122,6 +129,7 @@ class RotateCupVec:
                 "proprio": gym.spaces.Box(-np.inf, np.inf, (C.PROPRIO_STEPS, C.PROPRIO_DIM), np.float32),
                 "proprio_hist": gym.spaces.Box(-np.inf, np.inf, (C.HISTORY_STEPS, C.PROPRIO_DIM), np.float32),
                 "priv": gym.spaces.Box(-np.inf, np.inf, (C.PRIV_DIM,), np.float32),
+                **({"tactile": tactile_space()} if cfg.tactile else {}),  # [touch, issue 4]
             }
         )
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (C.NUM_JOINTS,), np.float32)
@@ -218,10 +226,12 @@ class RotateCupVec:
         self.batch.forward(ids)
         self.targets[ids] = q
         self.grasp_q[ids] = q
-        self.start_z[ids] = pose[:, 2]
+        self.start_pos[ids] = pose[:, :3]
         self.steps[ids] = 0
         self.push[ids] = 0.0
         self.history.reset(ids, q)
+        if self.touch is not None:  # [touch, issue 4] the reset reading fills the contact history
+            self.touch.reset(ids, self.batch.bind("sensordata"), self.rng.keys[ids], self.episode[ids])
 
     def _priv(self) -> np.ndarray:
         pos = self._qpos[:, self.obj_qpos : self.obj_qpos + 3]
@@ -231,7 +241,10 @@ class RotateCupVec:
         ).astype(np.float32)
 
     def _observe(self) -> dict[str, np.ndarray]:
-        return {"proprio": self.history.proprio, "proprio_hist": self.history.history, "priv": self._priv()}
+        obs = {"proprio": self.history.proprio, "proprio_hist": self.history.history, "priv": self._priv()}
+        if self.touch is not None:  # [touch, issue 4] windows rendered lazily on access (envs.sensors.tactile_obs)
+            obs["tactile"] = self.touch.observe()
+        return obs
 
     def step(self, actions: np.ndarray):
         """Advance every env one policy step. Returns (obs, reward, terminated, truncated, info)."""
@@ -262,6 +275,8 @@ class RotateCupVec:
         pos0 = self._qpos[:, o : o + 3].copy()
         quat0 = self._qpos[:, o + 3 : o + 7].copy()
         self.batch.step(nstep=cfg.substeps)
+        if self.touch is not None:  # [touch, issue 4] every substep's sensor sample, from the sensors' history
+            self.touch.push(self.batch.bind("history"))
         qpos, qvel = self._qpos, self._qvel
         q, qdot = qpos[:, : C.NUM_JOINTS], qvel[:, : C.NUM_JOINTS]
         pos, quat = qpos[:, o : o + 3], qpos[:, o + 3 : o + 7]
@@ -280,7 +295,9 @@ class RotateCupVec:
             "work": rw.work * (tau * qdot).sum(-1) ** 2,
         }
         finite = np.all(np.isfinite(qpos), axis=1) & np.all(np.isfinite(qvel), axis=1)
-        fell = (pos[:, 2] < self.start_z - cfg.fall_drop) | ~finite
+        # fell: dropped below the grasp, or left the hand in any direction (e.g. flicked away)
+        away = np.linalg.norm(pos - self.start_pos, axis=1) > cfg.max_distance
+        fell = (pos[:, 2] < self.start_pos[:, 2] - cfg.fall_drop) | away | ~finite
         terms["fall"] = rw.fall * fell
         reward = sum(terms.values())
         reward = np.where(finite, reward, 0.0)

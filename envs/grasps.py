@@ -11,6 +11,8 @@ randomization scale. Reset picks the bucket of the env's scale and a row uniform
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -64,20 +66,37 @@ class GraspCache:
         return rows[:, : C.NUM_JOINTS].copy(), rows[:, C.NUM_JOINTS :].copy()
 
     def save(self, path: str | Path) -> None:
+        """Write the cache to exactly ``path`` (through a file object: numpy would append '.npz' to a name)."""
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, object=self.object, scales=self.scales, grasps=self.grasps.astype(np.float32),
-                            seed=self.seed)
+        with open(path, "wb") as f:
+            np.savez_compressed(f, object=self.object, scales=self.scales, grasps=self.grasps.astype(np.float32),
+                                seed=self.seed)
 
     @classmethod
     def load(cls, path: str | Path) -> GraspCache:
         path = Path(path)
         if not path.is_file():
             raise ValueError(f"grasp cache {path} does not exist (generate one with `rotate grasps`)")
-        with np.load(path, allow_pickle=False) as f:
+        damaged = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)  # what numpy / zipfile raise
+        try:
+            f = np.load(path, allow_pickle=False)
+        except damaged as err:
+            raise ValueError(f"grasp cache {path} is not a readable .npz file ({type(err).__name__}: {err}); "
+                             f"regenerate it with `rotate grasps`") from err
+        if not isinstance(f, np.lib.npyio.NpzFile):
+            raise ValueError(f"grasp cache {path} is a single .npy array, not an .npz grasp cache; "
+                             f"regenerate it with `rotate grasps`")
+        with f:
             missing = {"object", "scales", "grasps"} - set(f.files)
             if missing:
                 raise ValueError(f"grasp cache {path} is missing {sorted(missing)}")
-            return cls(str(f["object"]), f["scales"], f["grasps"], int(f["seed"]) if "seed" in f.files else 0)
+            try:  # members are read (decompressed, CRC-checked) here
+                name, scales, grasps = str(f["object"]), f["scales"], f["grasps"]
+                seed = int(f["seed"]) if "seed" in f.files else 0
+            except damaged as err:
+                raise ValueError(f"grasp cache {path} is corrupted ({type(err).__name__}: {err}); "
+                                 f"regenerate it with `rotate grasps`") from err
+        return cls(name, scales, grasps, seed)
 
 
 def default_cache_path(object_name: str) -> Path:

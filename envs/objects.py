@@ -33,14 +33,15 @@ class ObjectSpec:
             return [dict(type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[r, h / 2, 0], pos=[0, 0, 0], quat=quat)]
         geoms = [dict(type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[r, h / 2, 0], pos=[0, 0, 0], quat=[1, 0, 0, 0])]
         if self.handle:
-            # a C-shaped handle from three capsules on the -x side of the cup body
+            # a C-shaped handle from three capsules on the +y side of the cup body (away from fingers and thumb)
             t, out = 0.18 * r, 0.45 * r
+            along_y = [np.cos(np.pi / 4), np.sin(np.pi / 4), 0, 0]  # capsule axis z -> y
             geoms += [
-                dict(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[t / 2, out / 2, 0], pos=[-r - out / 2, 0, 0.3 * h],
-                     quat=[np.cos(np.pi / 4), 0, np.sin(np.pi / 4), 0]),
-                dict(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[t / 2, out / 2, 0], pos=[-r - out / 2, 0, -0.3 * h],
-                     quat=[np.cos(np.pi / 4), 0, np.sin(np.pi / 4), 0]),
-                dict(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[t / 2, 0.3 * h, 0], pos=[-r - out, 0, 0],
+                dict(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[t / 2, out / 2, 0], pos=[0, r + out / 2, 0.3 * h],
+                     quat=along_y),
+                dict(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[t / 2, out / 2, 0], pos=[0, r + out / 2, -0.3 * h],
+                     quat=along_y),
+                dict(type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[t / 2, 0.3 * h, 0], pos=[0, r + out, 0],
                      quat=[1, 0, 0, 0]),
             ]
         return geoms

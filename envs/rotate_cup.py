@@ -29,6 +29,11 @@ def _nested(kwargs: dict[str, Any]) -> dict[str, Any]:
     out = dict(kwargs)
     for key, cls in (("randomization", RandomizationConfig), ("reward", RewardConfig), ("perturb", Perturbation)):
         if isinstance(out.get(key), dict):
+            known = {f.name for f in dataclasses.fields(cls)}
+            unknown = set(out[key]) - known
+            if unknown:  # the dataclass would raise a TypeError that names neither the option nor the choices
+                raise ValueError(f"unknown RotateCup option(s) {sorted(f'{key}.{k}' for k in unknown)}; "
+                                 f"known {key} options: {sorted(known)}")
             out[key] = cls(**out[key])
     return out
 

@@ -6,6 +6,7 @@ sizes, so the compiled bounding volumes stay conservative and collision detectio
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import mujoco
@@ -23,8 +24,12 @@ def hand_xml_path() -> str:
     return str(Path(__file__).resolve().parent / "assets" / "allegro_right_digit360.xml")
 
 
-def build_model(obj: ObjectSpec, scale: float = 1.0, timestep: float = 0.01) -> mujoco.MjModel:
-    """Compile the hand + object model with the object at ``scale`` (the env's largest)."""
+def build_model(obj: ObjectSpec, scale: float = 1.0, timestep: float = 0.01,
+                edit: Callable[[mujoco.MjSpec], None] | None = None) -> mujoco.MjModel:
+    """Compile the hand + object model with the object at ``scale`` (the env's largest).
+
+    ``edit`` may add elements to the finished spec before compiling (e.g. the Digit 360 sensors).
+    """
     spec = mujoco.MjSpec.from_file(hand_xml_path())
     spec.option.timestep = timestep
     body = spec.worldbody.add_body(name=OBJECT_BODY, pos=OBJECT_START.tolist())
@@ -33,7 +38,9 @@ def build_model(obj: ObjectSpec, scale: float = 1.0, timestep: float = 0.01) -> 
         body.add_geom(
             name=f"object_{i}", type=g["type"], size=list(g["size"]), pos=list(g["pos"]), quat=list(g["quat"]),
             contype=2, conaffinity=1, condim=4, friction=[1.0, 0.01, 0.001], density=400.0,
-            solref=[0.01, 1.0], solimp=[0.95, 0.99, 0.001, 0.5, 2.0], rgba=[0.85, 0.45, 0.2, 1.0],
+            solref=[0.02, 1.0], solimp=[0.9, 0.95, 0.001, 0.5, 2.0], rgba=[0.85, 0.45, 0.2, 1.0],
         )
     body.add_site(name="object_center", pos=[0, 0, 0], size=[0.004, 0, 0], rgba=[0, 0, 1, 1])
+    if edit is not None:
+        edit(spec)
     return spec.compile()

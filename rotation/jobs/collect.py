@@ -1,0 +1,274 @@
+"""Collect simulated touch sessions: the batched env with Digit 360 touch on, one session file per episode.
+
+    rotate collect --policy random --episodes 64 --out data/touch --num-envs 8
+    rotate collect --policy runs/teacher/bundle --episodes 200 --out data/touch_lowfric --friction-scale 0.5
+    rotate collect --policy student --episodes 20 --out data/heavy --added-mass 0.1 --com-shift 0 0 0.01
+
+Files: OUT/shard_<e // 100>/episode_<e>.h5 in the session format (rotation.data.session) with joint streams,
+per-substep contact fields of every fingertip (the loader renders images, audio, IMU and pressure from them) and
+per-step labels (force, slip, contact, object pose, privileged vector; the teacher's latent z when the policy is a
+privileged bundle). OUT/collect.json records the settings. Episode e runs in env slot e % num_envs as that slot's
+(e // num_envs)-th episode, so a run is deterministic under its settings and an interrupted run resumes where it
+stopped: complete files are kept, partial ones (a killed writer) are recorded again, identically.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from envs import constants as C
+from envs.config import EnvConfig, Perturbation
+from envs.core import RotateCupVec
+from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, FINGERS
+from rotation.configs import to_jsonable
+from rotation.data.session import LATENT_DIM, SessionMeta, SessionReader, SessionWriter, StreamSetup
+
+SHARD_SIZE = 100
+"""Episodes per shard directory."""
+MANIFEST = "collect.json"
+_SETTINGS = ("policy", "object", "seed", "num_envs", "friction_scale", "added_mass", "com_shift", "episode_steps",
+             "random_scale")
+"""Settings that must match to resume into an existing output directory."""
+
+
+@dataclass(frozen=True)
+class Config:
+    policy: str = "random"
+    """'random' (smoothed uniform actions), or a policy bundle: a shipped name or a directory (load_bundle)."""
+    episodes: int = 8
+    """Number of episodes (= session files) to have in OUT when done."""
+    out: Path = Path("touch_sessions")
+    """Output directory (created; resumed if it already holds a collection with the same settings)."""
+    friction_scale: float = 1.0
+    """Multiplies the randomized friction (evaluation perturbation)."""
+    added_mass: float = 0.0
+    """Added object mass (kg)."""
+    com_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Added centre-of-mass offset (m, object frame)."""
+    num_envs: int = 4
+    """Simulations stepped together."""
+    seed: int = 0
+    """Seed of the collection (env slot i is seeded seed + i)."""
+    object: str = "cylinder"
+    """Object to rotate (envs.objects)."""
+    episode_steps: int = 400
+    """Truncate episodes after this many policy steps (20 s at 20 Hz)."""
+    random_scale: float = 0.5
+    """Action magnitude of the random policy (actions in [-1, 1] x this, low-pass filtered)."""
+    flush_interval_s: float = 2.0
+    """Session writers flush at least this often (s): the most a crash can lose."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1:
+            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        if self.num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
+        if not 0.0 < self.random_scale <= 1.0:
+            raise ValueError(f"random_scale must be in (0, 1], got {self.random_scale}")
+        if len(self.com_shift) != 3:
+            raise ValueError(f"com_shift needs 3 values (X Y Z, m), got {self.com_shift!r}")
+
+
+def episode_path(out: Path, episode: int) -> Path:
+    return out / f"shard_{episode // SHARD_SIZE:03d}" / f"episode_{episode:06d}.h5"
+
+
+def is_complete(path: Path) -> bool:
+    """A session file that exists and whose writer closed it."""
+    if not path.is_file():
+        return False
+    try:
+        with SessionReader(path) as r:
+            return r.complete
+    except ValueError:
+        return False
+
+
+class _RandomPolicy:
+    """Low-pass filtered uniform actions, a deterministic stream per episode (seed, episode)."""
+
+    def __init__(self, num_envs: int, seed: int, scale: float):
+        self.seed, self.scale = seed, scale
+        self.rngs: list[np.random.Generator | None] = [None] * num_envs
+        self.prev = np.zeros((num_envs, C.NUM_JOINTS))
+
+    def start(self, slot: int, episode: int) -> None:
+        self.rngs[slot] = np.random.default_rng([self.seed, episode])
+        self.prev[slot] = 0.0
+
+    def __call__(self, obs: dict, active: np.ndarray) -> np.ndarray:
+        for i in np.flatnonzero(active):
+            u = self.rngs[i].uniform(-1.0, 1.0, C.NUM_JOINTS)
+            self.prev[i] = 0.7 * self.prev[i] + 0.3 * u  # smooth: a hand jerked at 20 Hz drops everything
+        return np.clip(self.prev * self.scale / 0.3, -1.0, 1.0) * active[:, None]
+
+
+class _BundlePolicy:
+    """A policy bundle acting on the groups it reads (batched when the bundle offers ``act_batch``)."""
+
+    def __init__(self, name_or_path: str):
+        from rotation.policy.bundle import load_bundle
+
+        self.bundle = load_bundle(name_or_path)
+        cfg = self.bundle.config
+        self.groups = tuple(cfg.obs_groups)
+        self.privileged = getattr(cfg, "latent_source", None) == "privileged" and cfg.latent_dim == LATENT_DIM
+
+    def start(self, slot: int, episode: int) -> None:
+        pass
+
+    def _obs(self, obs: dict) -> dict:
+        return {k: obs[k] for k in self.groups}
+
+    def __call__(self, obs: dict, active: np.ndarray) -> np.ndarray:
+        o = self._obs(obs)
+        if hasattr(self.bundle, "act_batch"):
+            return np.asarray(self.bundle.act_batch(o), dtype=np.float64)
+        return np.stack([self.bundle.act({k: v[i] for k, v in o.items()}) for i in range(len(active))])
+
+    def latent(self, obs: dict) -> np.ndarray | None:
+        """The teacher's z (N, 8) when the bundle is a privileged teacher, else None."""
+        return np.asarray(self.bundle.latent(self._obs(obs)), dtype=np.float32) if self.privileged else None
+
+
+def _streams(control_hz: float, physics_hz: float, with_z: bool) -> list[StreamSetup]:
+    s = [StreamSetup(n, rate_hz=control_hz) for n in ("joints/position", "joints/target", "joints/torque",
+                                                        "labels/force", "labels/slip", "labels/contact",
+                                                        "labels/object_pose", "labels/priv")]
+    if with_z:
+        s.append(StreamSetup("labels/z", rate_hz=control_hz))
+    s += [StreamSetup(f"digit360/{f}/contact", rate_hz=physics_hz) for f in FINGERS]
+    return s
+
+
+def _labels(rows: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-step touch labels from the last substep's contact fields (N, 4, D)."""
+    fn = np.stack([rows[..., FIELD[f"c{k}_fn"]] for k in range(CONTACT_SLOTS)], axis=-1)  # (N, 4, K)
+    slip = np.stack([rows[..., FIELD[f"c{k}_slip"]] for k in range(CONTACT_SLOTS)], axis=-1)
+    return {
+        "force": rows[..., [FIELD["force_n"], FIELD["force_x"], FIELD["force_y"]]].astype(np.float32),  # (N, 4, 3)
+        "slip": np.where(fn > 0, slip, 0.0).max(axis=-1).astype(np.float32),  # (N, 4)
+        "contact": (fn.max(axis=-1) > 0).astype(np.uint8),  # (N, 4)
+    }
+
+
+class _Recorder:
+    """Writes one env slot's episode: joints and labels per policy step, contact fields per substep."""
+
+    def __init__(self, env: RotateCupVec, cfg: Config, slot: int, episode: int, with_z: bool):
+        self.env, self.slot, self.episode = env, slot, episode
+        self.path = episode_path(cfg.out, episode)
+        p = env.params
+        meta = SessionMeta(
+            source="sim", object=cfg.object, control_hz=env.cfg.control_hz, seed=cfg.seed,
+            properties={"scale": float(p["scale"][slot]), "mass": float(p["mass"][slot]),
+                        "friction": float(p["friction"][slot]), "com": p["com"][slot].tolist()},
+            extra={"episode": episode, "slot": slot, "touch_key": int(env.touch.episode_keys[slot]),
+                   "physics_dt": env.cfg.physics_dt, "collect": to_jsonable(cfg)},
+        )
+        self.writer = SessionWriter(self.path, meta, _streams(env.cfg.control_hz, 1.0 / env.cfg.physics_dt, with_z),
+                                    flush_interval_s=cfg.flush_interval_s, overwrite=True)
+
+    def record_step(self, obs: dict, z: np.ndarray | None, labels: dict[str, np.ndarray], substeps: bool) -> None:
+        env, i, w = self.env, self.slot, self.writer
+        t = np.array([env.steps[i] * env.cfg.control_dt])
+        qpos = env.batch.bind("qpos")
+        w.append("joints/position", qpos[i : i + 1, : C.NUM_JOINTS], t)
+        w.append("joints/target", env.targets[i : i + 1], t)
+        w.append("joints/torque", env.batch.bind("actuator_force")[i : i + 1], t)
+        w.append("labels/object_pose", qpos[i : i + 1, env.obj_qpos : env.obj_qpos + 7], t)
+        w.append("labels/priv", obs["priv"][i : i + 1], t)
+        for name, value in labels.items():
+            w.append(f"labels/{name}", value[i : i + 1], t)
+        if z is not None:
+            w.append("labels/z", z[i : i + 1], t)
+        if substeps:
+            for f, finger in enumerate(FINGERS):
+                w.append(f"digit360/{finger}/contact", env.touch.last_rows[i, f], env.touch.last_times[i])
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+def _check_manifest(cfg: Config) -> None:
+    path = cfg.out / MANIFEST
+    settings = {k: to_jsonable(getattr(cfg, k)) for k in _SETTINGS}
+    if path.is_file():
+        old = json.loads(path.read_text()).get("settings", {})
+        diff = {k: (old.get(k), v) for k, v in settings.items() if old.get(k) != v}
+        if diff:
+            changes = ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in diff.items())
+            raise ValueError(f"{cfg.out} holds a collection with other settings ({changes}); use another --out or "
+                             "the same settings to resume")
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"settings": settings, "config": to_jsonable(cfg)}, indent=2) + "\n")
+
+
+def run(cfg: Config) -> dict[str, float]:
+    """Collect until OUT holds ``cfg.episodes`` complete sessions; returns simple throughput figures."""
+    _check_manifest(cfg)
+    todo = [e for e in range(cfg.episodes) if not is_complete(episode_path(cfg.out, e))]
+    if not todo:
+        print(f"collect: {cfg.out} already holds {cfg.episodes} complete sessions")
+        return {"episodes": 0, "steps": 0, "steps_per_s": 0.0, "samples_per_s": 0.0}
+    m = cfg.num_envs
+    env_cfg = EnvConfig(object=cfg.object, tactile=True, episode_steps=cfg.episode_steps,
+                        perturb=Perturbation(cfg.friction_scale, cfg.added_mass, tuple(cfg.com_shift)))
+    env = RotateCupVec(env_cfg, num_envs=m, seed=cfg.seed)
+    policy = _RandomPolicy(m, cfg.seed, cfg.random_scale) if cfg.policy == "random" else _BundlePolicy(cfg.policy)
+    with_z = isinstance(policy, _BundlePolicy) and policy.privileged
+    queues = [[e for e in todo if e % m == i] for i in range(m)]  # slot i runs episodes i, i + m, ...
+    obs = env.reset(seed=cfg.seed)
+    recorders: list[_Recorder | None] = [None] * m
+
+    def start(slot: int) -> dict:
+        """Start the slot's next queued episode (its (e // m)-th episode, whatever ran before)."""
+        e = queues[slot].pop(0)
+        env.episode[slot] = e // m - 1  # _reset_ids increments it: the env draws episode e // m of this slot
+        new_obs = env.reset(ids=np.array([slot]))
+        policy.start(slot, e)
+        recorders[slot] = _Recorder(env, cfg, slot, e, with_z)
+        labels = _labels(env.touch.last_rows[:, :, -1])
+        z = policy.latent(new_obs) if with_z else None
+        recorders[slot].record_step(new_obs, z, labels, substeps=False)  # the state at t = 0
+        return new_obs
+
+    for i in range(m):
+        if queues[i]:
+            obs = start(i)
+    steps, t0 = 0, time.perf_counter()
+    try:
+        with tqdm(total=len(todo), unit="episode", desc="collect", disable=not cfg.progress, dynamic_ncols=True) as bar:
+            while any(r is not None for r in recorders):
+                active = np.array([r is not None for r in recorders])
+                actions = policy(obs, active)
+                obs, _, terminated, truncated, _ = env.step(actions * active[:, None])
+                steps += int(active.sum())
+                labels = _labels(env.touch.last_rows[:, :, -1])
+                z = policy.latent(obs) if with_z else None
+                for i in np.flatnonzero(active):
+                    recorders[i].record_step(obs, z, labels, substeps=True)
+                for i in np.flatnonzero(active & (terminated | truncated)):
+                    recorders[i].close()
+                    recorders[i] = None
+                    bar.update(1)
+                    if queues[i]:
+                        obs = start(i)
+                bar.set_postfix(steps_per_s=f"{steps / (time.perf_counter() - t0):.0f}")
+    finally:
+        for r in recorders:  # interrupted: keep what was recorded, unmarked, for the next run to redo
+            if r is not None:
+                r.writer.abort()
+    elapsed = time.perf_counter() - t0
+    # one sample = one fingertip window the loader can cut: 30 per simulated second and fingertip
+    samples = steps * env_cfg.control_dt * 30.0 * len(FINGERS)
+    print(f"collect: {len(todo)} sessions, {steps} steps in {elapsed:.1f} s -> {cfg.out}")
+    return {"episodes": len(todo), "steps": steps, "steps_per_s": steps / elapsed, "samples_per_s": samples / elapsed}
