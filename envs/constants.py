@@ -49,7 +49,8 @@ PROPRIO_STEPS = 3
 HISTORY_STEPS = 30
 PRIV_DIM = 9
 PRIV_FIELDS = ("pos_x", "pos_y", "pos_z", "scale", "mass", "friction", "com_x", "com_y", "com_z")
-"""Layout of the privileged vector (Hora): object position (3, m, hand frame), scale, mass (kg), friction, CoM offset (3, m)."""
+"""Layout of the privileged vector (Hora): object position (3, m, hand frame), scale, mass (kg), friction,
+CoM offset (3, m)."""
 
 
 def scale_joints(q: np.ndarray) -> np.ndarray:

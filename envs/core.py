@@ -112,7 +112,7 @@ class RotateCupVec:
 
         self.grasps = grasps if grasps is not None else load_default_cache(cfg.object, cfg.grasp_cache)
         self.rng = CounterRNG(env_keys(seed, n))
-        self.episode = np.zeros(n, dtype=np.int64)
+        self.episode = np.full(n, -1, dtype=np.int64)  # the first reset starts episode 0, as reset(seed=seed) does
         self.steps = np.zeros(n, dtype=np.int64)
         self.targets = np.zeros((n, C.NUM_JOINTS))
         self.grasp_q = np.zeros((n, C.NUM_JOINTS))
@@ -256,7 +256,7 @@ class RotateCupVec:
         if not np.all(np.isfinite(a)):
             bad = np.argwhere(~np.isfinite(a))[0]
             raise ValueError(f"actions must be finite; env {bad[0]} joint {bad[1]} is {a[tuple(bad)]}")
-        cfg, rc, n, all_ids = self.cfg, self.cfg.randomization, self.num_envs, np.arange(self.num_envs)
+        cfg, rc, all_ids = self.cfg, self.cfg.randomization, np.arange(self.num_envs)
         a = np.clip(a, -1.0, 1.0)
         self.targets = np.clip(self.targets + a * cfg.action_scale, C.JOINT_LOWER, C.JOINT_UPPER)
         self._ctrl[:] = self.targets

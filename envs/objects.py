@@ -50,7 +50,8 @@ class ObjectSpec:
 def _cylinders() -> dict[str, ObjectSpec]:
     # Hora's nine training cylinders: radius 4 cm, lengths 6.4 .. 9.6 cm (reference/hora.md)
     lengths = np.linspace(0.064, 0.096, 9)
-    return {f"cylinder_{i}": ObjectSpec(f"cylinder_{i}", "cylinder", 0.04, float(length)) for i, length in enumerate(lengths)}
+    return {f"cylinder_{i}": ObjectSpec(f"cylinder_{i}", "cylinder", 0.04, float(length))
+            for i, length in enumerate(lengths)}
 
 
 OBJECTS: dict[str, ObjectSpec] = {

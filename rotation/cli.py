@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -21,8 +22,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "view": ("rotation.jobs.view", "render an object/grasp (PNG) or a rollout (MP4) headless"),
     "train-teacher": ("rotation.train.teacher", "train the privileged teacher with PPO on the batched env"),
     "train-student": ("rotation.train.student", "distill the proprioceptive student from a frozen teacher"),
-    "evaluate": ("rotation.evaluate.run", "compare policies under friction, mass and CoM perturbations"),
+    "evaluate": ("rotation.evaluate.job", "compare policies under friction, mass and CoM perturbations"),
     "demo": ("rotation.jobs.demo", "the end-to-end demo on the shipped defaults"),
+    "hand-info": ("rotation.jobs.hand_info", "print a hand's firmware, serial, temperatures and joint positions"),
+    "collect": ("rotation.jobs.collect", "record simulated touch sessions (Digit 360 on) with a policy"),
+    "inspect-tactile": ("rotation.jobs.inspect_tactile", "plot every touch modality of a session window (PNG)"),
 }
 """Subcommand registry; later issues add their jobs here."""
 
@@ -56,6 +60,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    # headless rendering unless the user chose a backend (must be set before mujoco creates a GL context)
+    os.environ.setdefault("MUJOCO_GL", "egl")
     command = next((a for a in argv if not a.startswith("-")), None)
     if command is not None and command not in COMMANDS:
         print(f"rotate: unknown command {command!r}; choose one of: {', '.join(COMMANDS)}", file=sys.stderr)

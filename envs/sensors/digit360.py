@@ -78,21 +78,18 @@ def add_digit360_sensors(spec: mujoco.MjSpec, history: int) -> None:
             raise ValueError(f"add_digit360_sensors: the spec needs a site and a geom named {tip!r}")
         if sensor_name(finger, "contact") in existing:
             raise ValueError(f"add_digit360_sensors: the spec already has Digit 360 sensors ({finger})")
-        contact = spec.add_sensor(
-            name=sensor_name(finger, "contact"), type=mujoco.mjtSensor.mjSENS_CONTACT,
-            objtype=mujoco.mjtObj.mjOBJ_GEOM, objname=tip,
-        )
-        # intprm = [data bits, reduce, num] as the XML parser writes it; reduce 2 = "maxforce" (strongest first)
-        contact.intprm[:3] = [_contact_data_bits(), 2, CONTACT_SLOTS]
         for kind, stype, objtype in (
+            ("contact", mujoco.mjtSensor.mjSENS_CONTACT, mujoco.mjtObj.mjOBJ_GEOM),
             ("acc", mujoco.mjtSensor.mjSENS_ACCELEROMETER, mujoco.mjtObj.mjOBJ_SITE),
             ("pos", mujoco.mjtSensor.mjSENS_FRAMEPOS, mujoco.mjtObj.mjOBJ_SITE),
             ("quat", mujoco.mjtSensor.mjSENS_FRAMEQUAT, mujoco.mjtObj.mjOBJ_SITE),
         ):
-            spec.add_sensor(name=sensor_name(finger, kind), type=stype, objtype=objtype, objname=tip)
-    for s in spec.sensors:
-        if s.name.split("_d360_")[-1] in _SENSORS and "_d360_" in s.name:
-            s.nsample = int(history)
+            sensor = spec.add_sensor(name=sensor_name(finger, kind), type=stype, objtype=objtype, objname=tip)
+            sensor.nsample = int(history)  # a history ring: every substep of a multi-substep step stays readable
+            if kind == "contact":
+                # intprm = [data bits, reduce, num] as the XML parser writes it; reduce 2 = "maxforce" (strongest
+                # first), see the MuJoCo XML reference, sensor/contact
+                sensor.intprm[:3] = [_contact_data_bits(), 2, CONTACT_SLOTS]
 
 
 def _contact_data_bits() -> int:

@@ -131,9 +131,10 @@ class Digit360Model:
 DEFAULT_MODEL = Digit360Model()
 AUDIO_RING_S = 5.0 * max(decay for _, decay, _ in DEFAULT_MODEL.modes)
 """How far back an impact still rings (s): five decay times of the slowest mode."""
-HISTORY_S = PRESSURE_SAMPLES / PRESSURE_HZ + 0.1
-"""Contact history a window needs (s): the longest stream window (pressure, 1.12 s) plus a margin for the
-interpolation lag and ringing impacts."""
+HISTORY_S = (PRESSURE_SAMPLES - 1) / PRESSURE_HZ + 1.0 / IMAGE_HZ + AUDIO_RING_S
+"""Contact history (s) a window ending at the latest image frame needs behind the current time: the pressure
+window (the longest, 1.115 s), the latest frame's lag behind the current time (< 1/30 s) and the ring-down of
+impacts just before the window; add two physics steps for the interpolation lag and the row held at the start."""
 
 
 # ---------------------------------------------------------------------------------------------------- randomness

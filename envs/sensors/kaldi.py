@@ -43,6 +43,12 @@ def mel_banks() -> np.ndarray:
 
 
 @lru_cache(maxsize=1)
+def _banks_t() -> np.ndarray:
+    """(129, 128) contiguous transpose of :func:`mel_banks`."""
+    return np.ascontiguousarray(mel_banks().T)
+
+
+@lru_cache(maxsize=1)
 def hann_window() -> np.ndarray:
     """Symmetric Hann window 0.5 - 0.5 cos(2 pi n / (N - 1)) (Kaldi's "hanning"), float32."""
     n = np.arange(WINDOW_SIZE, dtype=np.float32)
@@ -57,13 +63,16 @@ def fbank(wave: np.ndarray) -> np.ndarray:
     x = np.asarray(wave, dtype=np.float32)
     if x.ndim < 2 or x.shape[-1] < WINDOW_SIZE:
         raise ValueError(f"fbank: wave must be (..., C, T) with T >= {WINDOW_SIZE}, got shape {x.shape}")
-    frames = np.lib.stride_tricks.sliding_window_view(x, WINDOW_SIZE, axis=-1)[..., ::WINDOW_SHIFT, :]  # (..., C, F, L)
+    frames = np.lib.stride_tricks.sliding_window_view(x, WINDOW_SIZE, axis=-1)[..., ::WINDOW_SHIFT, :]
+    frames = np.ascontiguousarray(frames)  # (..., C, F, L): frame f = samples [f S, f S + L)
     frames = frames - frames.mean(axis=-1, keepdims=True)  # DC removal
     previous = np.concatenate([frames[..., :1], frames[..., :-1]], axis=-1)  # x[n-1] with x[-1] = x[0]
     frames = (frames - PREEMPHASIS * previous) * hann_window()
     spectrum = np.fft.rfft(frames, n=FFT_SIZE, axis=-1)  # (..., C, F, 129)
-    power = (spectrum.real**2 + spectrum.imag**2).astype(np.float32)
-    mel = power @ mel_banks().T  # (..., C, F, 128)
+    power = (spectrum.real**2 + spectrum.imag**2).astype(np.float32)  # (..., C, F, 129)
+    # one 2-D product with contiguous operands (BLAS); a batched product with a transposed view is ~30x slower
+    mel = power.reshape(-1, FFT_SIZE // 2 + 1) @ _banks_t()  # (... * C * F, 128)
+    mel = mel.reshape(*power.shape[:-1], NUM_MEL_BINS)  # (..., C, F, 128)
     logmel = np.log(np.maximum(mel, EPS))
     logmel = np.moveaxis(logmel, -3, -2)  # (..., F, C, 128)
     return logmel.reshape(*logmel.shape[:-2], -1).astype(np.float32)  # (..., F, C*128)

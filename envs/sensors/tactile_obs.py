@@ -21,7 +21,6 @@ arrays, so the vector adapters treat it like the array groups.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -40,7 +39,6 @@ from envs.sensors.digit360_render import (
     PRESSURE_SAMPLES,
     ContactTrack,
     Digit360Model,
-    WindowIndex,
     finger_key,
     pack_image,
     render_window,
@@ -80,7 +78,7 @@ class TouchState:
     def __init__(self, model: Any, num_envs: int, dt: float, substeps: int):
         self.readout = Digit360Readout(model)
         self.dt, self.substeps = float(dt), int(substeps)
-        self.capacity = int(math.ceil(HISTORY_S / self.dt)) + self.substeps
+        self.capacity = int(math.ceil(HISTORY_S / self.dt)) + 2 + self.substeps  # rows kept per env and finger
         n = int(num_envs)
         self.times = np.zeros((n, self.capacity))
         self.rows = np.zeros((n, len(FINGERS), self.capacity, NUM_FIELDS), dtype=np.float32)
@@ -129,12 +127,46 @@ class TouchState:
         return TactileObs(self.times[:, order], self.rows[:, :, order], self.keys.copy(), now, self.dt, model=model)
 
 
-class TactileObs:
-    """N envs' touch snapshots; maps finger -> modality -> window (N, ...), rendered on first read and cached."""
+class _LazyDict(dict):
+    """A dict whose keys are fixed up front and whose values are computed on first read (by ``_value``).
+
+    A real ``dict`` subclass, so code that checks ``isinstance(x, dict)`` and compares keys (gymnasium's env
+    checker, nested-space utilities) accepts it; every read path goes through ``__getitem__``.
+    """
+
+    def __init__(self, keys: tuple[str, ...]):
+        super().__init__(dict.fromkeys(keys))
+
+    def _value(self, key: str) -> Any:
+        raise NotImplementedError
+
+    def __getitem__(self, key: Any) -> Any:
+        if not dict.__contains__(self, key):
+            raise KeyError(key)
+        return self._value(key)
+
+    def get(self, key: Any, default: Any = None) -> Any:
+        return self[key] if dict.__contains__(self, key) else default
+
+    def values(self) -> list[Any]:  # type: ignore[override]
+        return [self[k] for k in self.keys()]
+
+    def items(self) -> list[tuple[str, Any]]:  # type: ignore[override]
+        return [(k, self[k]) for k in self.keys()]
+
+
+class TactileObs(_LazyDict):
+    """N envs' touch snapshots: finger -> modality -> window (N, ...), rendered on first read and cached.
+
+    A dict over the four fingertips (see the module docstring); indexing with anything but a finger name selects
+    envs like an array's leading axis.
+    """
 
     def __init__(self, times: np.ndarray, rows: np.ndarray, keys: np.ndarray, now: np.ndarray, dt: float,
                  batched: bool = True, model: Digit360Model = DEFAULT_MODEL):
-        self.times, self.rows, self.keys, self.now = times, rows, keys, now
+        super().__init__(FINGERS)
+        # (N, R) row times (s), (N, 4, R, NUM_FIELDS) contact fields oldest first, (N, 4) noise keys, (N,) env time
+        self.times, self.rows, self.noise_keys, self.now = times, rows, keys, now
         self.dt, self.batched, self.model = dt, batched, model
         self._cache: dict[str, dict[str, np.ndarray]] = {}
 
@@ -147,8 +179,8 @@ class TactileObs:
         """(N,) index of each env's current image frame: the last 30 fps frame at or before its time."""
         return np.floor(self.now * IMAGE_HZ + 1e-6).astype(np.int64)
 
-    def __len__(self) -> int:
-        return self.num_envs if self.batched else 1
+    def _value(self, finger: str) -> _FingerWindows:
+        return _FingerWindows(self, finger)
 
     def __getitem__(self, item: Any) -> Any:
         if isinstance(item, str):
@@ -159,32 +191,35 @@ class TactileObs:
             raise IndexError("tactile observation of a single env has no env axis to index")
         if isinstance(item, int | np.integer):
             sel = slice(int(item), int(item) + 1 if int(item) != -1 else None)
-            return TactileObs(self.times[sel], self.rows[sel], self.keys[sel], self.now[sel], self.dt, batched=False,
-                              model=self.model)
-        return TactileObs(self.times[item], self.rows[item], self.keys[item], self.now[item], self.dt, model=self.model)
+            return TactileObs(self.times[sel], self.rows[sel], self.noise_keys[sel], self.now[sel], self.dt,
+                              batched=False, model=self.model)
+        return TactileObs(self.times[item], self.rows[item], self.noise_keys[item], self.now[item], self.dt,
+                          model=self.model)
 
-    def __setitem__(self, item: Any, other: TactileObs) -> None:
+    def __setitem__(self, item: Any, other: Any) -> None:
         """Masked / indexed assignment of envs from another snapshot (as the vector adapters do on auto-reset)."""
-        if not isinstance(other, TactileObs):
-            raise TypeError(f"can only assign a TactileObs to a TactileObs, got {type(other).__name__}")
+        if not isinstance(other, TactileObs) or isinstance(item, str):
+            raise TypeError("a TactileObs only takes env-indexed assignment from another TactileObs")
         self.times[item], self.rows[item] = other.times, other.rows
-        self.keys[item], self.now[item] = other.keys, other.now
+        self.noise_keys[item], self.now[item] = other.noise_keys, other.now
         self._cache.clear()
 
     def copy(self) -> TactileObs:
-        return TactileObs(self.times.copy(), self.rows.copy(), self.keys.copy(), self.now.copy(), self.dt,
+        return TactileObs(self.times.copy(), self.rows.copy(), self.noise_keys.copy(), self.now.copy(), self.dt,
                           self.batched, self.model)
 
-    @property
-    def fingers(self) -> tuple[str, ...]:
-        return FINGERS
+    def __deepcopy__(self, memo: dict) -> TactileObs:
+        return self.copy()
+
+    def __reduce__(self):
+        return (TactileObs, (self.times, self.rows, self.noise_keys, self.now, self.dt, self.batched, self.model))
 
     def window(self, env: int, finger: str) -> dict[str, np.ndarray]:
         """The four contract windows of one env's fingertip."""
         f = FINGERS.index(finger)
         track = ContactTrack(self.times[env], self.rows[env, f], self.dt)
         frame = int(self.frame[env])
-        return contract_window(render_window(track, frame, int(self.keys[env, f]), f, self.model))
+        return contract_window(render_window(track, frame, int(self.noise_keys[env, f]), f, self.model))
 
     def render(self, finger: str) -> dict[str, np.ndarray]:
         """All four windows of ``finger`` for every env: modality -> (N, ...) (no N for a single env)."""
@@ -198,29 +233,30 @@ class TactileObs:
         """Every window as plain nested dicts of arrays (renders everything)."""
         return {finger: dict(self.render(finger)) for finger in FINGERS}
 
-    def window_start(self) -> np.ndarray:
-        """(N,) time of the earliest sample in the current windows (s); negative early in an episode, where the
-        reset reading is held."""
-        return np.array([WindowIndex(int(k)).start_time for k in self.frame])
+    def __eq__(self, other: object) -> bool:
+        return self is other
+
+    __hash__ = None  # type: ignore[assignment]
 
     def __repr__(self) -> str:
         shape = f"N={self.num_envs}" if self.batched else "single env"
         return f"TactileObs({shape}, fingers={FINGERS}, modalities={MODALITIES}, rendered on access)"
 
 
-class _FingerWindows(Mapping):
-    """modality -> window array of one fingertip, rendered together on first access."""
+class _FingerWindows(_LazyDict):
+    """modality -> window array of one fingertip; the four are rendered together on first access."""
 
     def __init__(self, obs: TactileObs, finger: str):
+        super().__init__(MODALITIES)
         self._obs, self._finger = obs, finger
 
-    def __getitem__(self, modality: str) -> np.ndarray:
-        if modality not in MODALITIES:
-            raise KeyError(f"tactile observation: unknown modality {modality!r}; modalities: {', '.join(MODALITIES)}")
+    def _value(self, modality: str) -> np.ndarray:
         return self._obs.render(self._finger)[modality]
 
-    def __iter__(self) -> Iterator[str]:
-        return iter(MODALITIES)
+    def __getitem__(self, modality: Any) -> np.ndarray:
+        if modality not in MODALITIES:
+            raise KeyError(f"tactile observation: unknown modality {modality!r}; modalities: {', '.join(MODALITIES)}")
+        return self._value(modality)
 
-    def __len__(self) -> int:
-        return len(MODALITIES)
+    def __repr__(self) -> str:
+        return f"<{self._finger} windows {', '.join(f'{m} {WINDOW_SHAPES[m]}' for m in MODALITIES)}>"

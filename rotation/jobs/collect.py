@@ -55,7 +55,7 @@ class Config:
     """Simulations stepped together."""
     seed: int = 0
     """Seed of the collection (env slot i is seeded seed + i)."""
-    object: str = "cylinder"
+    object: str = "cup"
     """Object to rotate (envs.objects)."""
     episode_steps: int = 400
     """Truncate episodes after this many policy steps (20 s at 20 Hz)."""
@@ -231,7 +231,7 @@ def run(cfg: Config) -> dict[str, float]:
 
     def start(slot: int) -> dict:
         """Start the slot's next queued episode (its (e // m)-th episode, whatever ran before)."""
-        e = queues[slot].pop(0)
+        slot, e = int(slot), queues[slot].pop(0)
         env.episode[slot] = e // m - 1  # _reset_ids increments it: the env draws episode e // m of this slot
         new_obs = env.reset(ids=np.array([slot]))
         policy.start(slot, e)

@@ -65,8 +65,10 @@ def read_info(cfg: Config) -> str:
                 from rotation.sim_hardware.leap_emulator import LeapEmulator
 
                 port = stack.enter_context(LeapEmulator()).path
+            # the emulator shares this process's CPU and GIL with the busy-polling SDK: allow more retries
+            retries = 6 if cfg.hand == "sim-leap" else 3
             hand = stack.enter_context(LeapHand(port, LeapConfig(baudrate=cfg.baud, enable_motors=False,
-                                                                 feedback_timeout_s=1.0)))
+                                                                 feedback_timeout_s=1.0, max_retries=retries)))
         return _format(hand.info(), hand.read_state())
 
 

@@ -32,6 +32,8 @@ class Config:
     """Fingertip to plot ('all' for one row per fingertip with touch data)."""
     time: float = -1.0
     """Window end (s since the session start); the last image timestamp at or before it. < 0: mid-session."""
+    dpi: int = 80
+    """Resolution of the PNG (dots per inch of a 19 x 3.2-per-row inch figure)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,10 +42,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--finger", default="all", choices=("all", *FINGERS), help="fingertip (default: all)")
     parser.add_argument("--time", type=float, default=-1.0,
                         help="window end in s since the session start (default: mid-session)")
+    parser.add_argument("--dpi", type=int, default=Config.dpi, help=f"PNG resolution (default: {Config.dpi})")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
-    return Config(session=args.session, out=args.out, finger=args.finger, time=args.time)
+    return Config(session=args.session, out=args.out, finger=args.finger, time=args.time, dpi=args.dpi)
 
 
 def run(cfg: Config) -> Path:
@@ -110,7 +113,7 @@ def run(cfg: Config) -> Path:
                    va="top")
     fig.suptitle(f"{cfg.session.name}: Sparsh-X windows ending at one image timestamp", fontsize=11)
     cfg.out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(cfg.out, dpi=80)
+    fig.savefig(cfg.out, dpi=cfg.dpi)
     plt.close(fig)
     print(f"inspect-tactile: wrote {cfg.out}")
     return cfg.out

@@ -218,6 +218,8 @@ def run(cfg: Config) -> Result:
 
     student.config = dataclasses.replace(student.config, card=_card(cfg, teacher_digest, history))
     bundle_dir = student.save(out / "bundle")
+    final = f"; final latent MSE {history[-1]['latent_mse']:.5f}" if history else ""
+    print(f"train-student: {total_iters * n} env steps{final}; bundle at {bundle_dir}")
     return Result(bundle_dir, history)
 
 

@@ -1,0 +1,1 @@
+"""Evaluation under perturbations: metrics, suites, reports, plots and videos."""

@@ -1,0 +1,213 @@
+"""Compare policy bundles under perturbations of friction, object mass and centre of mass.
+
+Every policy meets the same conditions and the same seeds (episode j of every condition runs in an env seeded
+seed + j). Metrics per policy and condition, averaged over episodes: rotation_rate (rad/s, signed), rotation_total
+(rad), ttf (time to fall / episode length, 1 = never fell), vertical_drift (m), lin_vel (m/s), torque (N m).
+Writes OUT/results.json (rows + config), OUT/results.md, OUT/plots/<metric>.png and, with --video, one MP4 per
+condition with the policies side by side (headless rendering: MUJOCO_GL=egl).
+
+    rotate evaluate --policy teacher=teacher --policy student=runs/student/bundle --suite perturbations
+    rotate evaluate --policy student --friction-scale 0.5 --added-mass 0.1 --episodes 20 --out runs/eval_slippery
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from envs.config import EnvConfig, Perturbation, RandomizationConfig
+from envs.core import RotateCupVec
+from rotation.configs import save_config
+from rotation.evaluate.report import make_row, write_report
+from rotation.evaluate.rollout import run_episodes
+from rotation.evaluate.suites import SUITES, Condition, get_suite, make_condition
+from rotation.policy.bundle import PolicyBundle, load_bundle, shipped_bundles
+
+
+@dataclass
+class Config:
+    """`rotate evaluate`."""
+
+    policies: dict[str, str] = field(default_factory=dict)
+    """Policy label -> bundle directory or shipped bundle name; empty = every shipped bundle."""
+    suite: str | None = None
+    """Suite of conditions (see rotation.evaluate.suites.SUITES); None = one condition from the perturbation fields
+    below (nominal when they are all unset)."""
+    conditions: tuple[str, ...] = ()
+    """Run only these conditions of the suite (names as in its table)."""
+    friction_scale: float | None = None
+    """Multiplies the friction the env would otherwise use."""
+    added_mass: float | None = None
+    """Added to the object mass (kg)."""
+    com_shift: tuple[float, float, float] | None = None
+    """Added to the object's centre-of-mass offset (m, object frame)."""
+    episodes: int = 10
+    """Episodes per policy and condition."""
+    seed: int = 0
+    """Episode j of every condition runs in an env seeded seed + j."""
+    out: Path = Path("runs/evaluate")
+    """Report directory."""
+    num_envs: int = 16
+    """Simulations stepped together (at most `episodes`). Results depend on it only through float rounding in batched
+    network evaluation (which contact dynamics can amplify); keep it fixed when comparing runs."""
+    object: str = "cup"
+    """Object to rotate (envs.objects); the shipped policies were trained on 'cup'."""
+    grasp_cache: str = ""
+    """Grasp cache file; empty = the one shipped for the object."""
+    episode_steps: int = 400
+    """Episode length in policy steps (400 = 20 s at 20 Hz); ttf is relative to it."""
+    randomize: bool = True
+    """Keep the training domain randomization (the perturbations apply on top); off = nominal physics, no pushes."""
+    video: bool = False
+    """Write OUT/videos/<condition>.mp4 (first episode, policies side by side)."""
+    video_size: tuple[int, int] = (320, 240)
+    """Width and height (pixels) of each policy's tile in the video."""
+    nthread: int = 0
+    """MuJoCo threads (0 = one per CPU core, at most num_envs)."""
+    torch_threads: int = 1
+    """torch CPU threads for the policies (1 keeps runs bit-reproducible and leaves the cores to MuJoCo)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+def _policy_arg(text: str) -> tuple[str, str]:
+    name, sep, path = text.partition("=")
+    if not sep:
+        name, path = text, text
+    if not name or not path:
+        raise argparse.ArgumentTypeError(f"expected NAME=PATH or a bundle name, got {text!r}")
+    return name, path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    d = Config()
+    parser.add_argument("--policy", dest="policies", action="append", type=_policy_arg, default=[],
+                        metavar="NAME=PATH", help="a policy to evaluate: label=bundle directory or shipped bundle "
+                        f"name (repeatable; shipped: {', '.join(shipped_bundles()) or 'none yet'}); a bare name "
+                        "or path is its own label. Default: every shipped bundle")
+    parser.add_argument("--suite", nargs="?", const="perturbations", default=None, choices=list(SUITES),
+                        help="run a suite of conditions (bare --suite = perturbations)")
+    parser.add_argument("--conditions", nargs="+", default=[], metavar="NAME",
+                        help="only these conditions of the suite")
+    parser.add_argument("--friction-scale", type=float, metavar="F", help="multiply the friction by F")
+    parser.add_argument("--added-mass", type=float, metavar="KG", help="add KG to the object mass")
+    parser.add_argument("--com-shift", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                        help="add (X, Y, Z) m to the object's centre of mass")
+    parser.add_argument("--episodes", type=int, default=d.episodes, help=f"episodes per policy and condition "
+                        f"(default {d.episodes})")
+    parser.add_argument("--seed", type=int, default=d.seed, help="episode j is seeded seed + j (default 0)")
+    parser.add_argument("--out", type=Path, default=d.out, help=f"report directory (default {d.out})")
+    parser.add_argument("--num-envs", type=int, default=d.num_envs, help=f"parallel simulations (default "
+                        f"{d.num_envs}); keep it fixed when comparing runs")
+    parser.add_argument("--object", default=d.object, help=f"object to rotate (default {d.object})")
+    parser.add_argument("--grasp-cache", default=d.grasp_cache, help="grasp cache file (default: shipped)")
+    parser.add_argument("--episode-steps", type=int, default=d.episode_steps,
+                        help=f"episode length in policy steps (default {d.episode_steps})")
+    parser.add_argument("--randomize", action=argparse.BooleanOptionalAction, default=d.randomize,
+                        help="keep the training domain randomization (default on)")
+    parser.add_argument("--video", action="store_true", help="write one MP4 per condition (MUJOCO_GL=egl)")
+    parser.add_argument("--video-size", type=int, nargs=2, default=list(d.video_size), metavar=("W", "H"),
+                        help=f"pixels of each policy's video tile (default {d.video_size[0]} {d.video_size[1]})")
+    parser.add_argument("--nthread", type=int, default=d.nthread, help="MuJoCo threads (0 = auto)")
+    parser.add_argument("--torch-threads", type=int, default=d.torch_threads, help="torch CPU threads (default 1)")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=d.progress,
+                        help="show a progress bar")
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    names = [n for n, _ in args.policies]
+    duplicated = sorted({n for n in names if names.count(n) > 1})
+    if duplicated:
+        raise SystemExit(f"rotate evaluate: error: policy label(s) {duplicated} given more than once")
+    return Config(
+        policies=dict(args.policies), suite=args.suite, conditions=tuple(args.conditions),
+        friction_scale=args.friction_scale, added_mass=args.added_mass,
+        com_shift=tuple(args.com_shift) if args.com_shift is not None else None, episodes=args.episodes,
+        seed=args.seed, out=args.out, num_envs=args.num_envs, object=args.object, grasp_cache=args.grasp_cache,
+        episode_steps=args.episode_steps, randomize=args.randomize, video=args.video,
+        video_size=tuple(args.video_size), nthread=args.nthread, torch_threads=args.torch_threads,
+        progress=args.progress,
+    )
+
+
+def resolve_conditions(cfg: Config) -> list[Condition]:
+    """The conditions of a run: a suite, or one condition from the perturbation fields (nominal by default)."""
+    custom = {k: v for k, v in (("friction_scale", cfg.friction_scale), ("added_mass", cfg.added_mass),
+                                ("com_shift", cfg.com_shift)) if v is not None}
+    if cfg.suite is not None:
+        if custom:
+            raise ValueError(f"give either a suite or perturbation values, not both (suite {cfg.suite!r} with "
+                             f"{sorted(custom)})")
+        return get_suite(cfg.suite, cfg.conditions)
+    if cfg.conditions:
+        return get_suite("perturbations", cfg.conditions)
+    return [make_condition(Perturbation(**custom))]
+
+
+def load_policies(cfg: Config) -> dict[str, PolicyBundle]:
+    """Load every bundle up front (a bad name fails before any simulation) and check they share a control rate."""
+    policies = cfg.policies or {name: name for name in shipped_bundles()}
+    if not policies:
+        raise ValueError("no policies given (--policy NAME=PATH) and no bundles are shipped with the package")
+    bundles = {name: load_bundle(path) for name, path in policies.items()}
+    timing = {(b.config.control_hz, b.config.action_scale) for b in bundles.values()}
+    if len(timing) > 1:
+        raise ValueError(f"the policies were trained at different control rates / action scales {sorted(timing)}; "
+                         "evaluate them in separate runs")
+    return bundles
+
+
+def env_config(cfg: Config, bundle: PolicyBundle, perturb: Perturbation) -> EnvConfig:
+    """The env of one condition; control rate and action scale come from the bundle, not from this config."""
+    rand = RandomizationConfig() if cfg.randomize else RandomizationConfig(enabled=False)
+    return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, episode_steps=cfg.episode_steps,
+                     control_hz=bundle.config.control_hz, action_scale=bundle.config.action_scale,
+                     randomization=rand, perturb=perturb)
+
+
+def run(cfg: Config) -> list[dict]:
+    """Evaluate every policy under every condition; returns the result rows (also written to ``cfg.out``)."""
+    if cfg.episodes < 1 or cfg.num_envs < 1:
+        raise ValueError(f"episodes and num_envs must be >= 1, got {cfg.episodes} and {cfg.num_envs}")
+    torch.set_num_threads(cfg.torch_threads)
+    conditions = resolve_conditions(cfg)
+    bundles = load_policies(cfg)
+    first = next(iter(bundles.values()))
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out / "config.json")
+
+    rows = []
+    total = len(conditions) * len(bundles) * cfg.episodes
+    with tqdm(total=total, unit="episode", desc="evaluate", disable=not cfg.progress, dynamic_ncols=True) as bar:
+        for cond in conditions:
+            env = RotateCupVec(env_config(cfg, first, cond.perturb), num_envs=min(cfg.num_envs, cfg.episodes),
+                               seed=cfg.seed, nthread=cfg.nthread or None)
+            recorder = None
+            if cfg.video:
+                from rotation.evaluate.video import FrameRecorder
+
+                recorder = FrameRecorder(env, *cfg.video_size)
+            for name, bundle in bundles.items():
+                bar.set_postfix(condition=cond.name, policy=name)
+                hook = recorder.hook(name) if recorder is not None else None
+                episodes = run_episodes(bundle, env, cfg.episodes, cfg.seed, on_frame=hook,
+                                        on_episode=lambda: bar.update(1))
+                rows.append(make_row(name, cond, episodes))
+            if recorder is not None:
+                recorder.write(out / "videos" / f"{cond.name}.mp4", fps=_video_fps(first))
+                recorder.close()
+            env.close()
+    write_report(out, rows, dataclasses.replace(cfg, out=out), conditions)
+    print(f"evaluate: {len(rows)} rows -> {out / 'results.md'}")
+    return rows
+
+
+def _video_fps(bundle: PolicyBundle) -> int:
+    """Video frame rate: one frame per policy step, in real time."""
+    return max(1, round(bundle.config.control_hz))

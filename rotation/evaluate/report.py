@@ -1,0 +1,102 @@
+"""The evaluation report: results.json (rows + config), results.md (a table) and plots (matplotlib, Agg).
+
+A row is one (policy, condition): the condition's perturbation, the number of episodes and, for every metric in
+:data:`rotation.evaluate.metrics.METRICS`, the mean over episodes and ``<metric>_std``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rotation.configs import to_jsonable
+from rotation.evaluate.metrics import METRICS, EpisodeMetrics
+from rotation.evaluate.suites import NOMINAL, Condition, axis_level
+
+PLOT_AXES = {"friction": "friction scale", "mass": "added mass (kg)", "com": "CoM shift (m)"}
+
+
+def make_row(policy: str, cond: Condition, episodes: list[EpisodeMetrics]) -> dict[str, Any]:
+    """One results row: the condition, the episode count, mean and std of each metric (+ mean reward)."""
+    p = cond.perturb
+    row: dict[str, Any] = {"policy": policy, "condition": cond.name, "friction_scale": p.friction_scale,
+                           "added_mass": p.added_mass, "com_shift": list(p.com_shift), "episodes": len(episodes)}
+    for key in [*METRICS, "reward"]:
+        values = np.array([getattr(e, key) for e in episodes], dtype=np.float64)
+        row[key] = float(values.mean())
+        row[f"{key}_std"] = float(values.std())
+    return row
+
+
+def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions: list[Condition]) -> None:
+    """results.json, results.md and plots/<metric>.png under ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps({"rows": rows, "config": to_jsonable(config)}, indent=2) + "\n")
+    (out / "results.md").write_text(markdown_table(rows))
+    plot_metrics(out / "plots", rows, conditions)
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
+    """Rows grouped by condition, one line per policy, each metric as mean ± std."""
+    head = ["condition", "policy", "episodes", *(f"{k} ({u})" for k, u in METRICS.items())]
+    lines = ["# Evaluation", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [r["condition"], r["policy"], str(r["episodes"])]
+        cells += [f"{r[k]:.3g} ± {r[k + '_std']:.2g}" for k in METRICS]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "rotation_rate: signed rotation about the commanded axis per second in hand; ttf: time to fall / "
+              "episode length (1 = never fell); vertical_drift: mean |object height - start height|.", ""]
+    return "\n".join(lines)
+
+
+def _plot_groups(conditions: list[Condition]) -> dict[str, list[Condition]]:
+    """Plot panels: one per perturbation axis with its levels (nominal as the neutral point), one for the rest."""
+    nominal = [c for c in conditions if c.axis == NOMINAL]
+    groups: dict[str, list[Condition]] = {}
+    for axis in PLOT_AXES:
+        on_axis = [c for c in conditions if c.axis == axis]
+        if on_axis:
+            groups[axis] = sorted(nominal + on_axis, key=lambda c, a=axis: axis_level(c, a))
+    rest = [c for c in conditions if c.axis == "combined" or (c.axis == NOMINAL and not groups)]
+    if rest:
+        groups["other"] = rest
+    return groups
+
+
+def plot_metrics(folder: Path, rows: list[dict[str, Any]], conditions: list[Condition]) -> list[Path]:
+    """plots/<metric>.png: the metric against each perturbation level, one line per policy (mean ± std)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    policies = list(dict.fromkeys(r["policy"] for r in rows))
+    by_key = {(r["policy"], r["condition"]): r for r in rows}
+    groups = _plot_groups(conditions)
+    paths = []
+    for metric, unit in METRICS.items():
+        fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 3.4), squeeze=False)
+        for ax, (axis, conds) in zip(axes[0], groups.items(), strict=True):
+            categorical = axis == "other"
+            x = np.arange(len(conds)) if categorical else np.array([axis_level(c, axis) for c in conds])
+            for policy in policies:
+                ys = np.array([by_key[(policy, c.name)][metric] for c in conds])
+                err = np.array([by_key[(policy, c.name)][metric + "_std"] for c in conds])
+                ax.errorbar(x, ys, yerr=err, marker="o", capsize=3, label=policy)
+            if categorical:
+                ax.set_xticks(x, [c.name for c in conds], rotation=20, ha="right", fontsize=7)
+            ax.set_xlabel(PLOT_AXES.get(axis, "condition"))
+            ax.set_ylabel(f"{metric} ({unit})")
+            ax.grid(alpha=0.3)
+        axes[0][0].legend(fontsize=8)
+        fig.suptitle(metric)
+        fig.tight_layout()
+        path = folder / f"{metric}.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        paths.append(path)
+    return paths

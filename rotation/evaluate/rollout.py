@@ -1,0 +1,56 @@
+"""Deterministic evaluation rollouts of a policy bundle on the batched env, with optional video frames.
+
+Episode j of an evaluation seeded ``s`` runs in an env seeded ``s + j`` (the core's contract: env i of a batch
+seeded ``s`` behaves like a single env seeded ``s + i``), so every policy meets the same grasps, physical
+parameters, pushes and noise, whatever the number of parallel envs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from envs.core import RotateCupVec
+from rotation.evaluate.metrics import EpisodeMetrics, EpisodeTracker
+from rotation.policy.bundle import PolicyBundle
+
+FrameHook = Callable[[RotateCupVec], None]
+"""Called after the reset and after every step of the first episode, e.g. to render simulation 0."""
+
+
+def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: int,
+                 on_frame: FrameHook | None = None, on_episode: Callable[[], None] | None = None
+                 ) -> list[EpisodeMetrics]:
+    """Run ``episodes`` episodes (episode j seeded ``seed + j``) in chunks of ``env.num_envs``; one metrics entry
+    per episode, in episode order. Each env runs one episode per chunk; finished envs are no longer acted for."""
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    n = env.num_envs
+    tracker = EpisodeTracker(n, env.cfg.control_dt, env.cfg.episode_steps)
+    results: list[EpisodeMetrics | None] = [None] * episodes
+    for first in range(0, episodes, n):
+        obs = env.reset(seed=seed + first)
+        tracker.begin(obs)
+        active = np.arange(n) < episodes - first  # the last chunk may use fewer envs
+        record = on_frame is not None and first == 0
+        if record:
+            on_frame(env)
+        actions = np.zeros((n, env.single_action_space.shape[0]), dtype=np.float32)
+        while active.any():
+            idx = np.flatnonzero(active)
+            actions[:] = 0.0
+            actions[idx] = bundle.act_batch({k: obs[k][idx] for k in bundle.config.obs_groups})
+            obs, reward, terminated, truncated, info = env.step(actions)
+            if record and active[0]:
+                on_frame(env)
+            done = (terminated | truncated) & active
+            for i, ep in zip(np.flatnonzero(terminated | truncated), tracker.step(reward, terminated, truncated, info),
+                             strict=True):
+                if done[i]:
+                    results[first + i] = ep
+                    if on_episode is not None:
+                        on_episode()
+            active &= ~done
+    assert all(r is not None for r in results)
+    return results  # type: ignore[return-value]

@@ -1,0 +1,300 @@
+"""Digit 360 fingertip sensor: serial data stream (COBS-framed protobuf), audio and camera, as Sparsh-X windows.
+
+Usage::
+
+    with Digit360(Digit360Config(serial_number="D360-XXXX", camera=0, audio_device="Digit 360")) as d:
+        sample = d.window()   # dict: image (6,224,224) uint8, audio (2,27000) int16, imu (224,3) g,
+                              # pressure (224,1) hPa, t_end (s, host monotonic)
+
+Interfaces (reference/hardware.md section 4): the data tty is a USB CDC device (vendor 0x2833, product 0x4001),
+found by its USB serial number with pyserial's ``list_ports``; each device -> host message is a protobuf
+``DigitMessage`` (schema: ``digit360.proto`` beside this file, loaded at run time) COBS-encoded and terminated
+by 0x00. Audio (48 kHz, 2 microphones, int16) comes through ``sounddevice`` and the camera (UVC) through OpenCV;
+both are imported only when enabled (extra ``[hardware]``).
+
+Timestamps are host ``time.monotonic()`` seconds. Serial samples carry the device's microsecond clock; it is
+mapped to host time by the smallest observed (receive time - device time) offset (USB delivers in bursts, the
+minimum is the least-delayed sample), allowed to drift by 100 ppm and re-anchored when a sample would map more
+than 50 ms before its arrival.
+
+Faults: an undecodable frame is logged and dropped; a disconnect is logged, the port is reopened every
+``reconnect_s``; :meth:`window` raises :class:`SensorStale` when the newest serial sample is older than
+``stale_timeout_s``, which the deploy watchdog treats as a sensor stall.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import serial
+from cobs import cobs
+from serial.tools import list_ports
+
+from rotation.hardware import digit360_window as dw
+from rotation.hardware.proto_schema import enum_values, load_proto
+
+log = logging.getLogger(__name__)
+
+PROTO = str(Path(__file__).with_name("digit360.proto"))
+USB_VENDOR = 0x2833
+USB_PRODUCT_DATA = 0x4001
+ACC_PER_G = 4096.0
+"""Raw accelerometer counts per g (reference/sparsh.md: linear acceleration / 4096)."""
+
+
+def messages() -> dict[str, type]:
+    """The Digit 360 protobuf classes, built from ``digit360.proto``."""
+    return load_proto(PROTO)
+
+
+SENSOR = enum_values(PROTO, "SensorType")
+
+
+class SensorStale(RuntimeError):
+    """The sensor's newest sample is older than the timeout (disconnected or stalled)."""
+
+
+def find_digit360_ports(serial_number: str | None = None) -> list[tuple[str, str]]:
+    """(device path, USB serial) of the Digit 360 data ttys, optionally only the one with ``serial_number``."""
+    found = []
+    for p in list_ports.comports():
+        if p.vid == USB_VENDOR and p.pid == USB_PRODUCT_DATA:
+            if serial_number is None or p.serial_number == serial_number:
+                found.append((p.device, p.serial_number or ""))
+    return found
+
+
+@dataclass(frozen=True)
+class Digit360Config:
+    """One fingertip sensor."""
+
+    serial_number: str | None = None
+    """USB serial number of the sensor (the setup names fingers by it); None with ``port`` set."""
+    port: str | None = None
+    """Data tty to open directly (skips discovery, e.g. an emulator's pty)."""
+    camera: int | str | None = None
+    """OpenCV capture index or device path; None disables the image stream."""
+    audio_device: int | str | None = None
+    """sounddevice input device (index or name substring); None disables audio."""
+    device_clock_hz: float = 1e6
+    """Tick rate of the device's ``ts`` fields (microseconds)."""
+    stale_timeout_s: float = 0.1
+    """Newest serial sample older than this (s) -> SensorStale from window()."""
+    reconnect_s: float = 0.5
+    """Retry period (s) for reopening the data tty after a disconnect."""
+    buffer_s: float = 3.0
+    """History kept per stream (s); must exceed the longest window (pressure, 1.12 s)."""
+
+    def __post_init__(self) -> None:
+        if self.serial_number is None and self.port is None:
+            raise ValueError("Digit360Config: set serial_number (USB discovery) or port")
+        if not self.buffer_s > 1.2:
+            raise ValueError(f"Digit360Config.buffer_s must exceed the 1.12 s pressure window, got {self.buffer_s}")
+        if not self.stale_timeout_s > 0 or not self.reconnect_s > 0 or not self.device_clock_hz > 0:
+            raise ValueError("Digit360Config: stale_timeout_s, reconnect_s and device_clock_hz must be > 0")
+
+
+class _ClockMap:
+    """Device clock (ticks, uint32, wraps) -> host seconds by the minimum-offset rule (see module docstring)."""
+
+    max_latency_s = 0.05
+    """A sample mapped more than this before its arrival means the mapping is wrong (device clock paused or
+    reset), not that USB was that slow: re-anchor on it."""
+
+    def __init__(self, hz: float) -> None:
+        self.hz = hz
+        self.offset: float | None = None
+        self.t_last = 0.0
+        self.ts_last = 0
+
+    def __call__(self, ts: int, t_recv: float) -> float:
+        if self.offset is not None and ts < self.ts_last and self.ts_last - ts > 2**31:
+            self.offset += 2**32 / self.hz  # counter wrapped
+        elif self.offset is not None and ts < self.ts_last:
+            self.offset = None  # device restarted
+        off = t_recv - ts / self.hz
+        if self.offset is None or off - self.offset > self.max_latency_s:
+            self.offset = off  # first sample, or the device clock jumped back relative to ours: re-anchor
+        else:
+            self.offset = min(self.offset + 1e-4 * max(t_recv - self.t_last, 0.0), off)
+        self.t_last, self.ts_last = t_recv, ts
+        return min(ts / self.hz + self.offset, t_recv)
+
+
+class Digit360:
+    """Reader threads filling ring buffers; :meth:`window` assembles a Sparsh-X sample."""
+
+    def __init__(self, cfg: Digit360Config, name: str = "digit360") -> None:
+        self.cfg = cfg
+        self.name = name
+        n = int(cfg.buffer_s * 1.5 * dw.IMU_RATE)
+        self.imu = dw.RingBuffer(n, (3,))
+        self.pressure = dw.RingBuffer(int(cfg.buffer_s * 1.5 * dw.PRESSURE_RATE), (1,))
+        self.audio = dw.RingBuffer(int(cfg.buffer_s * dw.AUDIO_RATE), (2,), np.int16) if cfg.audio_device is not None \
+            else None
+        self.image = dw.RingBuffer(2 * dw.IMAGE_GAP + 2, (dw.IMAGE_SIZE, dw.IMAGE_SIZE, 3), np.uint8) \
+            if cfg.camera is not None else None
+        self.version = ""
+        self.counters = {"frames": 0, "bad_frames": 0, "disconnects": 0}
+        self._msg = messages()["DigitMessage"]
+        self._clock = _ClockMap(cfg.device_clock_hz)
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._serial: serial.Serial | None = None
+        self._audio_stream = None
+        self.connected = threading.Event()
+
+    def __enter__(self) -> Digit360:
+        self._open_serial()  # fail loudly at start if the sensor is not there
+        self._start(self._serial_loop, "serial")
+        if self.cfg.camera is not None:
+            self._start(self._camera_loop, "camera")
+        if self.cfg.audio_device is not None:
+            self._open_audio()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=2.0)
+        self._threads.clear()
+        if self._audio_stream is not None:
+            self._audio_stream.stop()
+            self._audio_stream.close()
+            self._audio_stream = None
+        if self._serial is not None:
+            self._serial.close()
+            self._serial = None
+
+    def window(self, t_end: float | None = None, now: float | None = None) -> dict[str, np.ndarray | float]:
+        """One Sparsh-X sample (see :mod:`digit360_window`); SensorStale if the serial stream stopped."""
+        now = time.monotonic() if now is None else now
+        age = now - max(self.imu.newest_time(), self.pressure.newest_time())
+        if age > self.cfg.stale_timeout_s:
+            raise SensorStale(f"{self.name}: newest IMU/pressure sample is {age:.3f} s old "
+                              f"(> {self.cfg.stale_timeout_s} s); connected={self.connected.is_set()}")
+        return dw.sparshx_window(self.image, self.audio, self.imu, self.pressure, t_end)
+
+    # ------------------------------------------------------------------ serial
+    def _start(self, fn, what: str) -> None:
+        t = threading.Thread(target=fn, name=f"{self.name}-{what}", daemon=True)
+        t.start()
+        self._threads.append(t)
+
+    def _open_serial(self) -> None:
+        port = self.cfg.port
+        if port is None:
+            found = find_digit360_ports(self.cfg.serial_number)
+            if not found:
+                raise serial.SerialException(f"{self.name}: no Digit 360 data tty with USB serial "
+                                             f"{self.cfg.serial_number!r} (vendor 0x2833, product 0x4001)")
+            port = found[0][0]
+        self._serial = serial.Serial(port, timeout=0.05)  # CDC: no baud rate needed
+        self.connected.set()
+
+    def _serial_loop(self) -> None:
+        buf = bytearray()
+        while not self._stop.is_set():
+            if self._serial is None:
+                try:
+                    self._open_serial()
+                    log.warning("%s: data tty reopened", self.name)
+                    buf.clear()
+                except (serial.SerialException, OSError) as err:
+                    log.debug("%s: reopen failed: %s", self.name, err)
+                    self._stop.wait(self.cfg.reconnect_s)
+                continue
+            try:
+                chunk = self._serial.read(max(1, self._serial.in_waiting))
+            except (serial.SerialException, OSError, TypeError) as err:
+                self.counters["disconnects"] += 1
+                log.error("%s: data tty lost (%s); retrying every %.1f s", self.name, err, self.cfg.reconnect_s)
+                self.connected.clear()
+                try:
+                    self._serial.close()
+                finally:
+                    self._serial = None
+                continue
+            t_recv = time.monotonic()
+            buf.extend(chunk)
+            if len(buf) > 1 << 16:  # no frame delimiter for 64 KiB: not our stream; resynchronize
+                log.error("%s: %d bytes without a frame delimiter dropped", self.name, len(buf))
+                buf.clear()
+            while (end := buf.find(b"\x00")) >= 0:
+                frame, buf = bytes(buf[:end]), buf[end + 1:]
+                if frame:
+                    try:
+                        self._on_frame(frame, t_recv)
+                    except Exception:  # a reader thread must not die silently
+                        log.exception("%s: error handling a frame", self.name)
+
+    def _on_frame(self, frame: bytes, t_recv: float) -> None:
+        try:
+            msg = self._msg.FromString(cobs.decode(frame))
+        except Exception as err:  # cobs.DecodeError or protobuf DecodeError
+            self.counters["bad_frames"] += 1
+            n = self.counters["bad_frames"]
+            if n == 1 or n % 100 == 0:
+                log.warning("%s: dropped an undecodable frame (%d so far): %s", self.name, n, err)
+            return
+        self.counters["frames"] += 1
+        kind = msg.WhichOneof("payload")
+        if kind == "pressure":
+            self.pressure.append(self._clock(msg.pressure.ts, t_recv), msg.pressure.pressure)
+        elif kind == "imu" and msg.imu.WhichOneof("data") == "raw" and msg.imu.raw.sensor == SENSOR["ACC"]:
+            r = msg.imu.raw
+            self.imu.append(self._clock(msg.imu.ts, t_recv), np.array([r.x, r.y, r.z]) / ACC_PER_G)
+        elif kind == "system":
+            self.version = msg.system.version
+
+    # ------------------------------------------------------------------ audio / camera (optional extras)
+    def _open_audio(self) -> None:
+        try:
+            import sounddevice as sd
+        except ImportError as err:
+            raise ImportError("audio needs the 'hardware' extra: pip install 'tactile-rotation[hardware]'") from err
+
+        def callback(indata, frames, time_info, status) -> None:
+            if status:
+                log.warning("%s: audio %s", self.name, status)
+            t_last = time.monotonic()
+            t = t_last - (frames - 1 - np.arange(frames)) / dw.AUDIO_RATE
+            self.audio.extend(t, indata)  # type: ignore[union-attr]
+
+        self._audio_stream = sd.InputStream(samplerate=dw.AUDIO_RATE, channels=2, dtype="int16",
+                                            device=self.cfg.audio_device, callback=callback)
+        self._audio_stream.start()
+
+    def _camera_loop(self) -> None:
+        try:
+            import cv2
+        except ImportError:
+            log.error("%s: camera needs the 'hardware' extra (opencv-python-headless)", self.name)
+            return
+        cap = cv2.VideoCapture(self.cfg.camera)
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, 1280)  # the vendor encoder node requests 1280x720
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, 720)
+        try:
+            while not self._stop.is_set():
+                ok, frame = cap.read()
+                t = time.monotonic()
+                if not ok:
+                    log.error("%s: camera read failed; retrying in %.1f s", self.name, self.cfg.reconnect_s)
+                    self._stop.wait(self.cfg.reconnect_s)
+                    continue
+                h, w = frame.shape[:2]
+                s = min(h, w)  # centre square crop of the fisheye image, then 224 x 224
+                crop = frame[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s]
+                rgb = cv2.cvtColor(cv2.resize(crop, (dw.IMAGE_SIZE, dw.IMAGE_SIZE), interpolation=cv2.INTER_AREA),
+                                   cv2.COLOR_BGR2RGB)
+                self.image.append(t, rgb)  # type: ignore[union-attr]
+        finally:
+            cap.release()

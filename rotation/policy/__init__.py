@@ -1,0 +1,1 @@
+"""Policy networks, observation normalization, the policy bundle and its export."""

@@ -1,0 +1,408 @@
+"""The policy bundle: the one artifact that goes from training to evaluation, the demo and the robot.
+
+A bundle is a directory::
+
+    <bundle>/config.json        BundleConfig: format and env version, network sizes, observation groups read,
+                                latent source, normalization settings, joint limits, action scale, control rate,
+                                optional adapter / touch-encoder references, free-form ``card`` metadata
+    <bundle>/model.safetensors  every tensor needed to act, the observation normalization statistics included
+                                (``extractor.proprio_norm.{mean,var,count}``, ...), so nothing outside re-declares them
+
+Acting is deterministic: the Gaussian policy's mean, clipped to [-1, 1] (what the env and the hand clip to anyway).
+The acting network is ``features = cat(flatten(norm(proprio)), z)`` -> actor MLP (ELU) -> linear mean, with z from
+the env-factor encoder over ``priv`` (teacher, ``latent_source="privileged"``) or from the adaptation module over
+``proprio_hist`` (student, ``latent_source="adaptation"``).
+
+    bundle = load_bundle("student")            # a bundle shipped in rotation/policies/, or a directory
+    action = bundle.act(obs)                   # {"proprio": (3, 32), "proprio_hist": (30, 32)} -> (16,)
+    actions = bundle.act_batch(batched_obs)    # leading N on every group -> (N, 16)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from envs import constants as C
+from rotation.configs import from_jsonable, to_jsonable
+from rotation.policy.features import LatentExtractor, PrivilegedExtractor, StudentExtractor
+from rotation.policy.networks import AdaptationConfig, EnvFactorEncoderConfig, mlp
+
+FORMAT_VERSION = 1
+"""Version of the bundle layout written by this code; bump it when config.json or tensor names change meaning."""
+ENV_VERSION = "RotateCup-v0"
+"""The env (observation and action contract) the bundled policies act in."""
+CONFIG_FILE = "config.json"
+WEIGHTS_FILE = "model.safetensors"
+SHIPPED_DIR = Path(__file__).resolve().parent.parent / "policies"
+"""Bundles shipped with the package: ``rotation/policies/<name>/``."""
+
+LatentSource = Literal["privileged", "adaptation"]
+LATENT_GROUP: dict[str, str] = {"privileged": "priv", "adaptation": "proprio_hist"}
+"""Observation group the latent is computed from, per latent source."""
+
+
+class BundleError(ValueError):
+    """A bundle that cannot be loaded or used: says what is wrong and what was expected."""
+
+
+@dataclass(frozen=True)
+class BundleConfig:
+    """Everything needed to rebuild a policy and act with it (saved as config.json beside the weights)."""
+
+    latent_source: LatentSource = "privileged"
+    """Where z comes from: 'privileged' (env-factor encoder over `priv`, the teacher) or 'adaptation' (temporal-conv
+    module over `proprio_hist`, the student)."""
+    obs_groups: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    """Observation groups the policy reads and their shapes without the batch dim; derived from the networks when
+    left empty."""
+    encoder: EnvFactorEncoderConfig | None = None
+    """Env-factor encoder sizes (latent_source 'privileged')."""
+    adaptation: AdaptationConfig | None = None
+    """Adaptation module sizes (latent_source 'adaptation')."""
+    proprio_shape: tuple[int, int] = (C.PROPRIO_STEPS, C.PROPRIO_DIM)
+    """Shape of the `proprio` group the actor reads (steps, features)."""
+    actor_hidden: tuple[int, ...] = (512, 256, 128)
+    """Hidden widths of the actor MLP (ELU after each), followed by a linear layer to the action mean."""
+    action_dim: int = C.NUM_JOINTS
+    """Number of actions (one relative joint-target step per joint, Allegro bus order)."""
+    norm_clip: float = 5.0
+    """Clip of the normalized observations (the statistics themselves are tensors in model.safetensors)."""
+    control_hz: float = C.CONTROL_HZ
+    """Rate (Hz) the policy was trained to act at."""
+    action_scale: float = C.ACTION_SCALE
+    """Joint-target change per unit action (rad): target += action_scale * action."""
+    joint_lower: tuple[float, ...] = tuple(C.JOINT_LOWER.tolist())
+    """Joint-target lower limits (rad, bus order) the env clamps to."""
+    joint_upper: tuple[float, ...] = tuple(C.JOINT_UPPER.tolist())
+    """Joint-target upper limits (rad, bus order) the env clamps to."""
+    adapter: str | None = None
+    """Optional reference to a tactile adapter (a path or shipped name) that corrects this policy's latent."""
+    touch_encoder: str | None = None
+    """Optional reference to the frozen touch encoder the adapter reads."""
+    card: dict[str, Any] = field(default_factory=dict)
+    """Free-form metadata: how it was trained, the env config, steps, scores."""
+    format_version: int = FORMAT_VERSION
+    """Bundle layout version (see FORMAT_VERSION)."""
+    env_version: str = ENV_VERSION
+    """Env the policy acts in (see ENV_VERSION)."""
+
+    def __post_init__(self) -> None:
+        if self.latent_source not in LATENT_GROUP:
+            raise BundleError(f"latent_source must be one of {sorted(LATENT_GROUP)}, got {self.latent_source!r}")
+        # defaults for the latent network, then the observation groups implied by the networks
+        if self.latent_source == "privileged" and self.encoder is None:
+            object.__setattr__(self, "encoder", EnvFactorEncoderConfig())
+        if self.latent_source == "adaptation" and self.adaptation is None:
+            object.__setattr__(self, "adaptation", AdaptationConfig())
+        expected = self.expected_groups()
+        groups = {k: tuple(int(d) for d in v) for k, v in self.obs_groups.items()} or expected
+        if groups != expected:
+            raise BundleError(f"obs_groups {groups} do not match the networks' inputs {expected} "
+                              f"(latent_source {self.latent_source!r})")
+        object.__setattr__(self, "obs_groups", groups)
+        if len(self.joint_lower) != self.action_dim or len(self.joint_upper) != self.action_dim:
+            raise BundleError(f"joint_lower/joint_upper must have action_dim={self.action_dim} entries, got "
+                              f"{len(self.joint_lower)}/{len(self.joint_upper)}")
+        for name in ("control_hz", "action_scale", "norm_clip"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise BundleError(f"{name} must be finite and > 0, got {value}")
+
+    @property
+    def latent_dim(self) -> int:
+        net = self.encoder if self.latent_source == "privileged" else self.adaptation
+        assert net is not None
+        return net.latent_dim
+
+    def expected_groups(self) -> dict[str, tuple[int, ...]]:
+        """Observation groups (name -> shape) the networks described here read."""
+        groups: dict[str, tuple[int, ...]] = {"proprio": tuple(self.proprio_shape)}
+        if self.latent_source == "privileged":
+            assert self.encoder is not None
+            groups["priv"] = (self.encoder.in_dim,)
+        else:
+            assert self.adaptation is not None
+            groups["proprio_hist"] = (self.adaptation.steps, self.adaptation.in_dim)
+        return groups
+
+    def observation_space(self) -> spaces.Dict:
+        return spaces.Dict({k: spaces.Box(-np.inf, np.inf, s, np.float32) for k, s in self.obs_groups.items()})
+
+
+class ActorNet(nn.Module):
+    """The acting path: (B, ...) observation groups -> (B, action_dim) deterministic action in [-1, 1]."""
+
+    def __init__(self, cfg: BundleConfig) -> None:
+        super().__init__()
+        space = cfg.observation_space()
+        self.extractor: LatentExtractor
+        if cfg.latent_source == "privileged":
+            self.extractor = PrivilegedExtractor(space, cfg.encoder, norm_clip=cfg.norm_clip)
+        else:
+            self.extractor = StudentExtractor(space, cfg.adaptation, norm_clip=cfg.norm_clip)
+        # [Linear, ELU] * n: the layout of SB3's mlp_extractor.policy_net, so its weights load by index
+        self.actor = mlp([self.extractor.features_dim, *cfg.actor_hidden], nn.ELU, activate_last=True)
+        self.action_mean = nn.Linear(cfg.actor_hidden[-1], cfg.action_dim)
+
+    def mean(self, obs: dict[str, torch.Tensor], z: torch.Tensor | None = None) -> torch.Tensor:
+        """Unclipped action mean (B, A); a given ``z`` replaces the extractor's latent (DAgger, adapters)."""
+        if z is None:
+            feats = self.extractor(obs)  # (B, 96 + Z)
+        else:
+            p = self.extractor.proprio_norm(obs["proprio"]).flatten(1)  # (B, S * D)
+            feats = torch.cat([p, z], dim=-1)  # (B, 96 + Z)
+        return self.action_mean(self.actor(feats))
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.mean(obs).clamp(-1.0, 1.0)
+
+
+class PolicyBundle:
+    """A loaded bundle: :attr:`config` plus the acting network :attr:`net` (eval mode, CPU, float32)."""
+
+    def __init__(self, config: BundleConfig, net: ActorNet | None = None) -> None:
+        self.config = config
+        self.net = (net if net is not None else ActorNet(config)).eval()
+
+    # ------------------------------------------------------------------ acting
+    def _tensors(self, obs: dict[str, Any], batched: bool) -> dict[str, torch.Tensor]:
+        """Check the groups this policy reads (present, shape, finite) and convert them to float32 tensors."""
+        if not isinstance(obs, dict):
+            raise BundleError(f"observation must be a dict of named groups {sorted(self.config.obs_groups)}, "
+                              f"got {type(obs).__name__}")
+        missing = [k for k in self.config.obs_groups if k not in obs]
+        if missing:
+            raise BundleError(f"observation is missing group(s) {missing}; this policy reads "
+                              f"{dict(self.config.obs_groups)} and got {sorted(obs)}")
+        out, n = {}, None
+        for key, shape in self.config.obs_groups.items():
+            x = torch.as_tensor(np.asarray(obs[key]), dtype=torch.float32)
+            got = tuple(x.shape[1:]) if batched else tuple(x.shape)
+            if got != shape or (batched and x.dim() != len(shape) + 1):
+                want = f"(N, {', '.join(map(str, shape))})" if batched else str(shape)
+                raise BundleError(f"observation group {key!r} has shape {tuple(x.shape)}, expected {want}")
+            if batched:
+                if n is not None and x.shape[0] != n:
+                    raise BundleError(f"observation groups disagree on the batch size: {key!r} has {x.shape[0]}, "
+                                      f"others {n}")
+                n = x.shape[0]
+            if not torch.isfinite(x).all():
+                raise BundleError(f"observation group {key!r} contains non-finite values (NaN or inf)")
+            out[key] = x if batched else x.unsqueeze(0)
+        return out
+
+    @torch.no_grad()
+    def act(self, obs: dict[str, Any]) -> np.ndarray:
+        """One observation (groups without a batch dim) -> (action_dim,) float32 action in [-1, 1]."""
+        return self.net(self._tensors(obs, batched=False))[0].numpy()
+
+    @torch.no_grad()
+    def act_batch(self, obs: dict[str, Any]) -> np.ndarray:
+        """Observations with a leading N on every group -> (N, action_dim) float32 actions in [-1, 1]."""
+        return self.net(self._tensors(obs, batched=True)).numpy()
+
+    @torch.no_grad()
+    def latent(self, obs: dict[str, Any]) -> np.ndarray:
+        """The latent z the actor would use: (Z,) for one observation, (N, Z) for a batch (leading N)."""
+        key, shape = next(iter(self.config.obs_groups.items()))
+        batched = np.ndim(obs[key]) == len(shape) + 1 if isinstance(obs, dict) and key in obs else False
+        z = self.net.extractor.z(self._tensors(obs, batched=batched))
+        return z.numpy() if batched else z[0].numpy()
+
+    # ------------------------------------------------------------------ building
+    @classmethod
+    def from_sb3(cls, model: Any, *, control_hz: float = C.CONTROL_HZ, action_scale: float = C.ACTION_SCALE,
+                 card: dict[str, Any] | None = None) -> PolicyBundle:
+        """Bundle the acting path of a stable-baselines3 PPO (or its policy) built with our extractors.
+
+        Copies the features extractor (normalization statistics included), ``mlp_extractor.policy_net`` and
+        ``action_net``; the critic and the log-std are training-only and are left out. Pass the env's
+        ``control_hz`` / ``action_scale`` when they differ from the defaults.
+        """
+        policy = getattr(model, "policy", model)
+        extractor = getattr(policy, "pi_features_extractor", None) or getattr(policy, "features_extractor", None)
+        if isinstance(extractor, PrivilegedExtractor):
+            source, kw = "privileged", dict(encoder=extractor.encoder.cfg)
+        elif isinstance(extractor, StudentExtractor):
+            source, kw = "adaptation", dict(adaptation=extractor.adaptation.cfg)
+        else:
+            raise BundleError("from_sb3 needs a policy whose features extractor is a PrivilegedExtractor or "
+                              f"StudentExtractor (rotation.policy.features), got {type(extractor).__name__}")
+        policy_net = policy.mlp_extractor.policy_net
+        linears = [m for m in policy_net if isinstance(m, nn.Linear)]
+        acts = {type(m) for m in policy_net if not isinstance(m, nn.Linear)}
+        if acts != {nn.ELU} or len(policy_net) != 2 * len(linears):
+            raise BundleError(f"from_sb3 expects an actor MLP of [Linear, ELU] layers (activation_fn=nn.ELU), "
+                              f"got {policy_net}")
+        config = BundleConfig(
+            latent_source=source,  # type: ignore[arg-type]
+            proprio_shape=extractor.proprio_shape,  # type: ignore[arg-type]
+            actor_hidden=tuple(m.out_features for m in linears),
+            action_dim=policy.action_net.out_features,
+            norm_clip=extractor.proprio_norm.cfg.clip,
+            control_hz=control_hz,
+            action_scale=action_scale,
+            card=dict(card or {}),
+            **kw,  # type: ignore[arg-type]
+        )
+        net = ActorNet(config)
+        net.extractor.load_state_dict(extractor.state_dict())
+        net.actor.load_state_dict(policy_net.state_dict())
+        net.action_mean.load_state_dict(policy.action_net.state_dict())
+        return cls(config, net.cpu().float())
+
+    def to_student(self, adaptation: AdaptationConfig | None = None, card: dict[str, Any] | None = None
+                   ) -> PolicyBundle:
+        """A student bundle from this teacher: same actor and proprio normalization, fresh adaptation module."""
+        if self.config.latent_source != "privileged":
+            raise BundleError(f"to_student needs a teacher bundle (latent_source 'privileged'), got "
+                              f"{self.config.latent_source!r}")
+        adaptation = adaptation or AdaptationConfig(latent_dim=self.config.latent_dim)
+        config = replace(self.config, latent_source="adaptation", encoder=None, adaptation=adaptation, obs_groups={},
+                         card=dict(card if card is not None else self.config.card))
+        net = ActorNet(config)
+        teacher = self.net.extractor
+        assert isinstance(teacher, PrivilegedExtractor)
+        net.extractor = StudentExtractor.from_teacher(teacher, config.observation_space(), adaptation)
+        net.actor.load_state_dict(self.net.actor.state_dict())
+        net.action_mean.load_state_dict(self.net.action_mean.state_dict())
+        return PolicyBundle(config, net)
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path) -> Path:
+        """Write ``path/config.json`` and ``path/model.safetensors``; returns the directory."""
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        tensors = {k: v.detach().cpu().contiguous() for k, v in self.net.state_dict().items()}
+        _check_finite(tensors, path / WEIGHTS_FILE)
+        save_file(tensors, str(path / WEIGHTS_FILE), metadata={"format_version": str(FORMAT_VERSION),
+                                                                 "env_version": self.config.env_version})
+        (path / CONFIG_FILE).write_text(json.dumps(to_jsonable(self.config), indent=2) + "\n")
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> PolicyBundle:
+        """Load a bundle directory, checking versions, shapes and that every weight is finite."""
+        path = Path(path)
+        cfg_file, weights_file = path / CONFIG_FILE, path / WEIGHTS_FILE
+        for f in (cfg_file, weights_file):
+            if not f.is_file():
+                raise BundleError(f"bundle {path} is missing {f.name} (a bundle is a directory with {CONFIG_FILE} "
+                                  f"and {WEIGHTS_FILE})")
+        try:
+            raw = json.loads(cfg_file.read_text())
+        except json.JSONDecodeError as err:
+            raise BundleError(f"{cfg_file} is not valid JSON: {err}") from err
+        if not isinstance(raw, dict):
+            raise BundleError(f"{cfg_file} must hold a JSON object, got {type(raw).__name__}")
+        version = raw.get("format_version")
+        if version != FORMAT_VERSION:
+            raise BundleError(f"{cfg_file}: bundle format version {version!r}, but this code reads format version "
+                              f"{FORMAT_VERSION}; re-export the bundle with a matching version of the package")
+        env_version = raw.get("env_version")
+        if env_version != ENV_VERSION:
+            raise BundleError(f"{cfg_file}: bundle was trained for env {env_version!r}, expected {ENV_VERSION!r}")
+        try:
+            config = from_jsonable(BundleConfig, raw)
+        except (TypeError, ValueError) as err:
+            raise BundleError(f"{cfg_file}: invalid bundle config: {err}") from err
+        try:
+            tensors = load_file(str(weights_file))
+        except (SafetensorError, OSError) as err:
+            raise BundleError(f"{weights_file} is not a readable safetensors file: {err}") from err
+        net = ActorNet(config)
+        expected = net.state_dict()
+        missing = sorted(set(expected) - set(tensors))
+        unexpected = sorted(set(tensors) - set(expected))
+        if missing or unexpected:
+            raise BundleError(f"{weights_file} does not match {CONFIG_FILE}: missing tensors {missing}, "
+                              f"unexpected tensors {unexpected}")
+        for key, want in expected.items():
+            if tuple(tensors[key].shape) != tuple(want.shape):
+                raise BundleError(f"{weights_file}: tensor {key!r} has shape {tuple(tensors[key].shape)}, expected "
+                                  f"{tuple(want.shape)} from {CONFIG_FILE} (observation/network sizes disagree)")
+        _check_finite(tensors, weights_file)
+        net.load_state_dict({k: v.to(expected[k].dtype) for k, v in tensors.items()})
+        return cls(config, net)
+
+    def __repr__(self) -> str:
+        c = self.config
+        return (f"PolicyBundle(latent_source={c.latent_source!r}, obs_groups={dict(c.obs_groups)}, "
+                f"actor_hidden={c.actor_hidden}, control_hz={c.control_hz})")
+
+
+def _check_finite(tensors: dict[str, torch.Tensor], where: Path) -> None:
+    bad = [k for k, v in tensors.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise BundleError(f"{where}: non-finite values (NaN or inf) in tensor(s) {bad}; every weight must be finite")
+
+
+def shipped_bundles() -> list[str]:
+    """Names of the bundles shipped inside the package (``rotation/policies/<name>/config.json``)."""
+    if not SHIPPED_DIR.is_dir():
+        return []
+    return sorted(p.name for p in SHIPPED_DIR.iterdir() if (p / CONFIG_FILE).is_file())
+
+
+def resolve_bundle(name_or_path: str | Path) -> Path:
+    """A bundle directory from a path, or from the name of a shipped bundle (``teacher``, ``student``)."""
+    path = Path(name_or_path)
+    if path.is_dir():
+        return path
+    names = shipped_bundles()
+    if str(name_or_path) in names:
+        return SHIPPED_DIR / str(name_or_path)
+    listing = ", ".join(names) if names else "none are shipped in this installation yet"
+    raise BundleError(f"no bundle directory at {str(name_or_path)!r} and no shipped bundle of that name; "
+                      f"shipped bundles: {listing}")
+
+
+def load_bundle(name_or_path: str | Path) -> PolicyBundle:
+    """Load a bundle by shipped name (``teacher``, ``student``) or directory path."""
+    return PolicyBundle.load(resolve_bundle(name_or_path))
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# ONNX export
+
+
+class _OnnxActor(nn.Module):
+    """Positional wrapper for export: one input per observation group (in config order) -> (action, latent)."""
+
+    def __init__(self, net: ActorNet, keys: list[str]) -> None:
+        super().__init__()
+        self.net, self.keys = net, keys
+
+    def forward(self, *groups: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        obs = dict(zip(self.keys, groups, strict=True))
+        z = self.net.extractor.z(obs)  # (N, Z)
+        return self.net.mean(obs, z).clamp(-1.0, 1.0), z  # (N, A), (N, Z)
+
+
+def export_onnx(bundle: PolicyBundle, path: str | Path, opset: int = 17) -> Path:
+    """Export the acting path to ONNX: named float32 inputs = the observation groups (leading batch dim ``N``),
+    outputs ``action`` (N, 16) in [-1, 1] and ``latent`` (N, Z). Normalization is inside the graph."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    keys = list(bundle.config.obs_groups)
+    wrapper = _OnnxActor(bundle.net.eval(), keys).eval()
+    example = tuple(torch.zeros((1, *bundle.config.obs_groups[k])) for k in keys)
+    dynamic = {k: {0: "N"} for k in [*keys, "action", "latent"]}
+    with warnings.catch_warnings():
+        # the TorchScript exporter: the dynamo one needs onnxscript, which is not a dependency
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(wrapper, example, str(path), input_names=keys, output_names=["action", "latent"],
+                          dynamic_axes=dynamic, opset_version=opset, dynamo=False)
+    return path

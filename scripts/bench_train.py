@@ -1,0 +1,129 @@
+"""Benchmark: environment steps per second during teacher PPO training vs the batched env alone, in one run.
+
+Both measurements use the same env config, number of envs and MuJoCo threads, so ``train_over_env`` is the share of
+the raw simulation speed that training keeps (policy inference during rollouts and the PPO updates take the rest).
+The last line printed is a JSON object.
+
+    python scripts/bench_train.py --num-envs 128 --train-steps 65536
+    python scripts/bench_train.py --grasp-cache runs/grasps_cylinder.npz --train-steps 16384
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from envs.core import RotateCupVec
+from rotation.configs import add_dataclass_arguments, dataclass_from_args
+from rotation.train import teacher
+from rotation.train.vec_env import RotateCupSB3VecEnv
+
+
+@dataclass
+class Config:
+    """Benchmark settings (PPO settings default to `rotate train-teacher`'s)."""
+
+    num_envs: int = 128
+    """Simulations stepped together."""
+    env_steps: int = 65_536
+    """Env transitions for the env-alone measurement (random actions, resets on done)."""
+    train_steps: int = 65_536
+    """Env transitions of PPO training to time (rounded up to whole rollouts of num_envs x n_steps)."""
+    n_steps: int = 32
+    """PPO horizon per env per update."""
+    batch_size: int = 1024
+    """PPO minibatch size."""
+    n_epochs: int = 5
+    """PPO passes over each rollout."""
+    object: str = "cylinder"
+    """Object (envs.objects)."""
+    grasp_cache: str = ""
+    """Grasp cache file; empty = the one shipped for the object."""
+    nthread: int = 0
+    """MuJoCo threads (0 = one per CPU core, at most num_envs)."""
+    torch_threads: int | None = None
+    """torch CPU threads during training; None = train-teacher's default. On a loaded 2-core machine more torch
+    threads than free cores can slow PPO down many times over (OpenMP threads spin waiting for each other)."""
+    seed: int = 0
+    """Seed of the envs and of torch."""
+
+
+def teacher_config(cfg: Config, out: Path) -> teacher.Config:
+    threads = {} if cfg.torch_threads is None else {"torch_threads": cfg.torch_threads}
+    return teacher.Config(out=out, object=cfg.object, num_envs=cfg.num_envs, total_steps=cfg.train_steps,
+                          seed=cfg.seed, n_steps=cfg.n_steps, n_epochs=cfg.n_epochs, grasp_cache=cfg.grasp_cache,
+                          batch_size=min(cfg.batch_size, cfg.num_envs * cfg.n_steps), progress=False, **threads)
+
+
+def bench_env(cfg: Config, tcfg: teacher.Config) -> float:
+    """Env transitions per second of the batched core alone (uniform random actions, done envs reset)."""
+    env = RotateCupVec(tcfg.env_config(), num_envs=cfg.num_envs, seed=cfg.seed, nthread=cfg.nthread or None)
+    rng = np.random.default_rng(cfg.seed)
+    iters = max(1, cfg.env_steps // cfg.num_envs)
+    actions = rng.uniform(-1.0, 1.0, (iters, cfg.num_envs, env.single_action_space.shape[0]))
+    env.reset()
+    start = time.perf_counter()
+    for t in range(iters):
+        _, _, terminated, truncated, _ = env.step(actions[t])
+        done = np.flatnonzero(terminated | truncated)
+        if len(done):
+            env.reset(ids=done)
+    wall = time.perf_counter() - start
+    env.close()
+    return iters * cfg.num_envs / wall
+
+
+def bench_train(cfg: Config, tcfg: teacher.Config) -> tuple[float, int]:
+    """Env transitions per second during PPO training (rollouts + updates), and the number timed."""
+    torch.set_num_threads(tcfg.torch_threads)
+    torch.manual_seed(cfg.seed)
+    env = RotateCupSB3VecEnv(tcfg.env_config(), cfg.num_envs, seed=cfg.seed, nthread=cfg.nthread or None,
+                             reward_scale=tcfg.reward_scale)
+    model = teacher.build_model(tcfg, env)
+    rollout = cfg.num_envs * cfg.n_steps
+    total = max(1, -(-cfg.train_steps // rollout)) * rollout
+    start = time.perf_counter()
+    model.learn(total, progress_bar=False)
+    wall = time.perf_counter() - start
+    env.close()
+    return model.num_timesteps / wall, int(model.num_timesteps)
+
+
+def run(cfg: Config) -> dict:
+    """Both measurements; prints a short summary and, last, the JSON result (also returned)."""
+    if min(cfg.num_envs, cfg.env_steps, cfg.train_steps, cfg.n_steps, cfg.batch_size, cfg.n_epochs) < 1:
+        raise ValueError("num_envs, env_steps, train_steps, n_steps, batch_size and n_epochs must all be >= 1")
+    with tempfile.TemporaryDirectory() as tmp:  # PPO's TensorBoard files are not part of the result
+        tcfg = teacher_config(cfg, Path(tmp))
+        env_sps = bench_env(cfg, tcfg)
+        train_sps, timed = bench_train(cfg, tcfg)
+    result = {
+        "num_envs": cfg.num_envs,
+        "torch_threads": tcfg.torch_threads,
+        "env_steps_per_s": round(env_sps, 1),
+        "train_steps_per_s": round(train_sps, 1),
+        "train_steps_timed": timed,
+        "train_over_env": round(train_sps / env_sps, 4),
+    }
+    print(f"batched env alone: {env_sps:,.0f} steps/s; PPO training: {train_sps:,.0f} steps/s "
+          f"({100 * train_sps / env_sps:.0f}% of the env alone)")
+    print(json.dumps(result))
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_dataclass_arguments(parser, Config)
+    run(dataclass_from_args(Config, parser.parse_args(argv)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

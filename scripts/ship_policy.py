@@ -1,0 +1,89 @@
+"""Ship a trained policy bundle inside the package, with a model card.
+
+Copies a bundle directory (config.json + model.safetensors) to rotation/policies/<name>/ (replacing the old one)
+and writes MODEL_CARD.md beside it: the exact training command, seed, steps, wall time, machine, and the rows of
+an evaluation report (results.json from `rotate evaluate`) for this policy.
+
+    python scripts/ship_policy.py --bundle runs/teacher/bundle --name teacher \
+        --command "rotate train-teacher --out runs/teacher" --evaluation docs/results/policies/results.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from rotation.configs import add_dataclass_arguments, dataclass_from_args
+from rotation.policy.bundle import load_bundle
+
+PACKAGE_POLICIES = Path(__file__).resolve().parents[1] / "rotation" / "policies"
+METRICS = ("rotation_rate", "rotation_total", "ttf", "vertical_drift", "lin_vel", "torque")
+
+
+@dataclass
+class Config:
+    bundle: Path = Path("runs/teacher/bundle")
+    """Bundle directory to ship."""
+    name: str = "teacher"
+    """Shipped name (rotation/policies/<name>)."""
+    command: str = ""
+    """The exact command(s) that trained it, as run (several runs joined with ' && ')."""
+    evaluation: Path | None = None
+    """results.json of an evaluation that includes this policy (its rows go into the card)."""
+    wall_time_s: float | None = None
+    """Total training wall time (s) across resumes; default: the bundle card's own figure."""
+    notes: str = ""
+    """Free text for the card (what was tried, known weaknesses)."""
+
+
+def machine() -> str:
+    import os
+
+    return f"{platform.system()} {platform.machine()}, {os.cpu_count()} CPU cores, Python {platform.python_version()}"
+
+
+def run(cfg: Config) -> Path:
+    bundle = load_bundle(cfg.bundle)  # validates before anything is replaced
+    card = dict(bundle.config.card)
+    dest = PACKAGE_POLICIES / cfg.name
+    if dest.exists():
+        shutil.rmtree(dest)
+    dest.mkdir(parents=True)
+    for f in ("config.json", "model.safetensors"):
+        shutil.copy2(cfg.bundle / f, dest / f)
+    load_bundle(dest)
+    wall = cfg.wall_time_s if cfg.wall_time_s is not None else card.get("wall_time_s")
+    lines = [f"# Model card: {cfg.name}", "",
+             f"- role: {card.get('role', bundle.config.latent_source)} (latent source `{bundle.config.latent_source}`)",
+             f"- env: RotateCup-v0, object `{card.get('object', 'cup')}`, Hora's domain randomization",
+             f"- training command: `{cfg.command or card.get('command', 'unknown')}`",
+             f"- seed: {card.get('seed', '?')}",
+             f"- environment steps: {card.get('steps', '?'):,}" if isinstance(card.get("steps"), int)
+             else f"- environment steps: {card.get('steps', '?')}",
+             f"- wall time: {wall / 3600:.2f} h" if isinstance(wall, int | float) else "- wall time: unknown",
+             f"- machine: {machine()}",
+             f"- files: config.json, model.safetensors ({(dest / 'model.safetensors').stat().st_size / 1e6:.2f} MB)",
+             ""]
+    if cfg.evaluation is not None:
+        rows = [r for r in json.loads(Path(cfg.evaluation).read_text())["rows"] if r["policy"] == cfg.name]
+        if not rows:
+            raise ValueError(f"{cfg.evaluation} has no rows for policy {cfg.name!r}")
+        lines += [f"## Evaluation ({rows[0]['episodes']} episodes per condition, `{cfg.evaluation}`)", "",
+                  "| condition | " + " | ".join(METRICS) + " |", "|---|" + "---|" * len(METRICS)]
+        lines += ["| " + r["condition"] + " | " + " | ".join(f"{r[m]:.3f}" for m in METRICS) + " |" for r in rows]
+        lines.append("")
+    if cfg.notes:
+        lines += ["## Notes", "", cfg.notes, ""]
+    (dest / "MODEL_CARD.md").write_text("\n".join(lines))
+    print(f"shipped {cfg.bundle} as {dest}")
+    return dest
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_dataclass_arguments(parser, Config)
+    run(dataclass_from_args(Config, parser.parse_args()))

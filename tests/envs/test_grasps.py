@@ -1,0 +1,157 @@
+"""Grasp cache: file round trip, sampling by hand, clear errors for bad files, and a tiny generation whose grasps
+satisfy Hora's acceptance rule when checked with MuJoCo's own distance query (not the generator's own geometry)."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from envs import EnvConfig, RotateCupVec
+from envs import constants as C
+from envs.grasps import GRASP_DIM, GraspCache, generate_grasps, load_default_cache
+from envs.objects import get_object
+from envs.scene import OBJECT_BODY, OBJECT_START, build_model
+
+SCALES = (0.74, 0.82)
+
+
+@pytest.fixture(scope="module")
+def generated():
+    return generate_grasps("cylinder", SCALES, per_scale=3, batch_size=8, max_rounds=5, seed=0, nthread=1)
+
+
+def small_cache(obj: str = "cylinder") -> GraspCache:
+    """2 buckets x 4 rows; row g of bucket b has joint 0 = 10 b + g, so a sampled row tells where it came from."""
+    grasps = np.zeros((2, 4, GRASP_DIM))
+    grasps[:, :, 0] = 10 * np.arange(2)[:, None] + np.arange(4)[None]
+    grasps[:, :, 16:19] = OBJECT_START
+    grasps[:, :, 19] = 1.0  # identity quaternion
+    return GraspCache(obj, np.array([0.7, 0.8]), grasps, seed=4)
+
+
+def test_sample_picks_the_nearest_bucket_and_the_row_by_u():
+    q, pose = small_cache().sample(np.zeros(4, int), np.array([0.71, 0.79, 0.76, 0.74]), np.array([0, 0.99, 0.5, 0.3]))
+    # 0.76 is nearer 0.8 than 0.7; 0.74 nearer 0.7; row = floor(u x 4)
+    np.testing.assert_array_equal(q[:, 0], [0, 13, 12, 1])
+    assert q.shape == (4, 16) and pose.shape == (4, 7)
+    np.testing.assert_array_equal(pose[:, 3], 1.0)
+
+
+def test_save_load_round_trip(tmp_path, generated):
+    path = tmp_path / "sub" / "cache"  # no .npz suffix: the file is written at exactly this path
+    generated.save(path)
+    assert path.is_file()
+    loaded = GraspCache.load(path)
+    assert loaded.object == "cylinder" and loaded.seed == 0
+    np.testing.assert_array_equal(loaded.scales, SCALES)
+    # grasps are stored as float32 (half the file); loading gives those values back exactly
+    np.testing.assert_array_equal(loaded.grasps, generated.grasps.astype(np.float32))
+    np.testing.assert_allclose(loaded.grasps, generated.grasps, atol=1e-6)
+    loaded.save(tmp_path / "again.npz")
+    again = GraspCache.load(tmp_path / "again.npz")
+    np.testing.assert_array_equal(again.grasps, loaded.grasps)
+    np.testing.assert_array_equal(again.scales, loaded.scales)
+
+
+def test_generated_grasps_follow_horas_rule(generated):
+    """All four fingertips within 10 cm of the object centre, at least two touching it, object still in the hand."""
+    obj = get_object("cylinder")
+    assert generated.grasps.shape == (len(SCALES), 3, GRASP_DIM)
+    tip_geoms = [f"{finger}_tip" for finger in C.FINGERS]
+    for scale, rows in zip(SCALES, generated.grasps, strict=True):
+        model = build_model(obj, scale)
+        data = mujoco.MjData(model)
+        o = model.joint("object_free").qposadr[0]
+        obj_geoms = np.flatnonzero(model.geom_bodyid == model.body(OBJECT_BODY).id)
+        for row in rows:
+            q, pose = row[:16], row[16:]
+            assert np.all((q >= C.JOINT_LOWER - 0.02) & (q <= C.JOINT_UPPER + 0.02))  # PD overshoot is tiny
+            assert abs(np.linalg.norm(pose[3:]) - 1.0) < 1e-6
+            data.qpos[:16], data.qpos[o : o + 7] = q, pose
+            mujoco.mj_forward(model, data)
+            centre = data.xpos[model.body(OBJECT_BODY).id]
+            tips = np.array([data.site(s).xpos for s in C.FINGERTIP_SITES])
+            assert np.linalg.norm(tips - centre, axis=1).max() < 0.10
+            gap = [min(mujoco.mj_geomDistance(model, data, model.geom(t).id, g, 0.05, None) for g in obj_geoms)
+                   for t in tip_geoms]
+            assert sum(d < 0.004 for d in gap) >= 2, gap  # touching: within the generator's 4 mm tolerance
+            # did not fall: still above the fingers' base, near where grasps start (object started at z = 7 cm)
+            assert OBJECT_START[2] - 0.04 < pose[2] < OBJECT_START[2] + 0.02
+            assert np.linalg.norm(pose[:2] - OBJECT_START[:2]) < 0.03
+
+
+def test_generation_is_seeded(generated):
+    again = generate_grasps("cylinder", SCALES, per_scale=3, batch_size=8, max_rounds=5, seed=0, nthread=1)
+    np.testing.assert_array_equal(again.grasps, generated.grasps)
+
+
+def test_env_resets_into_a_generated_cache(tmp_path, generated):
+    generated.save(tmp_path / "g.npz")
+    cfg = EnvConfig(object="cylinder", grasp_cache=str(tmp_path / "g.npz"))
+    core = RotateCupVec(cfg, num_envs=4, seed=0, nthread=1)
+    core.reset(seed=0)
+    rows = GraspCache.load(tmp_path / "g.npz").grasps.reshape(-1, GRASP_DIM)
+    for q in core.batch.bind("qpos")[:, :16]:
+        assert np.any(np.all(rows[:, :16] == q, axis=1))  # every env starts from one of the cached rows
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ValueError, match=r"grasp cache .*nope\.npz does not exist.*rotate grasps"):
+        GraspCache.load(tmp_path / "nope.npz")
+    with pytest.raises(ValueError, match="does not exist"):
+        RotateCupVec(EnvConfig(object="cylinder", grasp_cache=str(tmp_path / "nope.npz")))
+
+
+def corruptions(good: bytes) -> dict[str, bytes]:
+    zeroed = bytearray(good)
+    zeroed[len(good) // 3 : len(good) // 3 + 64] = bytes(64)  # damages a compressed member (CRC error)
+    early = bytearray(good)
+    early[200:264] = bytes(64)  # damages the deflate stream itself
+    return {"garbage": b"not a grasp cache " * 20, "empty": b"", "truncated": good[: len(good) // 2],
+            "zeroed": bytes(zeroed), "zeroed_early": bytes(early)}
+
+
+@pytest.mark.parametrize("kind", ["garbage", "empty", "truncated", "zeroed", "zeroed_early"])
+def test_corrupted_file(tmp_path, kind):
+    small_cache().save(tmp_path / "good.npz")
+    bad = tmp_path / f"{kind}.npz"
+    bad.write_bytes(corruptions((tmp_path / "good.npz").read_bytes())[kind])
+    with pytest.raises(ValueError, match=rf"grasp cache .*{kind}\.npz is (not a readable \.npz file|corrupted)"):
+        GraspCache.load(bad)
+
+
+def test_wrong_contents(tmp_path):
+    np.savez(tmp_path / "keys.npz", object="cylinder", grasps=np.zeros((1, 2, GRASP_DIM)))
+    with pytest.raises(ValueError, match=r"missing \['scales'\]"):
+        GraspCache.load(tmp_path / "keys.npz")
+    np.savez(tmp_path / "shape.npz", object="cylinder", scales=np.ones(2), grasps=np.zeros((2, 3, 20)))
+    with pytest.raises(ValueError, match=r"shape \(S=2, G, 23\), got \(2, 3, 20\)"):
+        GraspCache.load(tmp_path / "shape.npz")
+    np.savez(tmp_path / "nan.npz", object="cylinder", scales=np.ones(1), grasps=np.full((1, 2, GRASP_DIM), np.nan))
+    with pytest.raises(ValueError, match="non-finite"):
+        GraspCache.load(tmp_path / "nan.npz")
+    np.save(tmp_path / "array.npy", np.zeros(3))
+    (tmp_path / "array.npy").rename(tmp_path / "array.npz")
+    with pytest.raises(ValueError, match=r"single \.npy array"):
+        GraspCache.load(tmp_path / "array.npz")
+
+
+def test_cache_for_another_object_is_refused(tmp_path):
+    small_cache("cylinder").save(tmp_path / "cyl.npz")
+    with pytest.raises(ValueError, match="generated for 'cylinder', not for 'cup'"):
+        load_default_cache("cup", str(tmp_path / "cyl.npz"))
+    with pytest.raises(ValueError, match="generated for 'cylinder', not for 'cup'"):
+        RotateCupVec(EnvConfig(object="cup", grasp_cache=str(tmp_path / "cyl.npz")))
+
+
+def test_object_without_a_shipped_cache():
+    with pytest.raises(ValueError, match=r"no grasp cache ships for object 'cylinder_3' \(shipped: .*cylinder"):
+        RotateCupVec(EnvConfig(object="cylinder_3"))
+
+
+def test_generate_rejects_bad_budgets():
+    with pytest.raises(ValueError, match="per_scale must be >= 1"):
+        generate_grasps("cylinder", (0.8,), per_scale=0)
+    with pytest.raises(ValueError, match="unknown object 'mug'"):
+        generate_grasps("mug", (0.8,), per_scale=1)

@@ -1,0 +1,182 @@
+"""Policy bundle: round trip, SB3 import, teacher -> student, ONNX parity, and every kind of bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+from safetensors.torch import load_file, save_file
+
+from rotation.policy import bundle as B
+from rotation.policy.bundle import BundleConfig, BundleError, PolicyBundle, export_onnx, load_bundle
+from rotation.policy.features import policy_kwargs
+from rotation.policy.networks import EnvFactorEncoderConfig
+
+
+def random_obs(n: int, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {
+        "proprio": rng.normal(size=(n, 3, 32)).astype(np.float32),
+        "proprio_hist": rng.normal(size=(n, 30, 32)).astype(np.float32),
+        "priv": rng.uniform(0, 1, size=(n, 9)).astype(np.float32),
+    }
+
+
+def randomized(bundle: PolicyBundle, seed: int = 0) -> PolicyBundle:
+    """Give every tensor (normalization statistics included) non-trivial values, so round trips are meaningful."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, t in bundle.net.state_dict().items():
+            if name.endswith("var"):
+                t.copy_(torch.rand(t.shape, generator=g) + 0.5)
+            elif name.endswith("count"):
+                t.fill_(1000)
+            else:
+                t.copy_(torch.randn(t.shape, generator=g) * 0.3)
+    return bundle
+
+
+@pytest.fixture
+def teacher() -> PolicyBundle:
+    return randomized(PolicyBundle(BundleConfig(card={"note": "random init"})))
+
+
+def test_round_trip(tmp_path, teacher):
+    path = teacher.save(tmp_path / "teacher")
+    assert sorted(p.name for p in path.iterdir()) == ["config.json", "model.safetensors"]
+    cfg = json.loads((path / "config.json").read_text())
+    assert cfg["env_version"] == "RotateCup-v0" and cfg["format_version"] == B.FORMAT_VERSION
+    assert cfg["obs_groups"] == {"proprio": [3, 32], "priv": [9]}
+    assert "extractor.proprio_norm.mean" in load_file(path / "model.safetensors")
+
+    loaded = load_bundle(path)
+    assert loaded.config == teacher.config
+    obs = random_obs(7)
+    a = loaded.act_batch(obs)
+    assert a.shape == (7, 16) and a.dtype == np.float32
+    np.testing.assert_array_equal(a, teacher.act_batch(obs))
+    assert np.all(np.abs(a) <= 1.0)
+    single = {k: v[3] for k, v in obs.items()}
+    np.testing.assert_allclose(loaded.act(single), a[3], atol=1e-6)
+    assert loaded.latent(obs).shape == (7, 8) and loaded.latent(single).shape == (8,)
+
+
+def test_from_sb3_matches_sb3_policy():
+    from stable_baselines3.common.policies import MultiInputActorCriticPolicy
+
+    space = spaces.Dict({k: spaces.Box(-np.inf, np.inf, v.shape[1:], np.float32) for k, v in random_obs(1).items()})
+    policy = MultiInputActorCriticPolicy(space, spaces.Box(-1, 1, (16,), np.float32), lambda _: 3e-4,
+                                         **policy_kwargs(EnvFactorEncoderConfig(hidden=(64, 32))))
+    obs = random_obs(5)
+    policy.set_training_mode(True)
+    policy.extract_features({k: torch.as_tensor(v) for k, v in obs.items()})  # move the normalization statistics
+    policy.set_training_mode(False)
+    bundle = PolicyBundle.from_sb3(policy, card={"steps": 0})
+    assert bundle.config.encoder == EnvFactorEncoderConfig(hidden=(64, 32))
+    assert bundle.config.actor_hidden == (512, 256, 128)
+    expected, _ = policy.predict(obs, deterministic=True)  # SB3 clips to the action space
+    np.testing.assert_allclose(bundle.act_batch(obs), expected, atol=1e-6)
+
+
+def test_to_student_shares_actor(teacher):
+    student = teacher.to_student()
+    assert student.config.latent_source == "adaptation"
+    assert student.config.obs_groups == {"proprio": (3, 32), "proprio_hist": (30, 32)}
+    obs = {k: torch.as_tensor(v) for k, v in random_obs(4).items()}
+    z = teacher.net.extractor.z(obs)
+    torch.testing.assert_close(student.net.mean(obs, z), teacher.net.mean(obs))  # same actor given the same z
+    with pytest.raises(BundleError, match="teacher"):
+        student.to_student()
+
+
+@pytest.mark.parametrize("kind", ["teacher", "student"])
+def test_onnx_matches_torch(tmp_path, teacher, kind):
+    import onnxruntime as ort
+
+    bundle = teacher if kind == "teacher" else randomized(teacher.to_student(), seed=1)
+    path = export_onnx(bundle, tmp_path / f"{kind}.onnx")
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    assert [i.name for i in sess.get_inputs()] == list(bundle.config.obs_groups)
+    obs = random_obs(6, seed=2)
+    feeds = {k: obs[k] for k in bundle.config.obs_groups}
+    action, latent = sess.run(["action", "latent"], feeds)
+    np.testing.assert_allclose(action, bundle.act_batch(obs), atol=1e-5, rtol=0)
+    np.testing.assert_allclose(latent, bundle.latent(obs), atol=1e-5, rtol=0)
+
+
+# ---------------------------------------------------------------------------------------------------- bad input
+
+
+def edit_config(path, **changes):
+    cfg = json.loads((path / "config.json").read_text())
+    cfg.update(changes)
+    (path / "config.json").write_text(json.dumps(cfg))
+
+
+def test_rejects_other_env_and_format_versions(tmp_path, teacher):
+    path = teacher.save(tmp_path / "b")
+    edit_config(path, env_version="RotateCube-v3")
+    with pytest.raises(BundleError, match=r"'RotateCube-v3', expected 'RotateCup-v0'"):
+        load_bundle(path)
+    edit_config(path, env_version="RotateCup-v0", format_version=99)
+    with pytest.raises(BundleError, match=r"format version 99.*reads format version 1"):
+        load_bundle(path)
+
+
+def test_rejects_missing_files(tmp_path, teacher):
+    path = teacher.save(tmp_path / "b")
+    (path / "model.safetensors").unlink()
+    with pytest.raises(BundleError, match="missing model.safetensors"):
+        load_bundle(path)
+    (path / "config.json").unlink()
+    with pytest.raises(BundleError, match="missing config.json"):
+        load_bundle(path)
+
+
+def test_unknown_name_lists_shipped(monkeypatch, tmp_path, teacher):
+    monkeypatch.setattr(B, "SHIPPED_DIR", tmp_path)
+    with pytest.raises(BundleError, match="none are shipped"):
+        load_bundle("teacher")
+    teacher.save(tmp_path / "teacher")
+    assert load_bundle("teacher").config == teacher.config  # a name resolves to the shipped directory
+    with pytest.raises(BundleError, match="shipped bundles: teacher"):
+        load_bundle("no_such_policy")
+
+
+def test_rejects_mismatched_sizes(tmp_path, teacher):
+    path = teacher.save(tmp_path / "b")
+    cfg = json.loads((path / "config.json").read_text())
+    cfg["encoder"]["hidden"] = [64, 32]
+    (path / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(BundleError, match=r"extractor.encoder.mlp.0.weight.*shape \(256, 9\), expected \(64, 9\)"):
+        load_bundle(path)
+    edit_config(path, obs_groups={"proprio": [3, 32], "priv": [12]})
+    with pytest.raises(BundleError, match="do not match the networks' inputs"):
+        load_bundle(path)
+    edit_config(path, mystery=1)
+    with pytest.raises(BundleError, match="unknown config keys"):
+        load_bundle(path)
+
+
+def test_rejects_non_finite_weights(tmp_path, teacher):
+    path = teacher.save(tmp_path / "b")
+    tensors = load_file(path / "model.safetensors")
+    tensors["actor.2.bias"][5] = float("nan")
+    save_file(tensors, path / "model.safetensors")
+    with pytest.raises(BundleError, match=r"non-finite.*actor\.2\.bias"):
+        load_bundle(path)
+
+
+def test_rejects_bad_observations(teacher):
+    obs = {k: v[0] for k, v in random_obs(1).items()}
+    with pytest.raises(BundleError, match=r"'priv' has shape \(7,\), expected \(9,\)"):
+        teacher.act({**obs, "priv": np.zeros(7)})
+    with pytest.raises(BundleError, match=r"missing group\(s\) \['priv'\]"):
+        teacher.act({"proprio": obs["proprio"]})
+    with pytest.raises(BundleError, match=r"expected \(N, 3, 32\)"):
+        teacher.act_batch(obs)
+    with pytest.raises(BundleError, match="non-finite"):
+        teacher.act({**obs, "proprio": np.full((3, 32), np.nan)})
