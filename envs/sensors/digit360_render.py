@@ -29,9 +29,10 @@ The model, honestly:
   slow drift and white noise. The force-to-pressure gain is a guess of the right order, not a calibration.
 
 Causality: a stream sample at time t depends only on contact rows with times <= t (continuous quantities are
-interpolated with a one-physics-step lag, images hold the last row). Determinism: every random number is a
-counter-based hash of (key, stream, absolute sample index) (envs.rng.splitmix64), so two overlapping windows agree
-on their overlap and nothing depends on the order in which windows are rendered.
+interpolated with a one-physics-step lag, images hold the last row). Determinism: every random number is a pure
+function of (key, stream, absolute sample index), drawn from counter-based hashes (envs.rng.splitmix64) or from
+fixed noise tables read at hashed offsets, so two overlapping windows agree on their overlap and nothing depends on
+the order in which windows are rendered.
 """
 
 from __future__ import annotations
@@ -130,7 +131,8 @@ class Digit360Model:
 
 DEFAULT_MODEL = Digit360Model()
 AUDIO_RING_S = 5.0 * max(decay for _, decay, _ in DEFAULT_MODEL.modes)
-"""How far back an impact still rings (s): five decay times of the slowest mode."""
+"""How far back an impact still rings (s): five decay times of the default model's slowest mode (a model with
+slower modes is cut there)."""
 HISTORY_S = (PRESSURE_SAMPLES - 1) / PRESSURE_HZ + 1.0 / IMAGE_HZ + AUDIO_RING_S
 """Contact history (s) a window ending at the latest image frame needs behind the current time: the pressure
 window (the longest, 1.115 s), the latest frame's lag behind the current time (< 1/30 s) and the ring-down of

@@ -11,11 +11,12 @@ rings that renders the Sparsh-X windows (reference/sparsh.md) only when they are
     obs["tactile"]["index"]["pressure"]  # (N, 224, 1) float32, hPa
 
 Every window ends at the env's current image timestamp (the last 30 fps frame at or before the env's time) and
-holds no later sample. Rendering four fingertips' windows costs milliseconds per env, about ten times a policy step
-of physics, which is why it is deferred: stepping with touch on costs only the sensors and the ring.
-Like the other groups, a :class:`TactileObs` has a leading env axis: indexing it with an int, slice, mask or index
-array selects envs (an int drops the axis, as for the single env), ``copy()`` and masked assignment work as on
-arrays, so the vector adapters treat it like the array groups.
+holds no later sample. Rendering four fingertips' windows costs tens of milliseconds per env, far more than a
+policy step of physics, which is why it is deferred: stepping with touch on costs only the sensors and the ring.
+A :class:`TactileObs` is a dict (finger -> dict of modality -> array, values computed when read), so gymnasium's
+checks and nested-space tools accept it; like the array groups it also has a leading env axis: indexing it with an
+int, slice, mask or index array selects envs (an int drops the axis, as the single env does), and ``copy()`` and
+masked assignment work as on arrays, so the vector adapters handle it unchanged.
 """
 
 from __future__ import annotations

@@ -263,6 +263,9 @@ class TouchWindows(Dataset):
         audio = r.stream(f"digit360/{finger}/audio", lazy=True)
         last = int(np.searchsorted(audio.timestamps, t_end + _TIME_EPS, side="right"))  # samples at or before t_end
         wave = np.asarray(audio.data[last - AUDIO_SAMPLES : last], dtype=np.float32).T  # (2, 27000)
+        if not np.isfinite(wave).all():  # lazily read streams are checked window by window
+            raise SessionError(f"session {r.path}, stream 'digit360/{finger}/audio': non-finite samples before "
+                               f"t={t_end:.4f} s")
         imu_grid = t_end - np.arange(IMU_SAMPLES - 1, -1, -1) / IMU_HZ
         p_grid = t_end - np.arange(PRESSURE_SAMPLES - 1, -1, -1) / PRESSURE_HZ
         imu_st, p_st = r.stream(f"digit360/{finger}/imu"), r.stream(f"digit360/{finger}/pressure")

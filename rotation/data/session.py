@@ -422,7 +422,8 @@ class SessionReader:
         return name in self.names
 
     def stream(self, name: str, lazy: bool = False) -> Stream:
-        """Validated stream ``name``; ``lazy`` keeps the data as an h5py dataset (e.g. images read frame by frame)."""
+        """Validated stream ``name``; ``lazy`` keeps the data as an h5py dataset (images, audio: read window by
+        window, so the finite-sample check is left to the reader of each window)."""
         if name in self._cache and (lazy or not isinstance(self._cache[name].data, h5py.Dataset)):
             return self._cache[name]
         where = f"session {self.path}, stream {name!r}"

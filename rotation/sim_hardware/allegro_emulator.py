@@ -162,6 +162,7 @@ class AllegroEmulator:
         self.version = ap.VERSIONS[version]
         self.hand_id = hand_id
         self.serial = serial
+        # versions of the real V4 bus trace (hw 0x0402, fw 0x0406, reference/hardware.md section 1); 0x05xx marks a V5
         self.info = ap.AllegroInfo(hardware=0x0402 if version == "v4" else 0x0500, firmware=0x0406,
                                    right_hand=True, temperature_c=38, status=0)
         self.physics = physics or HandPhysics()

@@ -56,7 +56,7 @@ class LeapEmulator:
     """16 emulated servos on a pty; a context manager that starts and stops its thread."""
 
     def __init__(self, ids: tuple[int, ...] = tuple(range(16)), physics: HandPhysics | None = None,
-                 firmware: int = 52) -> None:
+                 firmware: int = 52) -> None:  # firmware: any byte; 52 is only a plausible X-series version
         self.ids = list(ids)
         self.physics = physics or HandPhysics()
         self.faults = LeapFaults()

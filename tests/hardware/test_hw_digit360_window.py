@@ -103,3 +103,16 @@ def test_clock_map_reanchors_after_a_device_clock_pause():
     clock = _ClockMap(1e6)
     clock(1_000_000, 10.0)
     assert clock(1_002_500, 10.5) == pytest.approx(10.5)  # 0.5 s late: not USB latency, re-anchored
+
+
+def test_discovery_by_usb_serial(monkeypatch):
+    from types import SimpleNamespace
+
+    from rotation.hardware import digit360
+
+    ports = [SimpleNamespace(device="ttyACM0", vid=0x2833, pid=0x4001, serial_number="D360-A"),
+             SimpleNamespace(device="ttyACM1", vid=0x2833, pid=0x4001, serial_number="D360-B"),
+             SimpleNamespace(device="ttyACM2", vid=0x0403, pid=0x6014, serial_number="D360-B")]  # an FTDI, not a Digit
+    monkeypatch.setattr(digit360.list_ports, "comports", lambda: ports)
+    assert digit360.find_digit360_ports("D360-B") == [("ttyACM1", "D360-B")]
+    assert len(digit360.find_digit360_ports()) == 2
