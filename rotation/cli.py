@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "hand-info": ("rotation.jobs.hand_info", "print a hand's firmware, serial, temperatures and joint positions"),
     "collect": ("rotation.jobs.collect", "record simulated touch sessions (Digit 360 on) with a policy"),
     "inspect-tactile": ("rotation.jobs.inspect_tactile", "plot every touch modality of a session window (PNG)"),
+    "deploy": ("rotation.deploy.job", "run a policy on a real or emulated hand with safety limits and recording"),
 }
 """Subcommand registry; later issues add their jobs here."""
 
@@ -77,7 +78,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         cfg = dataclass_from_args(module.Config, args)
     try:
-        module.run(cfg)
+        result = module.run(cfg)
     except KeyboardInterrupt:
         print("rotate: interrupted", file=sys.stderr)
         return 130
@@ -85,6 +86,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         # bad input: one clear line instead of a traceback
         print(f"rotate {args.command}: error: {err}", file=sys.stderr)
         return 2
+    # a job that ends itself cleanly on a fault or a signal (deploy) reports its exit status in its result
+    if isinstance(result, dict) and isinstance(result.get("exit_code"), int):
+        return result["exit_code"]
     return 0
 
 

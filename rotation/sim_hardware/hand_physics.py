@@ -5,7 +5,15 @@ the torque commanded on the bus is written to ``qfrc_applied`` of the 16 hand Do
 normalized torque = N m in simulation, envs/constants.py). The host's PD loop therefore closes through the
 emulated bus exactly as on the real hand, with the bus delay included.
 
-Thread-safe: one emulator thread advances it, others may read the joint state.
+Starting from an initial grasp (for ``rotate deploy --hand sim-*``): :meth:`HandPhysics.at_grasp` puts the hand's
+joints and the object at one row of the shipped grasp cache at RotateCup-v0's nominal scale, the state an env
+episode starts from, so a policy trained in the env can rotate the emulated cup. With ``hold=True`` the scene
+stays frozen at that state until :meth:`HandPhysics.release` (the caller does it once the driver holds the hand):
+the emulated hand has no torque until the driver's start-up sequence switches the motors on (over a Dynamixel
+bus that is ~200 register round trips), and a cup left in an unpowered hand drops out of the grasp; the hold
+stands in for the operator who keeps the cup in place until the hand holds it.
+
+Thread-safe: one emulator thread advances it, others may read the joint state and the object pose.
 """
 
 from __future__ import annotations
@@ -15,7 +23,9 @@ import threading
 import mujoco
 import numpy as np
 
+from envs.config import RandomizationConfig
 from envs.constants import HOME_POSE, JOINT_NAMES, NUM_JOINTS
+from envs.grasps import load_default_cache
 from envs.objects import get_object
 from envs.scene import OBJECT_JOINT, OBJECT_START, build_model
 
@@ -26,7 +36,15 @@ TIMESTEP = 1e-3
 class HandPhysics:
     """MuJoCo hand + object; :meth:`advance` integrates with the last torque held constant (zero-order hold)."""
 
-    def __init__(self, object_name: str = "cup", scale: float = 0.8, q0: np.ndarray | None = None) -> None:
+    def __init__(self, object_name: str = "cup", scale: float = 0.8, q0: np.ndarray | None = None,
+                 object_pose: np.ndarray | None = None, hold: bool = False) -> None:
+        """``q0``: initial joint angles (16,) rad, bus order (default: the vendor home pose); ``object_pose``:
+        initial object position (3, m) + quaternion (4, wxyz), world frame (default: above the fingers, upright);
+        ``hold``: keep the scene frozen until :meth:`release` (see the module docstring)."""
+        self.object_name = object_name
+        self.scale = float(scale)
+        self.grasp: int | None = None
+        """Grasp cache row the scene started from (set by :meth:`at_grasp`), None otherwise."""
         self.model = build_model(get_object(object_name), scale=scale, timestep=TIMESTEP)
         self.model.actuator_gainprm[:, 0] = 0.0  # position actuators off: torque comes from qfrc_applied
         self.model.actuator_biasprm[:, :3] = 0.0
@@ -38,9 +56,41 @@ class HandPhysics:
         self._obj_qpos = int(self.model.jnt_qposadr[obj])
         self._obj_dof = int(self.model.jnt_dofadr[obj])
         self.data.qpos[self._qpos_adr] = HOME_POSE if q0 is None else q0
+        if object_pose is not None:
+            self.data.qpos[self._obj_qpos: self._obj_qpos + 7] = object_pose
         mujoco.mj_forward(self.model, self.data)
         self._torque = np.zeros(NUM_JOINTS)
         self._lock = threading.Lock()
+        self._held = bool(hold)
+
+    @classmethod
+    def at_grasp(cls, object_name: str = "cup", grasp: int = 0, hold: bool = True) -> HandPhysics:
+        """The hand holding ``object_name`` as a RotateCup-v0 episode starts: row ``grasp`` of the shipped grasp
+        cache (envs.grasps) in the bucket of the env's nominal scale (the middle randomization scale, as with
+        randomization off), joints at the grasp pose, object at the grasp's pose. ValueError if no cache ships
+        for the object or ``grasp`` is out of range."""
+        cache = load_default_cache(object_name)
+        scales = RandomizationConfig().scales
+        scale = float(scales[len(scales) // 2])  # = envs.core.RotateCupVec._nominal_scale
+        bucket = int(np.abs(cache.scales - scale).argmin())
+        if not 0 <= grasp < cache.grasps.shape[1]:
+            raise ValueError(f"grasp {grasp} out of range: the {object_name!r} cache has {cache.grasps.shape[1]} "
+                             f"grasps per scale (0..{cache.grasps.shape[1] - 1})")
+        row = cache.grasps[bucket, grasp]  # (23,) = q (16) + object position (3) + quaternion wxyz (4)
+        physics = cls(object_name, float(cache.scales[bucket]), q0=row[:NUM_JOINTS], object_pose=row[NUM_JOINTS:],
+                      hold=hold)
+        physics.grasp = int(grasp)
+        return physics
+
+    @property
+    def held(self) -> bool:
+        """True while the scene is frozen at its initial state (``hold=True`` until :meth:`release`)."""
+        return self._held
+
+    def release(self) -> None:
+        """End the initial hold: from now on :meth:`advance` integrates the physics."""
+        with self._lock:
+            self._held = False
 
     @property
     def time(self) -> float:
@@ -57,9 +107,11 @@ class HandPhysics:
             return self._torque.copy()
 
     def advance(self, seconds: float) -> None:
-        """Integrate ``seconds`` of hand time (rounded to whole physics steps)."""
+        """Integrate ``seconds`` of hand time (rounded to whole physics steps); nothing while :attr:`held`."""
         n = max(1, int(round(seconds / self.model.opt.timestep)))
         with self._lock:
+            if self._held:  # frozen at the initial state until release() (module docstring)
+                return
             self.data.qfrc_applied[self._dof_adr] = self._torque
             for _ in range(n):
                 mujoco.mj_step(self.model, self.data)
@@ -72,3 +124,8 @@ class HandPhysics:
         """(q rad, qdot rad/s), each (16,), bus order, Allegro frame."""
         with self._lock:
             return self.data.qpos[self._qpos_adr].copy(), self.data.qvel[self._dof_adr].copy()
+
+    def object_pose(self) -> np.ndarray:
+        """(7,) object position (m) + orientation quaternion (w, x, y, z), world frame."""
+        with self._lock:
+            return self.data.qpos[self._obj_qpos: self._obj_qpos + 7].copy()

@@ -30,7 +30,7 @@ def setup(tmp_path_factory):
     teacher = PolicyBundle(BundleConfig())
     teacher.save(root / "teacher")
     teacher.to_student().save(root / "student")
-    generate_grasps("cylinder", (0.78,), per_scale=4, batch_size=16, max_rounds=5, seed=0, nthread=1).save(
+    generate_grasps("cup", (0.78,), per_scale=4, batch_size=16, max_rounds=5, seed=0, nthread=1).save(
         root / "grasps.npz")
     return root
 

@@ -34,6 +34,8 @@ def randomized(bundle: PolicyBundle, seed: int = 0) -> PolicyBundle:
                 t.copy_(torch.rand(t.shape, generator=g) + 0.5)
             elif name.endswith("count"):
                 t.fill_(1000)
+            elif t.dim() >= 2:  # weights at a fan-in scale: activations stay O(1), as in a trained network
+                t.copy_(torch.randn(t.shape, generator=g) * (1.0 / t[0].numel()) ** 0.5)
             else:
                 t.copy_(torch.randn(t.shape, generator=g) * 0.3)
     return bundle

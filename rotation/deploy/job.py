@@ -1,0 +1,329 @@
+"""Run a policy on a real or emulated hand with safety limits and recording.
+
+    rotate deploy --hand sim-allegro --policy student --duration 10           # rehearsal: emulated hand, real driver
+    rotate deploy --hand sim-leap --policy student --record runs/leap_rehearsal.h5
+    rotate deploy --hand allegro --can socketcan:can0 --policy student --gain-scale 0.3 --duration 5
+    rotate deploy --hand leap --port /dev/ttyUSB0 --policy student --record runs/leap.h5
+
+--policy takes a bundle directory or a shipped bundle name (student). The loop runs at the bundle's control
+rate, builds observations with the env's own code (envs.observation.ProprioHistory), integrates targets as the
+env does and sends them through the driver, whose safety layer clamps joints and torques, limits the target
+rate and holds the last target if commands stop. Ctrl-C or SIGTERM end the run: motors off, recording closed.
+Prints a live status line (stderr), then the summary as one JSON object on the last line of stdout. Exit status:
+0 run completed, 1 fault, 130 Ctrl-C (SIGINT), 143 SIGTERM, 2 bad options (nothing was started).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from rotation.configs import add_dataclass_arguments, dataclass_from_args, to_jsonable
+from rotation.deploy.hands import HANDS, HandSetup, OpenedHand, open_hand
+from rotation.deploy.sensors import parse_digit360
+
+log = logging.getLogger("rotation.deploy")
+
+EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
+
+
+@dataclass(frozen=True)
+class Config:
+    hand: Literal["allegro", "leap", "sim-allegro", "sim-leap"] = "sim-allegro"
+    """Real Allegro (CAN) or LEAP (Dynamixel), or its MuJoCo emulator driven through the real driver and protocol."""
+    policy: str = ""
+    """Policy bundle: a directory (config.json + model.safetensors) or a shipped name (student)."""
+    can: str = "socketcan:can0"
+    """Allegro bus as INTERFACE:CHANNEL: socketcan:can0, pcan:PCAN_USBBUS1, slcan:/dev/ttyACM0 (any serial device)."""
+    port: str = "/dev/ttyUSB0"
+    """LEAP serial device (U2D2 adapter; any serial device path)."""
+    baud: int = 4_000_000
+    """LEAP baud rate."""
+    adapter: str = ""
+    """Tactile adapter (a path). Not supported by deploy yet: given, it is checked to exist, then refused."""
+    digit360: str = ""
+    """Digit 360 sensors to record: 4 comma-separated USB serials in finger order (index,middle,ring,thumb),
+    FINGER=SERIAL pairs, tty paths, or 'sim' (emulated sensors, emulated hands only)."""
+    duration: float = 10.0
+    """Run length (s); 0 runs until Ctrl-C / SIGTERM."""
+    record: str = ""
+    """Session file (.h5) to record to (must not exist); empty: no recording."""
+    gain_scale: float = 1.0
+    """Factor in (0, 1] on the driver's gains (Allegro kp/kd, LEAP position P/D): start a new hand low."""
+    object: str = "cup"
+    """Object in the hand: recorded as metadata; emulated hands simulate it (needs a shipped grasp cache)."""
+    grasp: int = 0
+    """Emulated hands: the row of the shipped grasp cache to start from (nominal scale)."""
+    sim_transport: Literal["virtual", "slcan"] = "virtual"
+    """Emulated Allegro: python-can virtual bus, or an SLCAN serial adapter on a pseudo-terminal."""
+    rt_priority: int = 0
+    """SCHED_FIFO priority (1..99) for the control threads; 0 leaves scheduling alone (needs CAP_SYS_NICE)."""
+    policy_budget: float = 0.6
+    """Longest wait for the policy's action, as a fraction of the control period; later = hold the last target."""
+    hold_limit_s: float = 1.0
+    """Fault (end the run) after this long without a usable action from the policy (s)."""
+    status_every_s: float = 1.0
+    """Status line period (s)."""
+
+    def __post_init__(self) -> None:
+        if self.hand not in HANDS:
+            raise ValueError(f"hand: unknown hand {self.hand!r}; choose one of {', '.join(HANDS)}")
+        if not self.policy:
+            raise ValueError("policy: give a bundle directory or a shipped bundle name (--policy student)")
+        if not (math.isfinite(self.duration) and self.duration >= 0):
+            raise ValueError(f"duration must be >= 0 s (0: until Ctrl-C), got {self.duration}")
+        if not (0 < self.gain_scale <= 1):
+            raise ValueError(f"gain_scale must be in (0, 1] (a fraction of the driver's gains), got {self.gain_scale}")
+        if self.hand == "allegro":
+            from rotation.hardware.can_bus import parse_can_spec
+
+            parse_can_spec(self.can)
+        if self.hand == "leap":
+            from rotation.hardware.dynamixel_protocol import BAUD_CODES
+
+            if self.baud not in BAUD_CODES:
+                raise ValueError(f"baud: {self.baud} is not a Dynamixel baud rate; choose one of {sorted(BAUD_CODES)}")
+        if self.adapter:
+            if not Path(self.adapter).exists():
+                raise ValueError(f"adapter: {self.adapter!r} does not exist")
+            raise ValueError(f"adapter: tactile adapters are not supported by `rotate deploy` yet (a later issue); "
+                             f"{self.adapter!r} was not loaded. Run without --adapter to deploy the policy alone.")
+        parse_digit360(self.digit360, emulated=self.hand.startswith("sim-"))
+        if self.grasp < 0:
+            raise ValueError(f"grasp must be >= 0, got {self.grasp}")
+        if self.sim_transport not in ("virtual", "slcan"):
+            raise ValueError(f"sim_transport must be 'virtual' or 'slcan', got {self.sim_transport!r}")
+        if not 0 <= self.rt_priority <= 99:
+            raise ValueError(f"rt_priority must be 0..99, got {self.rt_priority}")
+        if not 0 < self.policy_budget <= 1:
+            raise ValueError(f"policy_budget must be in (0, 1] control periods, got {self.policy_budget}")
+        if not (self.hold_limit_s > 0 and self.status_every_s > 0):
+            raise ValueError("hold_limit_s and status_every_s must be > 0 s")
+
+
+REQUIRED = ("hand", "policy")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_dataclass_arguments(parser, Config)
+    for action in parser._actions:  # the hand and the policy are never implied
+        if action.dest in REQUIRED:
+            action.required = True
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    return dataclass_from_args(Config, args)
+
+
+class _CriticalRecords(logging.Handler):
+    """Collects CRITICAL records of the drivers: each one means a motors-off command could not be sent or was not
+    confirmed (rotation.hardware logs exactly those at CRITICAL)."""
+
+    def __init__(self) -> None:
+        super().__init__(level=logging.CRITICAL)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+def _ensure_logging() -> None:
+    """INFO lines of this package on stderr when the program has not configured logging itself (the CLI)."""
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    pkg = logging.getLogger("rotation")
+    if pkg.level == logging.NOTSET:
+        pkg.setLevel(logging.INFO)
+
+
+def _check_before_start(cfg: Config) -> None:
+    """Everything that can be checked without touching the hardware (ValueError: bad input)."""
+    if cfg.record:
+        path = Path(cfg.record)
+        if path.exists():
+            raise ValueError(f"record: {path} exists; choose a new file name")
+        parent = path.parent if str(path.parent) else Path(".")
+        existing = next((p for p in (parent, *parent.parents) if p.exists()), Path("."))
+        if not (existing.is_dir() and os.access(existing, os.W_OK)):
+            raise ValueError(f"record: cannot create {path} ({existing} is not a writable directory)")
+    if cfg.hand.startswith("sim-"):
+        from envs.grasps import load_default_cache
+
+        cache = load_default_cache(cfg.object)
+        if cfg.grasp >= cache.grasps.shape[1]:
+            raise ValueError(f"grasp {cfg.grasp} out of range: the {cfg.object!r} cache has "
+                             f"{cache.grasps.shape[1]} grasps per scale")
+
+
+def _classify(err: BaseException) -> tuple[str, int, bool]:
+    """(fault line, exit status, expected) for whatever ended the run; ``expected`` False = a bug: log a traceback."""
+    import can
+
+    from rotation.data.session import SessionError
+    from rotation.deploy.policy import PolicyFault
+    from rotation.hardware.hand import HandFault
+
+    if isinstance(err, KeyboardInterrupt):
+        return "interrupted (Ctrl-C / SIGINT)", EXIT_SIGINT, True
+    if isinstance(err, SystemExit):
+        code = err.code if isinstance(err.code, int) else EXIT_FAULT
+        return ("terminated (SIGTERM)" if code == EXIT_SIGTERM else f"exit requested (status {code})"), code, True
+    if isinstance(err, HandFault):
+        return f"hand fault: {err}", EXIT_FAULT, True
+    if isinstance(err, PolicyFault):
+        return f"policy fault: {err}", EXIT_FAULT, True
+    if isinstance(err, SessionError):
+        return f"recording failed: {err}", EXIT_FAULT, True
+    if isinstance(err, can.CanError | OSError):
+        return f"hand connection failed: {err}", EXIT_FAULT, True
+    return f"{type(err).__name__}: {err}", EXIT_FAULT, False
+
+
+def run(cfg: Config) -> dict[str, Any]:
+    """Deploy ``cfg.policy`` on ``cfg.hand``; returns the summary (also printed as JSON on the last stdout line).
+
+    Bad options raise ValueError before anything is started. Once the hand is being started nothing escapes:
+    faults, Ctrl-C and SIGTERM end the run with one log line, the motors off and the recording closed (readable up
+    to the last flush), and are reported in the summary (``fault``, ``exit_code``).
+    """
+    _ensure_logging()
+    import numpy as np
+    import torch
+
+    from rotation.deploy.loop import ControlLoop, LoopConfig
+    from rotation.deploy.policy import check_deployable
+    from rotation.deploy.recording import DeployRecorder
+    from rotation.deploy.sensors import open_digit360
+    from rotation.hardware.realtime import set_realtime_priority
+    from rotation.policy.bundle import load_bundle
+
+    bundle = load_bundle(cfg.policy)
+    check_deployable(bundle.config, cfg.policy)
+    _check_before_start(cfg)
+    hz = float(bundle.config.control_hz)
+    setup = HandSetup(hand=cfg.hand, can=cfg.can, port=cfg.port, baud=cfg.baud, gain_scale=cfg.gain_scale,
+                      control_hz=hz, object=cfg.object, grasp=cfg.grasp, sim_transport=cfg.sim_transport)
+    digit_specs = parse_digit360(cfg.digit360, setup.emulated)
+    loop_cfg = LoopConfig(control_hz=hz, duration_s=cfg.duration, policy_budget=cfg.policy_budget,
+                          hold_limit_s=cfg.hold_limit_s, status_every_s=cfg.status_every_s)
+    log.info("deploying %s (%s, %.0f Hz, action scale %.4f rad) on %s for %s", cfg.policy,
+             bundle.config.latent_source, hz, bundle.config.action_scale, cfg.hand,
+             f"{cfg.duration:g} s" if cfg.duration > 0 else "until Ctrl-C")
+
+    critical = _CriticalRecords()
+    hw_log = logging.getLogger("rotation.hardware")
+    hw_log.addHandler(critical)
+    switch_interval, torch_threads = sys.getswitchinterval(), torch.get_num_threads()
+    opened: OpenedHand | None = None
+    loop: ControlLoop | None = None
+    recorder: DeployRecorder | None = None
+    fault: str | None = None
+    exit_code = EXIT_OK
+    t_start = time.monotonic()
+    try:
+        with contextlib.ExitStack() as stack:
+            # the policy's small network gains nothing from more threads; they would compete with the drivers
+            torch.set_num_threads(1)
+            if setup.emulated:
+                # the emulator shares this process (and the GIL) with the busy-polling drivers: switch threads
+                # every 0.5 ms instead of 5 ms so the emulated hardware answers in time
+                sys.setswitchinterval(5e-4)
+            sched = set_realtime_priority(cfg.rt_priority)
+            readers = open_digit360(digit_specs, stack)  # before the hand: the hand leaves first on exit
+            opened = open_hand(setup, stack)  # motors on, holding the current pose; the stack switches them off
+            hand = opened.hand
+            info = hand.info()
+            temps = np.asarray(info.temperatures, dtype=np.float64)
+            temp0 = float(np.nanmax(temps)) if np.any(np.isfinite(temps)) else float("nan")
+            log.info("%s: firmware %s, hardware %s, serial %s, hottest joint %s; scheduling %s", info.kind,
+                     info.firmware, info.hardware, info.serial,
+                     "n/a" if math.isnan(temp0) else f"{temp0:.0f} C", sched)
+            if cfg.record:
+                recorder = _open_recorder(cfg, bundle, opened, info, tuple(readers), hz)
+            loop = ControlLoop(opened, bundle, loop_cfg, recorder=recorder, readers=readers, status_out=sys.stderr,
+                               temperature_c=temp0)
+            loop.run()
+    except BaseException as err:  # noqa: B036 - every way out ends here, Ctrl-C and SIGTERM included
+        fault, exit_code, expected = _classify(err)
+        if not expected:
+            log.error("deploy: unexpected error", exc_info=err)
+    finally:
+        sys.setswitchinterval(switch_interval)
+        torch.set_num_threads(torch_threads)
+        hw_log.removeHandler(critical)
+        if recorder is not None:
+            try:
+                recorder.close(complete=fault is None)
+            except Exception as err:  # the hand is already off; say what happened to the file
+                log.error("deploy: closing the recording %s failed: %s", recorder.path, err)
+                fault = fault or f"recording failed: {err}"
+                exit_code = exit_code or EXIT_FAULT
+    return _finish(cfg, hz, opened, loop, recorder, critical, fault, exit_code, time.monotonic() - t_start)
+
+
+def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple[str, ...], hz: float):
+    from rotation.data.session import SessionMeta
+    from rotation.deploy.recording import DeployRecorder
+
+    properties: dict[str, Any] = {}
+    physics = opened.physics
+    if physics is not None:
+        body = physics.model.body("object")
+        properties = {"scale": physics.scale, "grasp": physics.grasp, "mass": float(body.mass[0]),
+                      "friction": float(physics.model.geom_friction[physics.model.body_geomadr[body.id], 0])}
+    extra = {
+        "hand": cfg.hand, "policy": cfg.policy, "policy_latent_source": bundle.config.latent_source,
+        "policy_card": bundle.config.card, "torque_unit": opened.hand.torque_unit,
+        "hand_info": {"kind": info.kind, "firmware": info.firmware, "hardware": info.hardware,
+                      "serial": info.serial},
+        "target": "targets commanded by the policy (before the driver's rate limit)",
+        "deploy_config": to_jsonable(cfg),
+    }
+    meta = SessionMeta(source=opened.source, object=cfg.object, control_hz=hz, hand=opened.kind,
+                       properties=properties, extra=json.loads(json.dumps(extra, default=str)))
+    recorder = DeployRecorder(cfg.record, meta, fingers=fingers, object_pose=physics is not None)
+    log.info("recording to %s", recorder.path)
+    return recorder
+
+
+def _finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, critical: _CriticalRecords,
+            fault: str | None, exit_code: int, wall_s: float) -> dict[str, Any]:
+    """Summary dict, final log lines, and the JSON line on stdout."""
+    if opened is not None and opened.emulator is not None:
+        motors_off, witness = bool(opened.emulator_saw_motors_off), "emulator"
+    else:
+        motors_off, witness = not critical.messages, "driver"
+    stats = loop.stats.summary(1.0 / hz) if loop is not None else {
+        "steps": 0, "loop_hz": None, "late_steps": 0, "skipped_slots": 0, "held_steps": 0, "rejected_actions": 0,
+        "jitter_p50_ms": None, "jitter_p99_ms": None, "max_temperature_c": None, "rotation_rad": None,
+        "object_fell": None}
+    summary: dict[str, Any] = {
+        "hand": cfg.hand, "source": "sim" if cfg.hand.startswith("sim-") else "real", "policy": cfg.policy,
+        "control_hz": hz, **stats, "wall_s": wall_s, "fault": fault, "motors_off": motors_off,
+        "motors_off_witness": witness, "record": str(recorder.path) if recorder is not None else None,
+        "exit_code": exit_code,
+    }
+    rot = "" if summary["rotation_rad"] is None else f"; object rotation {summary['rotation_rad']:+.2f} rad"
+    rate = "n/a" if summary["loop_hz"] is None else f"{summary['loop_hz']:.1f} Hz"
+    why_not = "; ".join(critical.messages or [f"the {witness} did not see it"])
+    off = ("motors off" if motors_off
+           else f"MOTORS NOT CONFIRMED OFF ({why_not}): switch the hand off at its power supply")
+    if fault is None:
+        log.info("deploy: done: %d steps at %s (late %d, held %d)%s; %s", summary["steps"], rate,
+                 summary["late_steps"], summary["held_steps"], rot, off)
+    else:
+        level = logging.WARNING if exit_code in (EXIT_SIGINT, EXIT_SIGTERM) else logging.ERROR
+        log.log(level, "deploy: ended by %s after %d steps%s; %s", fault, summary["steps"], rot, off)
+    if not motors_off:
+        log.critical("deploy: %s", off)
+    print(json.dumps(summary))
+    return summary

@@ -1,0 +1,317 @@
+"""The deploy control loop: measure, act (within a deadline), command, record, at the bundle's control rate.
+
+One control step k, scheduled at ``t_k = t_start + k / control_hz`` (host ``time.monotonic()`` s):
+
+1. read the hand's latest state; for k > 0 push the frame of the previous step (measured q, current targets);
+2. hand the observation to the policy worker and wait at most ``policy_budget`` control periods for the action;
+3. a usable action moves the targets as in the env; no action in time, a worker still busy with an earlier step,
+   or a NaN/inf action (logged) HOLDS the last safe target for this step (the step still counts and its frame is
+   still pushed one period later, so the history keeps the env's 20 Hz spacing);
+4. send the targets through the driver (its safety layer clamps, rate-limits and runs its own watchdog);
+5. record the step, update the status line, sleep until ``t_{k+1}``. A step that starts more than
+   ``late_fraction`` of a period after its slot is counted late; a loop more than a whole period behind skips
+   the missed slots instead of bursting through them.
+
+Reaction bounds: a stalled or hung policy is held within one step (``policy_budget`` periods) and ends the run
+after ``hold_limit_s`` without a usable action; a stalled control loop is held by the driver's watchdog after
+``WATCHDOG_PERIODS`` periods (rotation.deploy.hands); lost feedback makes the driver switch the motors off
+within its feedback timeout and raise HandFault at the next read. Every fault propagates to ``rotate deploy``'s
+``run``, which leaves the hand (motors off) and closes the recording.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import TextIO
+
+import numpy as np
+
+from envs.config import EnvConfig
+from envs.core import angular_velocity
+from rotation.deploy.hands import OpenedHand
+from rotation.deploy.policy import PolicyFault, PolicyState, PolicyWorker, action_problem
+from rotation.deploy.recording import DeployRecorder
+from rotation.deploy.sensors import DigitDrain
+from rotation.hardware.hand import HandFault
+from rotation.policy.bundle import PolicyBundle
+
+log = logging.getLogger(__name__)
+
+_ENV = EnvConfig()
+ROTATION_AXIS = np.asarray(_ENV.reward.axis, dtype=np.float64)
+"""The env's commanded rotation axis, world frame ((0, 0, -1): palm up, clockwise seen from above)."""
+FALL_DROP_M = _ENV.fall_drop
+"""The object counts as fallen this far (m) below its start height (the env's rule)."""
+FALL_DISTANCE_M = _ENV.max_distance
+"""... or this far (m) from its start position in any direction (the env's rule)."""
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Timing and reaction limits of the control loop."""
+
+    control_hz: float
+    """Policy rate (Hz), from the bundle."""
+    duration_s: float
+    """Run length (s); 0 runs until Ctrl-C / SIGTERM."""
+    policy_budget: float = 0.6
+    """Longest wait for the policy's action, as a fraction of the control period (30 ms at 20 Hz)."""
+    hold_limit_s: float = 1.0
+    """End the run (fault) after this long (s) without a usable action (policy stalled, busy or non-finite)."""
+    late_fraction: float = 0.2
+    """A step starting later than this fraction of a period after its slot counts as late (10 ms at 20 Hz)."""
+    status_every_s: float = 1.0
+    """Status line period (s)."""
+    temperature_every_s: float = 5.0
+    """Joint temperature poll period (s), on its own thread (a LEAP poll is 48 register reads)."""
+    drain_every_s: float = 0.25
+    """Period (s) of moving Digit 360 samples into the recording."""
+
+
+@dataclass
+class LoopStats:
+    """What the loop measured; complete up to the moment the loop ended, also after a fault."""
+
+    tick_times: list[float] = field(default_factory=list)
+    """Host monotonic start time (s) of every control step."""
+    late_steps: int = 0
+    skipped_slots: int = 0
+    held_steps: int = 0
+    rejected_actions: int = 0
+    rotation_rad: float | None = None
+    """Object rotation (rad) about ROTATION_AXIS since the start (emulation), up to a fall."""
+    object_fell: bool | None = None
+    max_temperature_c: float = float("nan")
+
+    def summary(self, period: float) -> dict:
+        """Steps, loop rate (Hz), late/held counts, p50/p99 jitter (ms) = |step period - nominal period|."""
+        t = np.asarray(self.tick_times)
+        periods = np.diff(t)
+        jitter = 1e3 * np.abs(periods - period)
+        out = {
+            "steps": len(t),
+            "loop_hz": float(len(periods) / (t[-1] - t[0])) if len(t) > 1 and t[-1] > t[0] else None,
+            "late_steps": self.late_steps,
+            "skipped_slots": self.skipped_slots,
+            "held_steps": self.held_steps,
+            "rejected_actions": self.rejected_actions,
+            "jitter_p50_ms": float(np.percentile(jitter, 50)) if len(jitter) else None,
+            "jitter_p99_ms": float(np.percentile(jitter, 99)) if len(jitter) else None,
+            "max_temperature_c": None if math.isnan(self.max_temperature_c) else float(self.max_temperature_c),
+            "rotation_rad": self.rotation_rad,
+            "object_fell": self.object_fell,
+        }
+        return out
+
+
+class RotationMeter:
+    """Accumulates the object's rotation about ROTATION_AXIS from successive poses (7,); stops at a fall."""
+
+    def __init__(self, pose0: np.ndarray) -> None:
+        self.pos0 = pose0[:3].copy()
+        self.quat = pose0[3:].copy()
+        self.rotation = 0.0
+        self.fell = False
+
+    def update(self, pose: np.ndarray) -> None:
+        if self.fell:
+            return
+        pos, quat = pose[:3], pose[3:]
+        if pos[2] < self.pos0[2] - FALL_DROP_M or np.linalg.norm(pos - self.pos0) > FALL_DISTANCE_M:
+            self.fell = True
+            log.warning("the object fell (%.3f m below / %.3f m from its start); rotation counted up to here: "
+                        "%+.2f rad", self.pos0[2] - pos[2], np.linalg.norm(pos - self.pos0), self.rotation)
+            return
+        self.rotation += float(angular_velocity(self.quat, quat, 1.0) @ ROTATION_AXIS)  # rad over this step
+        self.quat = quat.copy()
+
+
+class TemperatureMonitor:
+    """Polls ``hand.info()`` every ``every_s`` on a daemon thread; ``max_c`` is the hottest joint seen (C)."""
+
+    def __init__(self, hand, every_s: float, initial_c: float = float("nan")) -> None:
+        self.hand = hand
+        self.every_s = every_s
+        self.max_c = initial_c
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="deploy-temperature", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.every_s):
+            try:
+                temps = np.asarray(self.hand.info().temperatures, dtype=np.float64)
+            except HandFault:
+                return  # the control loop sees the fault at its next read
+            except Exception as err:  # a missed poll is not a reason to stop the hand
+                if not self._stop.is_set():
+                    log.warning("temperature poll failed: %s", err)
+                continue
+            if np.any(np.isfinite(temps)):
+                self.max_c = float(np.nanmax(np.r_[temps, self.max_c]))
+
+    def stop(self) -> None:
+        """Ask the thread to stop (does not wait: it may be inside a bus request)."""
+        self._stop.set()
+
+
+class StatusLine:
+    """A one-line live status on ``out``: rewritten in place on a terminal, one line per update otherwise."""
+
+    def __init__(self, out: TextIO | None) -> None:
+        self.out = out
+        self.tty = bool(out is not None and hasattr(out, "isatty") and out.isatty())
+        self.shown = False
+
+    def show(self, text: str) -> None:
+        if self.out is None:
+            return
+        self.out.write(("\r\x1b[2K" + text) if self.tty else text + "\n")
+        self.out.flush()
+        self.shown = True
+
+    def end(self) -> None:
+        if self.out is not None and self.tty and self.shown:
+            self.out.write("\n")
+            self.out.flush()
+
+
+class ControlLoop:
+    """Runs one policy on one started hand (see the module docstring). ``stats`` stays valid after a fault."""
+
+    def __init__(self, opened: OpenedHand, bundle: PolicyBundle, cfg: LoopConfig,
+                 recorder: DeployRecorder | None = None, readers: dict | None = None,
+                 status_out: TextIO | None = None, temperature_c: float = float("nan")) -> None:
+        """``readers``: Digit 360 readers by finger (recorded only); ``temperature_c``: hottest joint at start (C)."""
+        self.opened = opened
+        self.hand = opened.hand
+        self.bundle = bundle
+        self.cfg = cfg
+        self.recorder = recorder
+        self.readers = readers or {}
+        self.status = StatusLine(status_out)
+        self.stats = LoopStats(max_temperature_c=temperature_c)
+        self.period = 1.0 / cfg.control_hz
+        self.t0: float | None = None
+        """Session time zero: host monotonic time (s) of the first joint measurement."""
+        self._monitor: TemperatureMonitor | None = None
+
+    def run(self) -> None:
+        """Run until ``duration_s`` has passed; raises on a fault (HandFault, PolicyFault, SessionError, signals)."""
+        cfg, stats, hand = self.cfg, self.stats, self.hand
+        state = hand.read_state()
+        self.t0 = t0 = state.t_host
+        bundle_cfg = self.bundle.config
+        policy = PolicyState(state.q, np.asarray(bundle_cfg.joint_lower), np.asarray(bundle_cfg.joint_upper),
+                             bundle_cfg.action_scale)
+        pose0 = self.opened.object_pose()
+        meter = RotationMeter(pose0) if pose0 is not None else None
+        drain = DigitDrain(self.readers, t0) if self.readers else None
+        worker = PolicyWorker(self.bundle.act)
+        self._monitor = TemperatureMonitor(hand, cfg.temperature_every_s, stats.max_temperature_c)
+        budget = cfg.policy_budget * self.period
+        start = next_tick = time.monotonic()
+        last_status = last_drain = start
+        held_since: float | None = None
+        k = 0
+        try:
+            while True:
+                now = time.monotonic()
+                if cfg.duration_s > 0 and now - start >= cfg.duration_s:
+                    break
+                if now - next_tick > cfg.late_fraction * self.period:
+                    stats.late_steps += 1
+                    if stats.late_steps == 1 or stats.late_steps % 20 == 0:
+                        log.warning("step %d started %.1f ms late (%d late steps so far)", k,
+                                    1e3 * (now - next_tick), stats.late_steps)
+                stats.tick_times.append(now)
+
+                # 1. measure; the env pushes the frame of a step once the step is over
+                state = hand.read_state()
+                if not np.all(np.isfinite(state.q)):
+                    raise HandFault(f"non-finite joint feedback at joints {np.flatnonzero(~np.isfinite(state.q))}")
+                if k > 0:
+                    policy.push(state.q)
+
+                # 2. act within the budget
+                action, why = None, ""
+                if worker.submit(k, policy.observation()):
+                    action = worker.wait(k, now + budget - time.monotonic())
+                    if action is None:
+                        why = f"no action within {1e3 * budget:.0f} ms"
+                else:
+                    why = "the policy is still computing an earlier step"
+                if action is not None and (problem := action_problem(action)) is not None:
+                    stats.rejected_actions += 1
+                    log.error("step %d: rejected the policy's action (%s); holding the last safe target", k, problem)
+                    action, why = None, f"rejected action ({problem})"
+
+                # 3. move the targets, or hold them
+                if action is not None:
+                    policy.apply(action)
+                    if held_since is not None:
+                        log.info("step %d: the policy is acting again after %.0f ms of hold", k,
+                                 1e3 * (now - held_since))
+                    held_since = None
+                else:
+                    stats.held_steps += 1
+                    if held_since is None:
+                        held_since = now
+                        log.warning("step %d: %s; holding the last safe target", k, why)
+                    if now - held_since >= cfg.hold_limit_s:
+                        raise PolicyFault(f"no usable action for {now - held_since:.2f} s "
+                                          f"(>= {cfg.hold_limit_s} s): {why}")
+
+                # 4. command (the driver's safety layer clamps and rate-limits)
+                hand.set_targets(policy.targets)
+
+                # 5. record and report
+                pose = self.opened.object_pose()
+                if meter is not None and pose is not None:
+                    meter.update(pose)
+                    stats.rotation_rad, stats.object_fell = meter.rotation, meter.fell
+                if self.recorder is not None:
+                    self.recorder.step(now - t0, state.q, policy.targets, state.torque, pose)
+                    if drain is not None and now - last_drain >= cfg.drain_every_s:
+                        drain.drain(self.recorder.append)
+                        last_drain = now
+                stats.max_temperature_c = self._monitor.max_c
+                if now - last_status >= cfg.status_every_s:
+                    self.status.show(self.status_text(now - start, last_status))
+                    last_status = now
+
+                # 6. wait for the next slot; never burst through missed ones
+                k += 1
+                next_tick += self.period
+                remaining = next_tick - time.monotonic()
+                if remaining > 0:
+                    time.sleep(remaining)
+                elif -remaining > self.period:
+                    missed = int(-remaining // self.period)
+                    stats.skipped_slots += missed
+                    next_tick += missed * self.period
+            if drain is not None and self.recorder is not None:
+                drain.drain(self.recorder.append)
+        finally:
+            worker.close(join_timeout_s=0.0)
+            self._monitor.stop()
+            stats.max_temperature_c = self._monitor.max_c
+            self.status.end()
+
+    def status_text(self, elapsed: float, since: float) -> str:
+        """``deploy 3.0/5.0 s | loop 20.0 Hz | late 0 | held 0 | temp max 41 C | rotation +0.52 rad``."""
+        s = self.stats
+        recent = [t for t in s.tick_times if t >= since]
+        rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
+        total = f"/{self.cfg.duration_s:.0f}" if self.cfg.duration_s > 0 else ""
+        parts = [f"deploy {elapsed:5.1f}{total} s", f"loop {rate:4.1f} Hz", f"late {s.late_steps}",
+                 f"held {s.held_steps}"]
+        parts.append(f"temp max {s.max_temperature_c:.0f} C" if not math.isnan(s.max_temperature_c)
+                     else "temp max n/a")
+        if s.rotation_rad is not None:
+            parts.append(f"rotation {s.rotation_rad:+.2f} rad" + (" (fell)" if s.object_fell else ""))
+        return " | ".join(parts)

@@ -1,0 +1,183 @@
+"""The policy side of deploy: the env's observation/target bookkeeping for one hand, and a deadline-bounded worker.
+
+:class:`PolicyState` is what ``envs.core.RotateCupVec`` does for N = 1, with the same code
+(:class:`envs.observation.ProprioHistory`) and nothing added:
+
+- start: the history is filled with the start pose (measured q as both position and target), targets = q0;
+- each step: ``targets = clip(targets + clip(action, -1, 1) * action_scale, lower, upper)``, then, one control
+  period later, a frame of (measured q scaled to [-1, 1], targets in rad) is pushed.
+
+No observation noise is added (the env adds it only as a training-time randomization) and no filtering is done.
+All joint vectors are (16,) in the Allegro bus order, radians, Allegro frame (the drivers map LEAP at the
+hardware boundary).
+
+:class:`PolicyWorker` runs ``bundle.act`` on its own thread, so a slow or hung policy can never block the control
+loop: the loop waits for an action only until a deadline and holds the last safe target otherwise.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+
+import numpy as np
+
+from envs import constants as C
+from envs.observation import ProprioHistory
+from rotation.policy.bundle import BundleConfig
+
+log = logging.getLogger(__name__)
+
+DEPLOYABLE_GROUPS: dict[str, tuple[int, ...]] = {
+    "proprio": (C.PROPRIO_STEPS, C.PROPRIO_DIM),
+    "proprio_hist": (C.HISTORY_STEPS, C.PROPRIO_DIM),
+}
+"""Observation groups a hand can provide (name -> shape): only proprioception. ``priv`` (object pose, mass,
+friction) exists only in simulation, so a teacher bundle cannot be deployed."""
+
+
+class PolicyFault(RuntimeError):
+    """The policy could not produce usable actions (it raised, stalled or returned non-finite values too long)."""
+
+
+def check_deployable(config: BundleConfig, name: str) -> None:
+    """ValueError unless the bundle reads only groups a hand provides, with the shapes ProprioHistory builds."""
+    unknown = sorted(set(config.obs_groups) - set(DEPLOYABLE_GROUPS))
+    if unknown:
+        hint = (" ('priv' is privileged simulator state: deploy the student bundle, which estimates it from the "
+                "joint history)" if "priv" in unknown else "")
+        raise ValueError(f"policy {name!r} reads observation group(s) {unknown} that a hand cannot provide; deploy "
+                         f"provides {sorted(DEPLOYABLE_GROUPS)}{hint}")
+    for key, shape in config.obs_groups.items():
+        if tuple(shape) != DEPLOYABLE_GROUPS[key]:
+            raise ValueError(f"policy {name!r} expects group {key!r} of shape {tuple(shape)}, but the env's "
+                             f"observation builder makes {DEPLOYABLE_GROUPS[key]}")
+    if config.action_dim != C.NUM_JOINTS:
+        raise ValueError(f"policy {name!r} has {config.action_dim} actions; a hand has {C.NUM_JOINTS} joints")
+    if config.adapter:
+        raise ValueError(f"policy {name!r} references the tactile adapter {config.adapter!r}; deploying tactile "
+                         "adapters is not supported yet (a later issue). Deploy a bundle without an adapter.")
+
+
+class PolicyState:
+    """Joint targets and the proprioceptive history of one deployed policy (see the module docstring).
+
+    ``q0``: the measured start pose (16,) rad; ``lower``/``upper``: the target limits (16,) rad and
+    ``action_scale`` (rad per unit action), both from the bundle config (= the env's).
+    """
+
+    def __init__(self, q0: np.ndarray, lower: np.ndarray, upper: np.ndarray, action_scale: float) -> None:
+        q0 = np.asarray(q0, dtype=np.float64)
+        if q0.shape != (C.NUM_JOINTS,) or not np.all(np.isfinite(q0)):
+            raise ValueError(f"start pose must be {C.NUM_JOINTS} finite joint angles, got {q0}")
+        self.lower = np.asarray(lower, dtype=np.float64)
+        self.upper = np.asarray(upper, dtype=np.float64)
+        self.action_scale = float(action_scale)
+        self.history = ProprioHistory(1)
+        self.history.reset(np.array([0]), q0[None])  # as the env at reset: (q0, q0) in every frame
+        # the env starts from a grasp inside the limits; a measured pose may sit a hair outside them
+        self.targets = np.clip(q0, self.lower, self.upper)
+
+    def observation(self) -> dict[str, np.ndarray]:
+        """The groups the env returns: ``proprio`` (3, 32) and ``proprio_hist`` (30, 32), float32, newest last."""
+        return {"proprio": self.history.proprio[0], "proprio_hist": self.history.history[0]}
+
+    def apply(self, action: np.ndarray) -> np.ndarray:
+        """Integrate one finite action (16,) in [-1, 1] into the targets as the env does; returns the new targets."""
+        a = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        self.targets = np.clip(self.targets + a * self.action_scale, self.lower, self.upper)
+        return self.targets.copy()
+
+    def push(self, q: np.ndarray) -> None:
+        """Append the frame of one control step: measured q (16,) rad after the step, with the current targets."""
+        self.history.push(np.asarray(q, dtype=np.float64)[None], self.targets[None])
+
+
+def action_problem(action: object) -> str | None:
+    """Why ``action`` cannot be used (wrong shape, NaN/inf), or None if it is a usable (16,) action."""
+    a = np.asarray(action)
+    if a.shape != (C.NUM_JOINTS,):
+        return f"shape {a.shape}, expected ({C.NUM_JOINTS},)"
+    if not np.issubdtype(a.dtype, np.number):
+        return f"dtype {a.dtype}"
+    bad = np.flatnonzero(~np.isfinite(a.astype(np.float64)))
+    if bad.size:
+        return f"non-finite values at joints {bad.tolist()}"
+    return None
+
+
+class PolicyWorker:
+    """Computes ``act(obs)`` on a daemon thread; the caller waits for each result only until a deadline.
+
+    One request at a time: :meth:`submit` refuses a new observation while the previous one is still being
+    computed. A result that arrives after its deadline is dropped (it was computed for an old observation).
+    An exception raised by ``act`` is handed to the caller of :meth:`wait`.
+    """
+
+    def __init__(self, act: Callable[[dict[str, np.ndarray]], np.ndarray], name: str = "policy") -> None:
+        self._act = act
+        self._cv = threading.Condition()
+        self._request: tuple[int, dict[str, np.ndarray]] | None = None
+        self._result: tuple[int, np.ndarray | None, BaseException | None] | None = None
+        self._busy = False
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name=f"{name}-worker", daemon=True)
+        self._thread.start()
+
+    @property
+    def busy(self) -> bool:
+        with self._cv:
+            return self._busy
+
+    def submit(self, seq: int, obs: dict[str, np.ndarray]) -> bool:
+        """Queue observation number ``seq``; False (nothing queued) while the previous request is still running."""
+        with self._cv:
+            if self._busy or self._stop:
+                return False
+            self._request, self._busy = (seq, obs), True
+            self._cv.notify_all()
+            return True
+
+    def wait(self, seq: int, timeout: float) -> np.ndarray | None:
+        """The action for request ``seq``, or None if it is not ready within ``timeout`` s; re-raises its error."""
+        with self._cv:
+            ready = self._cv.wait_for(lambda: self._result is not None and self._result[0] == seq,
+                                      timeout=max(timeout, 0.0))
+            if not ready:
+                return None
+            _, action, error = self._result  # type: ignore[misc]
+            self._result = None
+        if error is not None:
+            raise PolicyFault(f"the policy raised {type(error).__name__}: {error}") from error
+        return action
+
+    def close(self, join_timeout_s: float = 0.5) -> None:
+        """Stop the thread, waiting at most ``join_timeout_s`` (a running request is finished first; a hung one
+        is left behind: the thread is a daemon)."""
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        if join_timeout_s > 0:
+            self._thread.join(timeout=join_timeout_s)
+            if self._thread.is_alive():
+                log.warning("policy worker still busy at shutdown; leaving it behind (daemon thread)")
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._request is not None or self._stop)
+                if self._stop:
+                    return
+                seq, obs = self._request  # type: ignore[misc]
+                self._request = None
+            action: np.ndarray | None = None
+            error: BaseException | None = None
+            try:
+                action = self._act(obs)
+            except Exception as err:  # handed to the control loop, which ends the run with motors off
+                error = err
+            with self._cv:
+                self._result = (seq, action, error)
+                self._busy = False
+                self._cv.notify_all()

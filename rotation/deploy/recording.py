@@ -1,0 +1,72 @@
+"""The deploy recording: one session file (rotation.data.session) per run, the same format as simulated sessions.
+
+Streams, all in session time (s since the first joint measurement of the run):
+
+- ``joints/position`` (16,) rad: measured joint angles, bus order, Allegro frame, one per control step;
+- ``joints/target`` (16,) rad: the targets the policy commanded at that step (before the driver's rate limit);
+- ``joints/torque`` (16,): the driver's effort at that step, in the driver's unit (metadata ``extra.torque_unit``:
+  normalized torque = PWM / 1200 on an Allegro V4, = N m in simulation; measured current in A on LEAP);
+- ``labels/object_pose`` (7,): object position (m) + quaternion wxyz, world frame, where known (emulation);
+- ``digit360/<finger>/{imu,pressure}``: the Digit 360 serial streams when ``--digit360`` is given.
+
+Joint streams share the control step's timestamp (the state read then was measured at most one driver cycle
+earlier: 3 ms Allegro, 10 ms LEAP). The writer flushes every ``flush_interval_s``, so a crash or a fault loses at
+most that much; a run that ends by a fault or a signal is left without the ``complete`` mark.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from envs.constants import NUM_JOINTS
+from rotation.data.session import SessionMeta, SessionWriter, StreamSetup
+from rotation.deploy.sensors import STREAMS as DIGIT_STREAMS
+
+JOINT_STREAMS = ("joints/position", "joints/target", "joints/torque")
+
+
+class DeployRecorder:
+    """Session writer for one deploy run (see the module docstring)."""
+
+    def __init__(self, path: str | Path, meta: SessionMeta, fingers: tuple[str, ...] = (),
+                 object_pose: bool = False, flush_interval_s: float = 1.0) -> None:
+        rate = meta.control_hz
+        streams: list[StreamSetup | str] = [StreamSetup(name, rate_hz=rate) for name in JOINT_STREAMS]
+        if object_pose:
+            streams.append(StreamSetup("labels/object_pose", rate_hz=rate))
+        streams += [f"digit360/{f}/{s}" for f in fingers for s in DIGIT_STREAMS]
+        self.writer = SessionWriter(path, meta, streams, flush_interval_s=flush_interval_s)
+        self.path = self.writer.path
+        self.object_pose = object_pose
+        self.steps = 0
+
+    def step(self, t: float, q: np.ndarray, target: np.ndarray, torque: np.ndarray,
+             object_pose: np.ndarray | None = None) -> None:
+        """One control step at session time ``t`` (s): joint vectors (16,), object pose (7,) if recorded."""
+        ts = np.array([t])
+        self.writer.append("joints/position", np.asarray(q, dtype=np.float64).reshape(1, NUM_JOINTS), ts)
+        self.writer.append("joints/target", np.asarray(target, dtype=np.float64).reshape(1, NUM_JOINTS), ts)
+        self.writer.append("joints/torque", np.asarray(torque, dtype=np.float64).reshape(1, NUM_JOINTS), ts)
+        if self.object_pose and object_pose is not None:
+            self.writer.append("labels/object_pose", np.asarray(object_pose, dtype=np.float64).reshape(1, 7), ts)
+        self.steps += 1
+
+    def append(self, name: str, data: np.ndarray, timestamps: np.ndarray) -> None:
+        """Samples of any other declared stream (Digit 360)."""
+        self.writer.append(name, data, timestamps)
+
+    def __enter__(self) -> DeployRecorder:
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        self.writer.__exit__(exc_type, exc, tb)  # complete only on a clean exit; abort keeps what was flushed
+
+    def close(self, complete: bool) -> None:
+        """Flush and close; ``complete=False`` leaves the file without the ``complete`` mark (fault, signal)."""
+        if complete:
+            self.writer.close()
+        else:
+            self.writer.abort()
