@@ -73,11 +73,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 0
     module = _load(args.command)
-    if hasattr(module, "config_from_args"):
-        cfg = module.config_from_args(args)
-    else:
-        cfg = dataclass_from_args(module.Config, args)
     try:
+        # a config validates itself on construction: its ValueError is bad input too
+        if hasattr(module, "config_from_args"):
+            cfg = module.config_from_args(args)
+        else:
+            cfg = dataclass_from_args(module.Config, args)
         result = module.run(cfg)
     except KeyboardInterrupt:
         print("rotate: interrupted", file=sys.stderr)

@@ -7,13 +7,21 @@ A policy thread commands a slow sine around the home pose at 20 Hz (as ``rotate 
 driver runs its PD loop on the emulator's 3 ms position stream. Rate = completed PD cycles per second after
 the warm-up; jitter = |cycle period - median period|. Prints a table, then as its LAST line one JSON object
 (``pd_hz``, ``pd_jitter_p50_ms``, ``pd_jitter_p99_ms``, ...). Targets: pd_hz >= 300, p99 jitter < 1 ms.
+
+Then the policy loop: ``rotate deploy --hand sim-allegro`` (rotation.deploy.job) with a policy bundle (the shipped
+student, or a randomly initialised student when none ships: inference cost is the same) for
+``policy_duration_s``; its step-start jitter |step period - 1 / control_hz| goes into the same JSON
+(``policy_hz``, ``policy_jitter_p50_ms``, ``policy_jitter_p99_ms``, ``policy_late_steps``, ...).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import logging
+import tempfile
 import time
 from dataclasses import dataclass
 from typing import Literal
@@ -39,6 +47,11 @@ class Config:
     """SCHED_FIFO priority of the emulator and driver threads (0: normal scheduling)."""
     command_hz: float = 20.0
     """Rate of set_targets calls (the policy rate)."""
+    policy: str = ""
+    """Bundle for the policy-loop measurement (directory or shipped name); empty: the shipped student if present,
+    else a randomly initialised student."""
+    policy_duration_s: float | None = None
+    """Length (s) of the policy-loop measurement (``rotate deploy --hand sim-allegro``); None: ``duration_s``."""
 
     def __post_init__(self) -> None:
         if not self.duration_s > 0 or self.warmup_s < 0 or not self.command_hz > 0:
@@ -74,6 +87,7 @@ def run(cfg: Config) -> dict:
         "transport": cfg.transport,
         "sched": sched,
         "duration_s": cfg.duration_s,
+        **policy_loop(cfg),
     }
     width = max(len(k) for k in result)
     print(f"{'metric':<{width}}  value")
@@ -81,6 +95,31 @@ def run(cfg: Config) -> dict:
         print(f"{k:<{width}}  {v:.3f}" if isinstance(v, float) else f"{k:<{width}}  {v}")
     print(json.dumps(result))
     return result
+
+
+def policy_loop(cfg: Config) -> dict:
+    """Policy-loop rate and jitter of ``rotate deploy`` on the emulated Allegro (virtual CAN), with a bundle."""
+    from rotation.deploy.job import Config as DeployConfig
+    from rotation.deploy.job import run as deploy
+    from rotation.policy.bundle import BundleConfig, PolicyBundle, shipped_bundles
+
+    duration = cfg.duration_s if cfg.policy_duration_s is None else cfg.policy_duration_s
+    with tempfile.TemporaryDirectory() as tmp:
+        policy = cfg.policy or ("student" if "student" in shipped_bundles() else
+                                str(PolicyBundle(BundleConfig(latent_source="adaptation")).save(f"{tmp}/student")))
+        with contextlib.redirect_stdout(io.StringIO()):  # deploy prints its own JSON summary; ours is the last line
+            summary = deploy(DeployConfig(hand="sim-allegro", policy=policy, duration=duration,
+                                          status_every_s=max(duration, 1.0)))
+    return {
+        "policy_hz": summary["loop_hz"],
+        "policy_jitter_p50_ms": summary["jitter_p50_ms"],
+        "policy_jitter_p99_ms": summary["jitter_p99_ms"],
+        "policy_late_steps": summary["late_steps"],
+        "policy_held_steps": summary["held_steps"],
+        "policy_steps": summary["steps"],
+        "policy_fault": summary["fault"],
+        "policy_bundle": cfg.policy or ("student" if policy == "student" else "random-init student"),
+    }
 
 
 def main() -> None:

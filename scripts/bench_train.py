@@ -4,8 +4,8 @@ Both measurements use the same env config, number of envs and MuJoCo threads, so
 the raw simulation speed that training keeps (policy inference during rollouts and the PPO updates take the rest).
 The last line printed is a JSON object.
 
-    python scripts/bench_train.py --num-envs 128 --train-steps 65536
-    python scripts/bench_train.py --grasp-cache runs/grasps_cylinder.npz --train-steps 16384
+    python scripts/bench_train.py --train-steps 65536
+    python scripts/bench_train.py --num-envs 128 --n-steps 32 --train-steps 16384
 """
 
 from __future__ import annotations
@@ -30,19 +30,19 @@ from rotation.train.vec_env import RotateCupSB3VecEnv
 class Config:
     """Benchmark settings (PPO settings default to `rotate train-teacher`'s)."""
 
-    num_envs: int = 128
-    """Simulations stepped together."""
+    num_envs: int = teacher.Config.num_envs
+    """Simulations stepped together (train-teacher's default)."""
     env_steps: int = 65_536
     """Env transitions for the env-alone measurement (random actions, resets on done)."""
     train_steps: int = 65_536
     """Env transitions of PPO training to time (rounded up to whole rollouts of num_envs x n_steps)."""
-    n_steps: int = 32
+    n_steps: int = teacher.Config.n_steps
     """PPO horizon per env per update."""
-    batch_size: int = 1024
+    batch_size: int = teacher.Config.batch_size
     """PPO minibatch size."""
-    n_epochs: int = 5
+    n_epochs: int = teacher.Config.n_epochs
     """PPO passes over each rollout."""
-    object: str = "cylinder"
+    object: str = teacher.Config.object
     """Object (envs.objects)."""
     grasp_cache: str = ""
     """Grasp cache file; empty = the one shipped for the object."""

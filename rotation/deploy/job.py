@@ -21,7 +21,9 @@ import json
 import logging
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,7 +58,9 @@ class Config:
     duration: float = 10.0
     """Run length (s); 0 runs until Ctrl-C / SIGTERM."""
     record: str = ""
-    """Session file (.h5) to record to (must not exist); empty: no recording."""
+    """Session file (.h5) to record to (must not exist unless --overwrite); empty: no recording."""
+    overwrite: bool = False
+    """Replace an existing --record file."""
     gain_scale: float = 1.0
     """Factor in (0, 1] on the driver's gains (Allegro kp/kd, LEAP position P/D): start a new hand low."""
     object: str = "cup"
@@ -118,6 +122,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for action in parser._actions:  # the hand and the policy are never implied
         if action.dest in REQUIRED:
             action.required = True
+            action.help = (action.help or "").split(" (default:")[0]
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -136,6 +141,42 @@ class _CriticalRecords(logging.Handler):
         self.messages.append(record.getMessage())
 
 
+class _RunSignals:
+    """SIGINT / SIGTERM around one run (main thread only; elsewhere the drivers' atexit hooks still apply).
+
+    While the hand runs, the drivers' own handlers (rotation.hardware.safety.motors_off_on_exit) switch the motors
+    off at once and raise KeyboardInterrupt / SystemExit(143) here; :meth:`arm` makes SIGTERM do the same before
+    the hand has started (default: instant death without closing anything). :meth:`defer` is for the final
+    clean-up, when the motors are already off: a second Ctrl-C is logged instead of cutting the recording's close
+    short. :meth:`restore` puts the previous handlers back.
+    """
+
+    def __init__(self) -> None:
+        self.active = threading.current_thread() is threading.main_thread()
+        self.previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)} if self.active else {}
+
+    @staticmethod
+    def _terminate(signum: int, frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    @staticmethod
+    def _later(signum: int, frame: object) -> None:
+        log.warning("deploy: signal %d during shut-down (motors already off); finishing the recording first", signum)
+
+    def arm(self) -> None:
+        if self.active:
+            signal.signal(signal.SIGTERM, self._terminate)
+
+    def defer(self) -> None:
+        if self.active:
+            for sig in self.previous:
+                signal.signal(sig, self._later)
+
+    def restore(self) -> None:
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)  # type: ignore[arg-type]
+
+
 def _ensure_logging() -> None:
     """INFO lines of this package on stderr when the program has not configured logging itself (the CLI)."""
     if not logging.getLogger().handlers:
@@ -149,8 +190,8 @@ def _check_before_start(cfg: Config) -> None:
     """Everything that can be checked without touching the hardware (ValueError: bad input)."""
     if cfg.record:
         path = Path(cfg.record)
-        if path.exists():
-            raise ValueError(f"record: {path} exists; choose a new file name")
+        if path.exists() and not (cfg.overwrite and path.is_file()):
+            raise ValueError(f"record: {path} exists; choose a new file name (or --overwrite a file)")
         parent = path.parent if str(path.parent) else Path(".")
         existing = next((p for p in (parent, *parent.parents) if p.exists()), Path("."))
         if not (existing.is_dir() and os.access(existing, os.W_OK)):
@@ -229,10 +270,14 @@ def run(cfg: Config) -> dict[str, Any]:
     fault: str | None = None
     exit_code = EXIT_OK
     t_start = time.monotonic()
+    signals = _RunSignals()
     try:
+        signals.arm()
         with contextlib.ExitStack() as stack:
             # the policy's small network gains nothing from more threads; they would compete with the drivers
             torch.set_num_threads(1)
+            # one inference before the hand starts: the first call of a network is slow (allocation, dispatch)
+            bundle.act({k: np.zeros(shape, dtype=np.float32) for k, shape in bundle.config.obs_groups.items()})
             if setup.emulated:
                 # the emulator shares this process (and the GIL) with the busy-polling drivers: switch threads
                 # every 0.5 ms instead of 5 ms so the emulated hardware answers in time
@@ -257,6 +302,7 @@ def run(cfg: Config) -> dict[str, Any]:
         if not expected:
             log.error("deploy: unexpected error", exc_info=err)
     finally:
+        signals.defer()  # the hand has left (motors off): nothing may cut the rest short
         sys.setswitchinterval(switch_interval)
         torch.set_num_threads(torch_threads)
         hw_log.removeHandler(critical)
@@ -267,7 +313,10 @@ def run(cfg: Config) -> dict[str, Any]:
                 log.error("deploy: closing the recording %s failed: %s", recorder.path, err)
                 fault = fault or f"recording failed: {err}"
                 exit_code = exit_code or EXIT_FAULT
-    return _finish(cfg, hz, opened, loop, recorder, critical, fault, exit_code, time.monotonic() - t_start)
+    try:
+        return _finish(cfg, hz, opened, loop, recorder, critical, fault, exit_code, time.monotonic() - t_start)
+    finally:
+        signals.restore()
 
 
 def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple[str, ...], hz: float):
@@ -290,7 +339,8 @@ def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple
     }
     meta = SessionMeta(source=opened.source, object=cfg.object, control_hz=hz, hand=opened.kind,
                        properties=properties, extra=json.loads(json.dumps(extra, default=str)))
-    recorder = DeployRecorder(cfg.record, meta, fingers=fingers, object_pose=physics is not None)
+    recorder = DeployRecorder(cfg.record, meta, fingers=fingers, object_pose=physics is not None,
+                              overwrite=cfg.overwrite)
     log.info("recording to %s", recorder.path)
     return recorder
 
@@ -312,18 +362,23 @@ def _finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, c
         "motors_off_witness": witness, "record": str(recorder.path) if recorder is not None else None,
         "exit_code": exit_code,
     }
-    rot = "" if summary["rotation_rad"] is None else f"; object rotation {summary['rotation_rad']:+.2f} rad"
+    rot = "" if summary["rotation_rad"] is None else f" (object rotation {summary['rotation_rad']:+.2f} rad)"
     rate = "n/a" if summary["loop_hz"] is None else f"{summary['loop_hz']:.1f} Hz"
-    why_not = "; ".join(critical.messages or [f"the {witness} did not see it"])
-    off = ("motors off" if motors_off
-           else f"MOTORS NOT CONFIRMED OFF ({why_not}): switch the hand off at its power supply")
+    if motors_off:
+        off = "motors off" + (" (the emulated hand saw it)" if witness == "emulator" else
+                              " (sent by the driver; no failure reported)")
+    else:
+        msgs = critical.messages or [f"the {witness} did not see it"]
+        why_not = "; ".join(msgs[:2]) + (f"; and {len(msgs) - 2} more" if len(msgs) > 2 else "")
+        off = f"MOTORS NOT CONFIRMED OFF ({why_not}): switch the hand off at its power supply"
     if fault is None:
-        log.info("deploy: done: %d steps at %s (late %d, held %d)%s; %s", summary["steps"], rate,
+        log.info("deploy: done after %d steps at %s, late %d, held %d%s -- %s", summary["steps"], rate,
                  summary["late_steps"], summary["held_steps"], rot, off)
     else:
         level = logging.WARNING if exit_code in (EXIT_SIGINT, EXIT_SIGTERM) else logging.ERROR
-        log.log(level, "deploy: ended by %s after %d steps%s; %s", fault, summary["steps"], rot, off)
+        log.log(level, "deploy: stopped after %d steps%s: %s -- %s", summary["steps"], rot, fault, off)
     if not motors_off:
         log.critical("deploy: %s", off)
+        summary["exit_code"] = summary["exit_code"] or EXIT_FAULT
     print(json.dumps(summary))
     return summary

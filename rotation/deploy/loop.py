@@ -261,7 +261,8 @@ class ControlLoop:
                     stats.held_steps += 1
                     if held_since is None:
                         held_since = now
-                        log.warning("step %d: %s; holding the last safe target", k, why)
+                        if not why.startswith("rejected"):  # a rejection has its own line above
+                            log.warning("step %d: %s; holding the last safe target", k, why)
                     if now - held_since >= cfg.hold_limit_s:
                         raise PolicyFault(f"no usable action for {now - held_since:.2f} s "
                                           f"(>= {cfg.hold_limit_s} s): {why}")

@@ -32,13 +32,13 @@ class DeployRecorder:
     """Session writer for one deploy run (see the module docstring)."""
 
     def __init__(self, path: str | Path, meta: SessionMeta, fingers: tuple[str, ...] = (),
-                 object_pose: bool = False, flush_interval_s: float = 1.0) -> None:
+                 object_pose: bool = False, flush_interval_s: float = 1.0, overwrite: bool = False) -> None:
         rate = meta.control_hz
         streams: list[StreamSetup | str] = [StreamSetup(name, rate_hz=rate) for name in JOINT_STREAMS]
         if object_pose:
             streams.append(StreamSetup("labels/object_pose", rate_hz=rate))
         streams += [f"digit360/{f}/{s}" for f in fingers for s in DIGIT_STREAMS]
-        self.writer = SessionWriter(path, meta, streams, flush_interval_s=flush_interval_s)
+        self.writer = SessionWriter(path, meta, streams, flush_interval_s=flush_interval_s, overwrite=overwrite)
         self.path = self.writer.path
         self.object_pose = object_pose
         self.steps = 0

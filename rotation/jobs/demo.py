@@ -64,7 +64,8 @@ def run(cfg: Config) -> Path:
         from rotation.deploy import job as deploy_job
 
         deploy_summary = deploy_job.run(deploy_job.Config(
-            hand="sim-allegro", policy="student", duration=cfg.deploy_seconds, record=cfg.out / "deploy_session.h5"))
+            hand="sim-allegro", policy="student", duration=cfg.deploy_seconds, record=cfg.out / "deploy_session.h5",
+            overwrite=True))
 
     lines = ["# Demo report", "", f"Made by `rotate demo` in {time.time() - start:.0f} s.", "",
              "## Teacher vs student under perturbations", "",

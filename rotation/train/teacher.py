@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +72,8 @@ class Config:
     """Entropy bonus (Hora: 0)."""
     max_grad_norm: float = 1.0
     """Gradient norm clip (Hora: 1.0)."""
+    net_arch: tuple[int, ...] = (512, 256, 128)
+    """Hidden layers of the actor and of the critic MLPs (ELU), Hora's sizes."""
     log_std_init: float = -0.5
     """Initial log standard deviation of the Gaussian actions (Hora: 0). std 0.6 instead of 1 explores with
     coherent finger motions instead of jitter that mostly earns penalties."""
@@ -93,13 +95,11 @@ class Config:
     """Show a progress bar."""
     device: str = "cpu"
     """Torch device for PPO ('cpu' is fastest for these small MLPs)."""
-    env_overrides: dict = field(default_factory=dict)
-    """Extra EnvConfig fields (programmatic use)."""
 
     def env_config(self) -> EnvConfig:
         rc = RandomizationConfig() if self.randomize else RandomizationConfig(enabled=False)
         return EnvConfig(object=self.object, episode_steps=self.episode_steps, randomization=rc,
-                         grasp_cache=self.grasp_cache, **self.env_overrides)
+                         grasp_cache=self.grasp_cache)
 
 
 class KLSchedule:
@@ -197,7 +197,8 @@ def build_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
         "MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps, batch_size=cfg.batch_size,
         n_epochs=cfg.n_epochs, gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_range=cfg.clip_range,
         ent_coef=cfg.ent_coef, vf_coef=cfg.vf_coef, max_grad_norm=cfg.max_grad_norm,
-        policy_kwargs=dict(policy_kwargs(), log_std_init=cfg.log_std_init),
+        policy_kwargs=dict(policy_kwargs(), log_std_init=cfg.log_std_init,
+                           net_arch=dict(pi=list(cfg.net_arch), vf=list(cfg.net_arch))),
         tensorboard_log=str(cfg.out / "tb"), seed=cfg.seed, device=cfg.device, verbose=0,
     )
     model.lr_schedule = KLSchedule(cfg.learning_rate, cfg.target_kl)

@@ -7,8 +7,6 @@ import json
 import sys
 from pathlib import Path
 
-from envs.grasps import generate_grasps
-
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_train.py"
 
 
@@ -21,12 +19,9 @@ def load_script():
 
 
 def test_bench_train_tiny(tmp_path, capsys):
-    scales = (0.70, 0.72, 0.74, 0.76, 0.78, 0.80, 0.82, 0.84, 0.86)  # the teacher env's randomized scale buckets
-    generate_grasps("cylinder", scales, per_scale=2, batch_size=8, max_rounds=5, seed=0, nthread=1).save(
-        tmp_path / "grasps.npz")
     bench = load_script()
     argv = ["--num-envs", "4", "--env-steps", "64", "--train-steps", "64", "--n-steps", "16", "--batch-size", "32",
-            "--n-epochs", "1", "--nthread", "1", "--torch-threads", "1", "--grasp-cache", str(tmp_path / "grasps.npz")]
+            "--n-epochs", "1", "--nthread", "1", "--torch-threads", "1"]
     assert bench.main(argv) == 0
     last = capsys.readouterr().out.strip().splitlines()[-1]
     result = json.loads(last)

@@ -1,0 +1,74 @@
+"""Fixtures for the deploy tests: a policy bundle, a hook on the started hand, and leak checks."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import pytest
+
+from rotation.deploy import job
+from rotation.policy.bundle import BundleConfig, PolicyBundle, shipped_bundles
+
+STUDENT_SHIPPED = "student" in shipped_bundles()
+"""The trained student ships in rotation/policies/student (the rotation test needs it)."""
+
+
+@pytest.fixture(scope="session")
+def policy(tmp_path_factory) -> str:
+    """The shipped student if present, else a randomly initialised student bundle (only the loop is tested then)."""
+    if STUDENT_SHIPPED:
+        return "student"
+    return str(PolicyBundle(BundleConfig(latent_source="adaptation")).save(tmp_path_factory.mktemp("bundle") / "s"))
+
+
+@pytest.fixture(autouse=True)
+def no_leaks():
+    """A deploy run must leave no thread running and no file descriptor (pty, CAN bus, HDF5 file) open."""
+    threads_before = set(threading.enumerate())
+    fds_before = len(os.listdir("/proc/self/fd"))
+    yield
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:
+        extra = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]
+        fds = len(os.listdir("/proc/self/fd"))
+        if not extra and fds <= fds_before:
+            return
+        time.sleep(0.05)
+    assert not extra, f"leaked threads: {[t.name for t in extra]}"
+    assert fds <= fds_before, f"leaked file descriptors: {fds - fds_before}"
+
+
+class HandHook:
+    """Records the hand ``rotate deploy`` opened and runs ``after(delay_s, fn(opened))`` once it has started."""
+
+    def __init__(self) -> None:
+        self.opened = None
+        self.actions: list[tuple[float, object]] = []
+        self.timers: list[threading.Timer] = []
+
+    def after(self, delay_s: float, fn) -> None:
+        self.actions.append((delay_s, fn))
+
+
+@pytest.fixture
+def hand_hook(monkeypatch):
+    hook = HandHook()
+    real_open_hand = job.open_hand
+
+    def open_hand(setup, stack):
+        opened = real_open_hand(setup, stack)
+        hook.opened = opened
+        for delay, fn in hook.actions:
+            timer = threading.Timer(delay, fn, args=(opened,))
+            timer.daemon = True
+            timer.start()
+            hook.timers.append(timer)
+        return opened
+
+    monkeypatch.setattr(job, "open_hand", open_hand)
+    yield hook
+    for timer in hook.timers:
+        timer.cancel()
+        timer.join()

@@ -1,0 +1,142 @@
+"""Deploy pieces without a hand: the env's observation/target bookkeeping, the policy worker, option checks."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from envs import EnvConfig, RandomizationConfig, RotateCupVec
+from envs import constants as C
+from envs.grasps import load_default_cache
+from rotation.cli import main
+from rotation.deploy.job import Config, run
+from rotation.deploy.policy import PolicyFault, PolicyState, PolicyWorker, action_problem, check_deployable
+from rotation.deploy.sensors import parse_digit360
+from rotation.policy.bundle import BundleConfig
+from rotation.sim_hardware.hand_physics import HandPhysics
+
+
+def test_observations_and_targets_are_the_envs():
+    """Fed the env's joint angles and the same actions, deploy builds bit-identical observations and targets."""
+    env = RotateCupVec(EnvConfig(randomization=RandomizationConfig(enabled=False)), num_envs=1, seed=3)
+    obs = env.reset(seed=3)
+    state = PolicyState(env.grasp_q[0], C.JOINT_LOWER, C.JOINT_UPPER, C.ACTION_SCALE)
+    rng = np.random.default_rng(0)
+    for _ in range(35):  # more than the 30-step history
+        mine = state.observation()
+        assert mine["proprio"].dtype == np.float32 and mine["proprio_hist"].shape == (30, 32)
+        np.testing.assert_array_equal(mine["proprio"], obs["proprio"][0])
+        np.testing.assert_array_equal(mine["proprio_hist"], obs["proprio_hist"][0])
+        action = rng.uniform(-1.5, 1.5, C.NUM_JOINTS)  # beyond [-1, 1]: both clip
+        obs, *_ = env.step(action[None])
+        state.apply(action)
+        np.testing.assert_array_equal(state.targets, env.targets[0])
+        state.push(env._qpos[0, : C.NUM_JOINTS])  # the measured joints after the step (no noise: randomization off)
+    env.close()
+
+
+def test_worker_deadline_hold_and_errors():
+    calls = []
+
+    def act(obs):
+        calls.append(obs["x"])
+        if obs["x"] == 1:
+            time.sleep(0.3)  # a stalled step
+        if obs["x"] == 3:
+            raise RuntimeError("boom")
+        return np.full(16, obs["x"], dtype=np.float32)
+
+    worker = PolicyWorker(act)
+    try:
+        assert worker.submit(0, {"x": 0}) and worker.wait(0, 1.0)[0] == 0
+        assert worker.submit(1, {"x": 1})
+        assert worker.wait(1, 0.05) is None  # not ready in time: the loop holds
+        assert not worker.submit(2, {"x": 2})  # still busy with step 1: refused, the loop holds again
+        time.sleep(0.4)
+        assert worker.submit(2, {"x": 2}) and worker.wait(2, 1.0)[0] == 2  # the late result of step 1 is dropped
+        assert worker.submit(3, {"x": 3})
+        with pytest.raises(PolicyFault, match="boom"):
+            worker.wait(3, 1.0)
+    finally:
+        worker.close()
+    assert calls == [0, 1, 2, 3]
+
+
+def test_action_problems():
+    assert action_problem(np.zeros(16, np.float32)) is None
+    assert "non-finite" in action_problem(np.r_[np.zeros(15), np.nan])
+    assert "non-finite" in action_problem(np.r_[np.inf, np.zeros(15)])
+    assert "shape" in action_problem(np.zeros(15))
+
+
+def test_only_proprioceptive_adapter_free_bundles_deploy():
+    check_deployable(BundleConfig(latent_source="adaptation"), "student")
+    with pytest.raises(ValueError, match="'priv'.*student"):
+        check_deployable(BundleConfig(latent_source="privileged"), "teacher")
+    with pytest.raises(ValueError, match="adapters is not supported yet"):
+        check_deployable(BundleConfig(latent_source="adaptation", adapter="adapters/x"), "student+adapter")
+
+
+def test_option_errors_before_anything_starts(tmp_path, policy):
+    with pytest.raises(ValueError, match="does not exist"):
+        Config(hand="sim-allegro", policy=policy, adapter=str(tmp_path / "missing.safetensors"))
+    (tmp_path / "adapter").mkdir()
+    with pytest.raises(ValueError, match="not supported by `rotate deploy` yet"):
+        Config(hand="sim-allegro", policy=policy, adapter=str(tmp_path / "adapter"))
+    with pytest.raises(ValueError, match="unknown interface"):
+        Config(hand="allegro", policy=policy, can="kvaser:0")
+    with pytest.raises(ValueError, match="baud"):
+        Config(hand="leap", policy=policy, baud=123)
+    with pytest.raises(ValueError, match="gain_scale"):
+        Config(hand="sim-leap", policy=policy, gain_scale=1.5)
+    with pytest.raises(ValueError, match="no bundle directory"):
+        run(Config(hand="sim-allegro", policy=str(tmp_path / "nope")))
+    taken = tmp_path / "taken.h5"
+    taken.write_bytes(b"")
+    with pytest.raises(ValueError, match="exists"):
+        run(Config(hand="sim-allegro", policy=policy, record=str(taken)))
+    with pytest.raises(ValueError, match="out of range"):
+        run(Config(hand="sim-allegro", policy=policy, grasp=10_000))
+
+
+def test_cli_requires_hand_and_policy_and_reports_bad_options(capsys, tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        main(["deploy", "--policy", "student"])
+    assert exc.value.code == 2 and "--hand" in capsys.readouterr().err
+    assert main(["deploy", "--hand", "sim-leap", "--policy", "x", "--adapter", str(tmp_path)]) == 2
+    assert "adapters are not supported" in capsys.readouterr().err
+
+
+def test_digit360_option():
+    assert parse_digit360("", emulated=False) == {}
+    assert parse_digit360("A,B,C,D", emulated=False) == {"index": "A", "middle": "B", "ring": "C", "thumb": "D"}
+    assert parse_digit360("thumb=D360-1, index=/dev/pts/7", emulated=False) == {"thumb": "D360-1",
+                                                                                 "index": "/dev/pts/7"}
+    assert set(parse_digit360("sim", emulated=True)) == set(C.FINGERS)
+    for bad, match in (("A,B", "4 comma-separated"), ("pinky=A", "unknown finger"), ("thumb=A,B", "mixes"),
+                       ("thumb=A,thumb=B", "twice"), ("A,,B,C", "empty")):
+        with pytest.raises(ValueError, match=match):
+            parse_digit360(bad, emulated=False)
+    with pytest.raises(ValueError, match="emulated hand"):
+        parse_digit360("sim", emulated=False)
+
+
+def test_emulated_hand_starts_at_a_cached_grasp_and_holds_until_released():
+    cache = load_default_cache("cup")
+    bucket = int(np.abs(cache.scales - 0.78).argmin())  # RotateCup-v0's nominal scale
+    physics = HandPhysics.at_grasp("cup", grasp=3)
+    row = cache.grasps[bucket, 3]
+    q, _ = physics.joint_state()
+    assert physics.scale == pytest.approx(0.78) and physics.grasp == 3 and physics.held
+    np.testing.assert_allclose(q, row[:16])
+    np.testing.assert_allclose(physics.object_pose(), row[16:])
+    physics.advance(0.05)  # held: nothing moves, not even under gravity
+    np.testing.assert_allclose(physics.object_pose(), row[16:])
+    assert physics.time == 0.0
+    physics.release()
+    physics.advance(0.05)
+    assert physics.time > 0.0 and not physics.held
+    with pytest.raises(ValueError, match="out of range"):
+        HandPhysics.at_grasp("cup", grasp=cache.grasps.shape[1])
