@@ -157,6 +157,14 @@ def from_jsonable(cls: type, data: dict[str, Any]) -> Any:
     return cls(**values)
 
 
+def script_main(config_cls: type, run: Any, description: str | None, argv: list[str] | None = None) -> int:
+    """Entry point of a script: parse ``config_cls`` from the command line and call ``run(cfg)``."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_dataclass_arguments(parser, config_cls)
+    run(dataclass_from_args(config_cls, parser.parse_args(argv)))
+    return 0
+
+
 def save_config(cfg: Any, path: str | Path) -> None:
     """Write a config dataclass as indented JSON (beside a checkpoint or report)."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,6 @@ with `vec_over_raw` (target >= 0.8) and `vec_over_subproc` (target >= 3 on 2 cor
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import statistics
@@ -36,7 +35,7 @@ from envs.config import EnvConfig
 from envs.core import RotateCupVec
 from envs.rotate_cup import RotateCupEnv
 from envs.vector import RotateCupVectorEnv
-from rotation.configs import add_dataclass_arguments, dataclass_from_args
+from rotation.configs import script_main
 from rotation.train.vec_env import RotateCupSB3VecEnv
 
 
@@ -213,10 +212,7 @@ def run(cfg: Config) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_dataclass_arguments(parser, Config)
-    run(dataclass_from_args(Config, parser.parse_args(argv)))
-    return 0
+    return script_main(Config, run, __doc__, argv)
 
 
 if __name__ == "__main__":

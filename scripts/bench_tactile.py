@@ -13,7 +13,6 @@ one loader process renders per second from those sessions; ``obs_windows_per_s``
 
 from __future__ import annotations
 
-import argparse
 import json
 import tempfile
 import time
@@ -26,7 +25,7 @@ import torch
 from envs.config import EnvConfig
 from envs.core import RotateCupVec
 from envs.sensors.digit360 import FINGERS
-from rotation.configs import add_dataclass_arguments, dataclass_from_args
+from rotation.configs import script_main
 from rotation.data.dataset import TouchWindows, find_sessions
 from rotation.jobs import collect
 
@@ -134,10 +133,7 @@ def run(cfg: Config) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_dataclass_arguments(parser, Config)
-    run(dataclass_from_args(Config, parser.parse_args(argv)))
-    return 0
+    return script_main(Config, run, __doc__, argv)
 
 
 if __name__ == "__main__":

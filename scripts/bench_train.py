@@ -10,7 +10,6 @@ The last line printed is a JSON object.
 
 from __future__ import annotations
 
-import argparse
 import json
 import tempfile
 import time
@@ -21,7 +20,7 @@ import numpy as np
 import torch
 
 from envs.core import RotateCupVec
-from rotation.configs import add_dataclass_arguments, dataclass_from_args
+from rotation.configs import script_main
 from rotation.train import teacher
 from rotation.train.vec_env import RotateCupSB3VecEnv
 
@@ -119,10 +118,7 @@ def run(cfg: Config) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_dataclass_arguments(parser, Config)
-    run(dataclass_from_args(Config, parser.parse_args(argv)))
-    return 0
+    return script_main(Config, run, __doc__, argv)
 
 
 if __name__ == "__main__":

@@ -10,14 +10,13 @@ an evaluation report (results.json from `rotate evaluate`) for this policy.
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from rotation.configs import add_dataclass_arguments, dataclass_from_args
+from rotation.configs import script_main
 from rotation.policy.bundle import load_bundle
 
 PACKAGE_POLICIES = Path(__file__).resolve().parents[1] / "rotation" / "policies"
@@ -84,6 +83,4 @@ def run(cfg: Config) -> Path:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_dataclass_arguments(parser, Config)
-    run(dataclass_from_args(Config, parser.parse_args()))
+    raise SystemExit(script_main(Config, run, __doc__))

@@ -69,7 +69,8 @@ def run(cfg: Config) -> Path:
 
     lines = ["# Demo report", "", f"Made by `rotate demo` in {time.time() - start:.0f} s.", "",
              "## Teacher vs student under perturbations", "",
-             (eval_dir / "results.md").read_text().strip(), "",
+             *[line for line in (eval_dir / "results.md").read_text().strip().splitlines()
+               if not line.startswith("# ")], "",
              "Plots: " + ", ".join(f"[{p.stem}](evaluation/plots/{p.name})"
                                    for p in sorted((eval_dir / "plots").glob("*.png"))), "",
              "## Student rotating the cup", "", f"[{video.name}]({video.name})", ""]

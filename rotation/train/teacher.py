@@ -188,6 +188,19 @@ class Checkpoints(BaseCallback):
         return path
 
 
+def bundle_from_checkpoint(path: str | Path, card: dict | None = None) -> PolicyBundle:
+    """The policy bundle of a training checkpoint (.zip), e.g. to evaluate or ship a run that is still going."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"no such checkpoint: {path}")
+    model = AdaptiveKLPPO.load(path, device="cpu")
+    run_cfg = path.parent.parent / "config.json"
+    train_config = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}
+    info = {"role": "teacher", "object": train_config.get("object", "cup"), "steps": int(model.num_timesteps),
+            "seed": train_config.get("seed"), "checkpoint": path.name, "train_config": train_config}
+    return PolicyBundle.from_sb3(model, card=info | (card or {}))
+
+
 def build_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
     if cfg.resume is not None:
         if not Path(cfg.resume).is_file():
