@@ -59,6 +59,9 @@ def angular_velocity(q0: np.ndarray, q1: np.ndarray, dt: float) -> np.ndarray:
 class RotateCupVec:
     """N RotateCup simulations stepped together; observations and rewards are (N, ...) numpy arrays."""
 
+    render_mode: str | None = None
+    """The core renders nothing itself; see envs.render for frames of any simulation."""
+
     def __init__(self, cfg: EnvConfig | None = None, num_envs: int = 1, seed: int = 0, nthread: int | None = None,
                  grasps: GraspCache | None = None):
         self.cfg = cfg = cfg if cfg is not None else EnvConfig()
@@ -70,7 +73,7 @@ class RotateCupVec:
         self.obj = get_object(cfg.object)
         rc = cfg.randomization
         self.max_scale = (max(rc.scales) + rc.scale_jitter) if rc.enabled else self._nominal_scale()
-        # [touch, issue 4] the Digit 360 sensors exist only with tactile=True; the plain model is unchanged
+        # touch: the Digit 360 sensors exist only with tactile=True; the plain model is unchanged
         touch_sensors = partial(add_digit360_sensors, history=cfg.substeps) if cfg.tactile else None
         self.model = build_model(self.obj, self.max_scale, cfg.physics_dt, edit=touch_sensors)
         m = self.model
@@ -79,7 +82,7 @@ class RotateCupVec:
                         np.full((1, C.NUM_JOINTS), cfg.kd))
         self.nthread = nthread if nthread is not None else max(1, min(os.cpu_count() or 1, n))
         self.batch = mujoco.batch.Batch(m, n, self.nthread, persistent=True)
-        # [touch, issue 4] per-env contact history feeding obs["tactile"]; None keeps the plain path as it was
+        # touch: per-env contact history feeding obs["tactile"]; None keeps the plain path as it was
         self.touch = TouchState(m, n, cfg.physics_dt, cfg.substeps) if cfg.tactile else None
 
         # model indices
@@ -129,7 +132,7 @@ class RotateCupVec:
                 "proprio": gym.spaces.Box(-np.inf, np.inf, (C.PROPRIO_STEPS, C.PROPRIO_DIM), np.float32),
                 "proprio_hist": gym.spaces.Box(-np.inf, np.inf, (C.HISTORY_STEPS, C.PROPRIO_DIM), np.float32),
                 "priv": gym.spaces.Box(-np.inf, np.inf, (C.PRIV_DIM,), np.float32),
-                **({"tactile": tactile_space()} if cfg.tactile else {}),  # [touch, issue 4]
+                **({"tactile": tactile_space()} if cfg.tactile else {}),  # touch on
             }
         )
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (C.NUM_JOINTS,), np.float32)
@@ -230,7 +233,7 @@ class RotateCupVec:
         self.steps[ids] = 0
         self.push[ids] = 0.0
         self.history.reset(ids, q)
-        if self.touch is not None:  # [touch, issue 4] the reset reading fills the contact history
+        if self.touch is not None:  # touch: the reset reading fills the contact history
             self.touch.reset(ids, self.batch.bind("sensordata"), self.rng.keys[ids], self.episode[ids])
 
     def _priv(self) -> np.ndarray:
@@ -242,7 +245,7 @@ class RotateCupVec:
 
     def _observe(self) -> dict[str, np.ndarray]:
         obs = {"proprio": self.history.proprio, "proprio_hist": self.history.history, "priv": self._priv()}
-        if self.touch is not None:  # [touch, issue 4] windows rendered lazily on access (envs.sensors.tactile_obs)
+        if self.touch is not None:  # touch: windows rendered lazily on access (envs.sensors.tactile_obs)
             obs["tactile"] = self.touch.observe()
         return obs
 
@@ -275,7 +278,7 @@ class RotateCupVec:
         pos0 = self._qpos[:, o : o + 3].copy()
         quat0 = self._qpos[:, o + 3 : o + 7].copy()
         self.batch.step(nstep=cfg.substeps)
-        if self.touch is not None:  # [touch, issue 4] every substep's sensor sample, from the sensors' history
+        if self.touch is not None:  # touch: every substep's sensor sample, from the sensors' history
             self.touch.push(self.batch.bind("history"))
         qpos, qvel = self._qpos, self._qvel
         q, qdot = qpos[:, : C.NUM_JOINTS], qvel[:, : C.NUM_JOINTS]
