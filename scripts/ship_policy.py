@@ -56,13 +56,15 @@ def run(cfg: Config) -> Path:
         shutil.copy2(cfg.bundle / f, dest / f)
     load_bundle(dest)
     wall = cfg.wall_time_s if cfg.wall_time_s is not None else card.get("wall_time_s")
+    # teacher cards say steps/seed; student cards env_steps and the seed inside their config
+    steps = card.get("steps", card.get("env_steps"))
+    seed = card.get("seed", card.get("config", {}).get("seed", "?"))
     lines = [f"# Model card: {cfg.name}", "",
-             f"- role: {card.get('role', bundle.config.latent_source)} (latent source `{bundle.config.latent_source}`)",
+             f"- role: {card.get('role', card.get('kind', '?'))} (latent source `{bundle.config.latent_source}`)",
              f"- env: RotateCup-v0, object `{card.get('object', 'cup')}`, Hora's domain randomization",
              f"- training command: `{cfg.command or card.get('command', 'unknown')}`",
-             f"- seed: {card.get('seed', '?')}",
-             f"- environment steps: {card.get('steps', '?'):,}" if isinstance(card.get("steps"), int)
-             else f"- environment steps: {card.get('steps', '?')}",
+             f"- seed: {seed}",
+             f"- environment steps: {steps:,}" if isinstance(steps, int) else f"- environment steps: {steps}",
              f"- wall time: {wall / 3600:.2f} h" if isinstance(wall, int | float) else "- wall time: unknown",
              f"- machine: {machine()}",
              f"- files: config.json, model.safetensors ({(dest / 'model.safetensors').stat().st_size / 1e6:.2f} MB)",

@@ -44,9 +44,11 @@ def run(cfg: Config) -> Path:
     cfg.out.mkdir(parents=True, exist_ok=True)
     bundles = {name: load_bundle(name) for name in ("teacher", "student")}
     for name, bundle in bundles.items():
-        card = bundle.config.card
-        print(f"[demo] {name}: trained {card.get('steps', '?')} steps on {card.get('object', '?')} "
-              f"({bundle.config.latent_source} latent)")
+        card = bundle.config.card  # teacher cards: steps/object; student cards: env_steps and their env config
+        steps = card.get("steps", card.get("env_steps", "?"))
+        obj = card.get("object", card.get("config", {}).get("env", {}).get("object", "?"))
+        print(f"[demo] {name}: trained {steps} steps on {obj} ({bundle.config.latent_source} latent; model card "
+              f"in rotation/policies/{name}/MODEL_CARD.md)")
 
     print("[demo] evaluating teacher vs student under perturbations")
     eval_dir = cfg.out / "evaluation"

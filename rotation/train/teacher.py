@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -218,6 +219,10 @@ def build_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
     return model
 
 
+def _raise_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def run(cfg: Config) -> PolicyBundle:
     if cfg.total_steps < 1 or cfg.num_envs < 1:
         raise ValueError(f"total_steps and num_envs must be >= 1, got {cfg.total_steps}, {cfg.num_envs}")
@@ -237,8 +242,15 @@ def run(cfg: Config) -> PolicyBundle:
     remaining = cfg.total_steps - model.num_timesteps
     start = time.time()
     if remaining > 0:
-        model.learn(remaining, callback=CallbackList([stats, ckpt]), progress_bar=cfg.progress,
-                    reset_num_timesteps=cfg.resume is None, tb_log_name="teacher")
+        # Ctrl-C or SIGTERM stop training early; the checkpoint, curves and bundle below are still written
+        previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+        try:
+            model.learn(remaining, callback=CallbackList([stats, ckpt]), progress_bar=cfg.progress,
+                        reset_num_timesteps=cfg.resume is None, tb_log_name="teacher")
+        except KeyboardInterrupt:
+            print(f"teacher: interrupted at {model.num_timesteps} steps; saving a checkpoint and the bundle")
+        finally:
+            signal.signal(signal.SIGTERM, previous)
     wall = time.time() - start
     ckpt.model = model
     ckpt.num_timesteps = model.num_timesteps

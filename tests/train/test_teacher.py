@@ -85,3 +85,14 @@ def test_bad_config_is_refused(tmp_path):
         teacher.run(_cfg(tmp_path, batch_size=100_000))
     with pytest.raises(ValueError, match="no such checkpoint"):
         teacher.run(_cfg(tmp_path, resume=tmp_path / "missing.zip"))
+
+
+def test_interrupt_still_saves_checkpoint_and_bundle(tmp_path, monkeypatch):
+    def interrupted_learn(self, *args, **kwargs):
+        raise KeyboardInterrupt  # what Ctrl-C (or SIGTERM, turned into it by run) does mid-training
+
+    monkeypatch.setattr(AdaptiveKLPPO, "learn", interrupted_learn)
+    cfg = _cfg(tmp_path)
+    teacher.run(cfg)
+    assert (cfg.out / "checkpoints" / "last.zip").is_file()
+    assert load_bundle(cfg.out / "bundle").config.card["steps"] == 0
