@@ -88,10 +88,7 @@ class RotateCupVec:
         # model indices
         self.obj_body = m.body(OBJECT_BODY).id
         self.obj_geoms = np.flatnonzero(m.geom_bodyid == self.obj_body)
-        self.hand_geoms = np.flatnonzero((m.geom_bodyid != self.obj_body) & (m.geom_bodyid != 0))
-        jnt = m.joint("object_free")
-        self.obj_qpos = int(jnt.qposadr[0])
-        self.obj_dof = int(jnt.dofadr[0])
+        self.obj_qpos = int(m.joint("object_free").qposadr[0])
         # object geometry at scale 1 (the model was compiled at max_scale)
         self._geom_size1 = m.geom_size[self.obj_geoms].copy() / self.max_scale
         self._geom_pos1 = m.geom_pos[self.obj_geoms].copy() / self.max_scale
@@ -179,7 +176,7 @@ class RotateCupVec:
         self._geom_size[np.ix_(ids, self.obj_geoms)] = self._geom_size1[None] * s
         self._geom_pos[np.ix_(ids, self.obj_geoms)] = self._geom_pos1[None] * s
         fr = self._geom_friction[ids]
-        fr[:, :, 0] = p["friction"][:, None]
+        fr[:, :, 0] = p["friction"][:, None]  # one coefficient for hand and object (Hora); the floor never collides
         self._geom_friction[ids] = fr
         self._body_mass[ids, self.obj_body] = p["mass"]
         self._body_ipos[ids, self.obj_body] = p["com"]
