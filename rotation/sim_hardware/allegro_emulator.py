@@ -20,7 +20,6 @@ Fault switches (``emu.faults``, change them at any time): see :class:`AllegroFau
 from __future__ import annotations
 
 import logging
-import threading
 import time
 import uuid
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ import numpy as np
 from rotation.hardware import allegro_protocol as ap
 from rotation.sim_hardware.hand_physics import HandPhysics
 from rotation.sim_hardware.pty_link import PtyLink
+from rotation.sim_hardware.worker import EmulatorThread
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +150,7 @@ class _SlcanTransport:
         self.link.close()
 
 
-class AllegroEmulator:
+class AllegroEmulator(EmulatorThread):
     """The emulated hand; use as a context manager (starts and stops its thread, closes its bus or pty)."""
 
     def __init__(self, transport: str = "virtual", channel: str | None = None, version: str = "v4",
@@ -175,8 +175,7 @@ class AllegroEmulator:
         self._ticks = 0
         self._torque = np.zeros(16)
         self._delayed: list[tuple[float, can.Message]] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="allegro-emulator", daemon=True)
+        self._init_worker("allegro-emulator")
         self.overruns = 0
         self.frames_in = 0
         self.frames_out = 0
@@ -186,17 +185,7 @@ class AllegroEmulator:
         """The pty of the SLCAN adapter (slcan transport only)."""
         return self._transport.link.path  # type: ignore[union-attr]
 
-    def __enter__(self) -> AllegroEmulator:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=2.0)
+    def _close_link(self) -> None:
         self._transport.close()
 
     def temperatures(self) -> np.ndarray:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from cobs import cobs
 
 from rotation.hardware.digit360 import ACC_PER_G, SENSOR, messages
 from rotation.sim_hardware.pty_link import PtyLink
+from rotation.sim_hardware.worker import EmulatorThread
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ class Digit360Faults:
     """Stop streaming once for this long [window() raises SensorStale after stale_timeout_s]."""
 
 
-class Digit360Emulator:
+class Digit360Emulator(EmulatorThread):
     """Context manager streaming on ``emu.path`` until closed."""
 
     def __init__(self, source: Callable[[float], tuple[float, np.ndarray]] = synthetic_source,
@@ -61,21 +61,10 @@ class Digit360Emulator:
         self.link = PtyLink()
         self.path = self.link.path
         self._msg = messages()["DigitMessage"]
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="digit360-emulator", daemon=True)
+        self._init_worker("digit360-emulator")
         self.frames_out = 0
 
-    def __enter__(self) -> Digit360Emulator:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=2.0)
+    def _close_link(self) -> None:
         self.link.close()
 
     def disconnect(self) -> None:

@@ -15,7 +15,6 @@ Positions: LEAP angle = Allegro angle + pi.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -24,6 +23,7 @@ import numpy as np
 from rotation.hardware import dynamixel_protocol as dp
 from rotation.sim_hardware.hand_physics import HandPhysics
 from rotation.sim_hardware.pty_link import PtyLink
+from rotation.sim_hardware.worker import EmulatorThread
 
 log = logging.getLogger(__name__)
 R = dp.REGISTERS
@@ -52,7 +52,7 @@ class LeapFaults:
     servo [driver logs the bits and switches every servo off]."""
 
 
-class LeapEmulator:
+class LeapEmulator(EmulatorThread):
     """16 emulated servos on a pty; a context manager that starts and stops its thread."""
 
     def __init__(self, ids: tuple[int, ...] = tuple(range(16)), physics: HandPhysics | None = None,
@@ -77,25 +77,14 @@ class LeapEmulator:
             self._set(t, "present_temperature", 30)
             self.tables[i] = t
         self._buf = bytearray()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="leap-emulator", daemon=True)
+        self._init_worker("leap-emulator")
         self.packets_in = 0
         self.crc_errors = 0
         self._refresh_present()
         for i in self.ids:
             self._set(self.tables[i], "goal_position", self._get(self.tables[i], "present_position"))
 
-    def __enter__(self) -> LeapEmulator:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=2.0)
+    def _close_link(self) -> None:
         self.link.close()
 
     def disconnect(self) -> None:
