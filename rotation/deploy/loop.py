@@ -212,6 +212,11 @@ class ControlLoop:
         meter = RotationMeter(pose0) if pose0 is not None else None
         drain = DigitDrain(self.readers, t0) if self.readers else None
         worker = PolicyWorker(self.bundle.act)
+        try:  # before the clock starts; the hand holds its start pose meanwhile
+            log.info("policy warm-up: first inference took %.0f ms", 1e3 * worker.warm_up(policy.observation()))
+        except BaseException:
+            worker.close(join_timeout_s=0.0)
+            raise
         self._monitor = TemperatureMonitor(hand, cfg.temperature_every_s, stats.max_temperature_c)
         budget = cfg.policy_budget * self.period
         start = next_tick = time.monotonic()

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -151,6 +152,17 @@ class PolicyWorker:
         if error is not None:
             raise PolicyFault(f"the policy raised {type(error).__name__}: {error}") from error
         return action
+
+    def warm_up(self, obs: dict[str, np.ndarray], timeout_s: float = 10.0) -> float:
+        """Run one inference on the worker thread and wait for it; returns its duration (s).
+
+        The first call allocates buffers and loads kernels, which can take many control periods; doing it before
+        the control clock starts keeps that out of the loop. Raises PolicyFault if it does not finish in time.
+        """
+        start = time.monotonic()
+        if not self.submit(-1, obs) or self.wait(-1, timeout_s) is None:
+            raise PolicyFault(f"the policy's first inference did not finish within {timeout_s:.0f} s")
+        return time.monotonic() - start
 
     def close(self, join_timeout_s: float = 0.5) -> None:
         """Stop the thread, waiting at most ``join_timeout_s`` (a running request is finished first; a hung one
