@@ -8,6 +8,7 @@ loop. Env i of a batch seeded s behaves exactly like a single env seeded s + i (
 from __future__ import annotations
 
 import os
+import time
 from functools import partial
 
 import gymnasium as gym
@@ -326,3 +327,17 @@ class RotateCupVec:
 
     def close(self) -> None:
         self.batch = None  # type: ignore[assignment]
+
+
+def random_steps_per_s(env: RotateCupVec, steps: int, seed: int = 0) -> float:
+    """Env transitions per second of ``env`` under uniform random actions, finished envs reset (benchmarks)."""
+    iters = max(1, steps // env.num_envs)
+    actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (iters, env.num_envs, C.NUM_JOINTS))
+    env.reset()
+    start = time.perf_counter()
+    for t in range(iters):
+        _, _, terminated, truncated, _ = env.step(actions[t])
+        done = np.flatnonzero(terminated | truncated)
+        if len(done):
+            env.reset(ids=done)
+    return iters * env.num_envs / (time.perf_counter() - start)

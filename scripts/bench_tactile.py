@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from envs.config import EnvConfig
-from envs.core import RotateCupVec
+from envs.core import RotateCupVec, random_steps_per_s
 from envs.sensors.digit360 import FINGERS
 from rotation.configs import script_main
 from rotation.data.dataset import TouchWindows, find_sessions
@@ -56,19 +56,10 @@ def bench_env(cfg: Config, tactile: bool, steps: int) -> float:
     """Env transitions per second of the batched core (uniform random actions, done envs reset)."""
     env = RotateCupVec(EnvConfig(object=cfg.object, tactile=tactile), num_envs=cfg.num_envs, seed=cfg.seed,
                        nthread=cfg.nthread or None)
-    rng = np.random.default_rng(cfg.seed)
-    iters = max(1, steps // cfg.num_envs)
-    actions = rng.uniform(-1.0, 1.0, (iters, cfg.num_envs, env.single_action_space.shape[0]))
-    env.reset()
-    start = time.perf_counter()
-    for t in range(iters):
-        _, _, terminated, truncated, _ = env.step(actions[t])
-        done = np.flatnonzero(terminated | truncated)
-        if len(done):
-            env.reset(ids=done)
-    wall = time.perf_counter() - start
-    env.close()
-    return iters * cfg.num_envs / wall
+    try:
+        return random_steps_per_s(env, steps, cfg.seed)
+    finally:
+        env.close()
 
 
 def bench_obs_render(cfg: Config) -> float:

@@ -16,10 +16,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from envs.core import RotateCupVec
+from envs.core import RotateCupVec, random_steps_per_s
 from rotation.configs import script_main
 from rotation.train import teacher
 from rotation.train.vec_env import RotateCupSB3VecEnv
@@ -64,19 +63,10 @@ def teacher_config(cfg: Config, out: Path) -> teacher.Config:
 def bench_env(cfg: Config, tcfg: teacher.Config) -> float:
     """Env transitions per second of the batched core alone (uniform random actions, done envs reset)."""
     env = RotateCupVec(tcfg.env_config(), num_envs=cfg.num_envs, seed=cfg.seed, nthread=cfg.nthread or None)
-    rng = np.random.default_rng(cfg.seed)
-    iters = max(1, cfg.env_steps // cfg.num_envs)
-    actions = rng.uniform(-1.0, 1.0, (iters, cfg.num_envs, env.single_action_space.shape[0]))
-    env.reset()
-    start = time.perf_counter()
-    for t in range(iters):
-        _, _, terminated, truncated, _ = env.step(actions[t])
-        done = np.flatnonzero(terminated | truncated)
-        if len(done):
-            env.reset(ids=done)
-    wall = time.perf_counter() - start
-    env.close()
-    return iters * cfg.num_envs / wall
+    try:
+        return random_steps_per_s(env, cfg.env_steps, cfg.seed)
+    finally:
+        env.close()
 
 
 def bench_train(cfg: Config, tcfg: teacher.Config) -> tuple[float, int]:
