@@ -37,14 +37,14 @@ import numpy as np
 from rotation.hardware import allegro_protocol as ap
 from rotation.hardware.allegro_control import AllegroConfig, CycleAssembler, VelocityFilter, pd_torque
 from rotation.hardware.can_bus import open_bus
-from rotation.hardware.hand import NUM_JOINTS, HandFault, HandInfo, HandNotResponding, HandState
+from rotation.hardware.hand import NUM_JOINTS, FeedbackMixin, HandFault, HandInfo, HandNotResponding, HandState
 from rotation.hardware.safety import SafetyLayer, motors_off_on_exit
 
 log = logging.getLogger(__name__)
 __all__ = ["AllegroConfig", "AllegroHand"]
 
 
-class AllegroHand:
+class AllegroHand(FeedbackMixin):
     """The Allegro hand as a context manager (see the module docstring). Implements ``rotation.hardware.Hand``."""
 
     torque_unit = "normalized torque (V4: PWM/1200, V5: mA/1430), commanded"
@@ -162,14 +162,6 @@ class AllegroHand:
             raise RuntimeError(f"{self.name}: use the hand inside `with` before commanding it")
         return self._safety.accept(q, time.monotonic())
 
-    def read_state(self) -> HandState:
-        """Latest complete feedback cycle (see :class:`HandState`)."""
-        self._raise_if_fault()
-        with self._lock:
-            if self._state is None:
-                raise RuntimeError(f"{self.name}: no feedback yet; use the hand inside `with`")
-            return self._state
-
     def info(self) -> HandInfo:
         """Firmware/hardware versions, serial and temperatures (requests HAND_INFO and TEMPERATURE now)."""
         self._raise_if_fault()
@@ -202,15 +194,7 @@ class AllegroHand:
         with self._lock:
             return np.array(self._cycle_times, dtype=np.float64)
 
-    @property
-    def fault(self) -> HandFault | None:
-        return self._fault
-
     # ------------------------------------------------------------------ bus helpers
-    def _raise_if_fault(self) -> None:
-        if self._fault is not None:
-            raise self._fault
-
     def _send(self, arbitration_id: int, data: bytes = b"", remote: bool = False) -> None:
         msg = can.Message(arbitration_id=arbitration_id, is_extended_id=False, is_remote_frame=remote,
                           data=None if remote else data, dlc=0 if remote else len(data))

@@ -10,6 +10,7 @@ Joint limits and torque limits are repeated here (not imported from ``envs``, wh
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -95,3 +96,32 @@ class Hand(Protocol):
     def read_state(self) -> HandState: ...
 
     def info(self) -> HandInfo: ...
+
+
+class FeedbackMixin:
+    """What every driver shares: the latest feedback under a lock, and a fault that ends all further calls.
+
+    Drivers set ``name``, ``_lock``, ``_state`` (None until the first feedback) and ``_fault`` in their constructor.
+    """
+
+    name: str
+    _lock: threading.Lock
+    _state: HandState | None
+    _fault: HandFault | None
+
+    def read_state(self) -> HandState:
+        """Latest complete feedback (see :class:`HandState`)."""
+        self._raise_if_fault()
+        with self._lock:
+            if self._state is None:
+                raise RuntimeError(f"{self.name}: no feedback yet; use the hand inside `with`")
+            return self._state
+
+    @property
+    def fault(self) -> HandFault | None:
+        """The fault that stopped the driver (motors already off), or None."""
+        return self._fault
+
+    def _raise_if_fault(self) -> None:
+        if self._fault is not None:
+            raise self._fault

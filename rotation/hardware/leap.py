@@ -32,7 +32,7 @@ import numpy as np
 
 from rotation.hardware import dynamixel_protocol as dp
 from rotation.hardware.dynamixel_bus import PORT_ERRORS, DynamixelBus, DynamixelError
-from rotation.hardware.hand import NUM_JOINTS, HandFault, HandInfo, HandState
+from rotation.hardware.hand import NUM_JOINTS, FeedbackMixin, HandFault, HandInfo, HandState
 from rotation.hardware.safety import SafetyConfig, SafetyLayer, motors_off_on_exit
 
 log = logging.getLogger(__name__)
@@ -95,7 +95,7 @@ class LeapConfig:
             raise ValueError("LeapConfig.safety.torque_limits must be None: LEAP limits effort with current_limit_ma")
 
 
-class LeapHand:
+class LeapHand(FeedbackMixin):
     """The LEAP hand as a context manager; implements ``rotation.hardware.Hand`` (Allegro-frame radians)."""
 
     torque_unit = "A (present motor current)"
@@ -193,13 +193,6 @@ class LeapHand:
         self._raise_if_fault()
         return self._safety.accept(q, time.monotonic())
 
-    def read_state(self) -> HandState:
-        self._raise_if_fault()
-        with self._lock:
-            if self._state is None:
-                raise RuntimeError(f"{self.name}: no feedback yet; use the hand inside `with`")
-            return self._state
-
     def info(self) -> HandInfo:
         """Model/firmware per servo, temperatures (146) and input voltages (144, 0.1 V)."""
         self._raise_if_fault()
@@ -217,15 +210,7 @@ class LeapHand:
         with self._lock:
             return dict(self._counters, **self._bus.counters, rejected_targets=self._safety.rejected)
 
-    @property
-    def fault(self) -> HandFault | None:
-        return self._fault
-
     # ------------------------------------------------------------------ helpers
-    def _raise_if_fault(self) -> None:
-        if self._fault is not None:
-            raise self._fault
-
     def _write_goals(self, q: np.ndarray) -> None:
         self._bus.write_goal_positions([dp.allegro_to_counts(float(qi)) for qi in q])
 
