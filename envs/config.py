@@ -7,15 +7,29 @@ ValueError that names the field and the allowed values; nothing is clamped silen
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 
 from envs import constants as C
 from envs.objects import OBJECTS
+from envs.validation import check_finite, check_types
+
+MAX_FRICTION = 3.0
+"""Highest sliding friction coefficient the contact model holds (the top of Hora's randomization range). Measured
+with the cup held under zero action for 3 s (16 envs, nominal physics): the deepest object contact penetrates a
+median 0.7 mm at 1.65, 2.4 mm at 3.0, then 3.7 mm at 3.6, 8.9 mm at 5.0, and at 6.6 the cup sinks through the palm
+(9 of 16 envs drop it). With pyramidal friction cones, larger coefficients soften the normal direction."""
+MAX_OBJECT_MASS = 0.5
+"""Heaviest object (kg) the hand is asked to rotate: a 0.5 N m actuator on a ~0.1 m finger pushes ~5 N at the tip,
+the weight of 0.5 kg, so a heavier object can only lie on the palm. The shipped teacher's rotation rate falls from
+0.30 rad/s to 0.13 at +0.5 kg and to 0.01 at +2 kg (16 envs, 10 s)."""
 
 
 def _check_range(name: str, lo_hi: tuple[float, float], low: float = -math.inf, high: float = math.inf) -> None:
     allowed = f"a (low, high) pair with low <= high within [{low}, {high}]"
     try:
+        if any(isinstance(v, bool | str) for v in lo_hi):  # float() would read True as 1.0 and "0.1" as 0.1
+            raise TypeError
         lo, hi = (float(v) for v in lo_hi)
     except (TypeError, ValueError):  # not a pair of numbers: a scalar, one or three values, text
         raise ValueError(f"{name} must be {allowed}, got {lo_hi!r}") from None
@@ -58,20 +72,22 @@ class RandomizationConfig:
     """Push decay factor per 0.08 s (Hora)."""
 
     def __post_init__(self) -> None:
+        check_types(self, "randomization.", skip=("mass", "com", "friction", "kp", "kd"))
         if not self.scales:
             raise ValueError("randomization.scales must list at least one scale")
         if any(not (0.1 <= s <= 3.0) for s in self.scales):
             raise ValueError(f"randomization.scales must lie in [0.1, 3.0], got {self.scales!r}")
         if not (0.0 <= self.scale_jitter < min(self.scales)):
             raise ValueError(f"randomization.scale_jitter must be in [0, {min(self.scales)}), got {self.scale_jitter}")
-        _check_range("randomization.mass", self.mass, low=1e-4)
+        _check_range("randomization.mass", self.mass, low=1e-4, high=MAX_OBJECT_MASS)
         _check_range("randomization.com", self.com, low=-0.05, high=0.05)
-        _check_range("randomization.friction", self.friction, low=0.01)
-        _check_range("randomization.kp", self.kp, low=0.01)
-        _check_range("randomization.kd", self.kd, low=0.0)
-        for name in ("joint_noise", "push_scale"):
-            if not (getattr(self, name) >= 0.0 and math.isfinite(getattr(self, name))):
-                raise ValueError(f"randomization.{name} must be finite and >= 0, got {getattr(self, name)}")
+        _check_range("randomization.friction", self.friction, low=0.01, high=MAX_FRICTION)
+        _check_range("randomization.kp", self.kp, low=0.01, high=100.0)
+        _check_range("randomization.kd", self.kd, low=0.0, high=10.0)
+        for name, top in (("joint_noise", 1.0), ("push_scale", 100.0)):
+            if not (0.0 <= getattr(self, name) <= top):
+                raise ValueError(f"randomization.{name} must be finite and >= 0 (at most {top}), "
+                                 f"got {getattr(self, name)}")
         if not (0.0 <= self.push_prob <= 1.0):
             raise ValueError(f"randomization.push_prob must be in [0, 1], got {self.push_prob}")
         if not (0.0 <= self.push_decay <= 1.0):
@@ -96,37 +112,61 @@ class RewardConfig:
     """Squared norm of the joint torques (N^2 m^2)."""
     work: float = -2.0
     """(tau . qdot)^2, the mechanical power penalty."""
+    tilt: float = -1.0
+    """Squared tilt of the object's up axis from the world vertical (rad^2). Hora has none: its cylinders lie
+    flat, and a reward that only measures rotation about the vertical axis let a CPU-budget teacher tip the cup onto
+    its side against the palm and roll it there; this term (-0.27 per step at 30 degrees) keeps the cup upright."""
     fall: float = -20.0
-    """One-off reward when the object falls. Hora has none; without it, a CPU-budget teacher learned to drop the
+    """One-off reward when the object falls (dropped, left the hand, or tipped past ``EnvConfig.max_tilt``). Hora
+    has none; without it, a CPU-budget teacher learned to drop the
     object early (every other term is a penalty, so ending the episode looked good): ttf fell from 0.7 to 0.2."""
     axis: tuple[float, float, float] = (0.0, 0.0, -1.0)
     """Commanded rotation axis in the world frame (Hora: -z, palm up)."""
 
     def __post_init__(self) -> None:
+        check_types(self, "reward.", skip=("axis",))
+        weights = tuple(f for f in self.__dataclass_fields__ if f not in ("axis", "rotate_clip"))
+        check_finite(self, weights, "reward.")  # any sign: a weight is a reward (> 0), a penalty (< 0) or off (0)
+        if (not isinstance(self.axis, tuple | list) or not all(isinstance(a, numbers.Real) for a in self.axis)
+                or any(isinstance(a, bool) for a in self.axis)):
+            raise ValueError(f"reward.axis must be a unit 3-vector, got {self.axis!r}")
         if len(self.axis) != 3 or not math.isclose(math.hypot(*self.axis), 1.0, rel_tol=1e-6):
             raise ValueError(f"reward.axis must be a unit 3-vector, got {self.axis!r}")
-        if not self.rotate_clip > 0:
-            raise ValueError(f"reward.rotate_clip must be > 0, got {self.rotate_clip}")
+        if not (0 < self.rotate_clip <= 100.0):
+            raise ValueError(f"reward.rotate_clip must be > 0 (at most 100 rad/s), got {self.rotate_clip}")
 
 
 @dataclass(frozen=True)
 class Perturbation:
-    """Evaluation perturbations applied on top of the randomized values (friction x, mass +, CoM +)."""
+    """Evaluation perturbations applied on top of the randomized values (friction x, mass +, CoM +).
+
+    Physical limits (checked by EnvConfig, which knows the randomization they apply on top of): the friction in force
+    (the randomization's highest friction x friction_scale) must stay at or below MAX_FRICTION = 3.0, beyond which
+    the contact model lets the object sink into the palm (x3 on the default 0.3-3.0 range sank the cup); the
+    heaviest object (the randomization's highest mass + added_mass) must stay at or below MAX_OBJECT_MASS = 0.5 kg,
+    what the 0.5 N m actuators can lift. With the default randomization: friction_scale in (0, 1],
+    added_mass in [0, 0.25] kg.
+    """
 
     friction_scale: float = 1.0
-    """Multiplies the friction the env would otherwise use."""
+    """Multiplies the friction the env would otherwise use (see the class docstring for the limit)."""
     added_mass: float = 0.0
-    """Added to the object mass (kg)."""
+    """Added to the object mass (kg; see the class docstring for the limit)."""
     com_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Added to the center-of-mass offset (m, object frame)."""
 
     def __post_init__(self) -> None:
+        check_types(self, "perturb.", skip=("com_shift",))
         if not (math.isfinite(self.friction_scale) and self.friction_scale > 0):
             raise ValueError(f"perturb.friction_scale must be finite and > 0, got {self.friction_scale}")
         if not (math.isfinite(self.added_mass) and self.added_mass >= 0):
             raise ValueError(f"perturb.added_mass must be finite and >= 0 kg, got {self.added_mass}")
-        shift = self.com_shift if hasattr(self.com_shift, "__len__") else ()  # a scalar is a bad shift too
-        if len(shift) != 3 or not all(math.isfinite(c) and abs(c) <= 0.05 for c in shift):
+        if self.added_mass > MAX_OBJECT_MASS:  # too heavy whatever the randomization; friction: see EnvConfig
+            raise ValueError(f"perturb.added_mass must be in [0, {MAX_OBJECT_MASS}] kg (what the 0.5 N m actuators "
+                             f"can lift), got {self.added_mass}")
+        shift = self.com_shift if isinstance(self.com_shift, tuple | list) else ()  # a scalar is a bad shift too
+        if len(shift) != 3 or not all(isinstance(c, numbers.Real) and not isinstance(c, bool) and math.isfinite(c)
+                                      and abs(c) <= 0.05 for c in shift):
             raise ValueError(f"perturb.com_shift must be 3 finite values within +-0.05 m, got {self.com_shift!r}")
 
     @property
@@ -158,6 +198,9 @@ class EnvConfig:
     """The object has fallen when its centre is this far (m) below its grasp height."""
     max_distance: float = 0.12
     """The object has also fallen when its centre is this far (m) from where the episode started."""
+    max_tilt: float = 0.7
+    """The object has also fallen when its up axis tilts this far (rad, 0.7 = 40 degrees) from the world vertical:
+    a tipped cup has not done the job, whatever it still earns (evaluation's `upright` counts 30 degrees)."""
     grasp_cache: str = ""
     """Path to a grasp cache (.npz) from `rotate grasps`; empty = the cache shipped with the package."""
     tactile: bool = False
@@ -167,6 +210,7 @@ class EnvConfig:
     perturb: Perturbation = field(default_factory=Perturbation)
 
     def __post_init__(self) -> None:
+        check_types(self)
         if self.object not in OBJECTS:
             raise ValueError(f"object: unknown object {self.object!r}; known objects: {', '.join(sorted(OBJECTS))}")
         if not (1e-4 <= self.physics_dt <= 0.02):
@@ -181,15 +225,42 @@ class EnvConfig:
             )
         if self.episode_steps < 1:
             raise ValueError(f"episode_steps must be >= 1, got {self.episode_steps}")
-        for name in ("action_scale", "kp", "torque_limit", "fall_drop", "max_distance"):
+        if self.episode_steps > 10**7:  # about 6 days at 20 Hz
+            raise ValueError(f"episode_steps must be at most 10**7, got {self.episode_steps}")
+        for name in ("action_scale", "kp", "torque_limit", "fall_drop", "max_distance", "max_tilt"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {value}")
         if not (math.isfinite(self.kd) and self.kd >= 0):
             raise ValueError(f"kd must be finite and >= 0, got {self.kd}")
+        # ceilings far above any sensible value, which catch unit slips (mm for m, deg for rad) and typos
+        for name, top, unit in (("action_scale", 1.0, "rad"), ("kp", 100.0, "N m / rad"), ("kd", 10.0, "N m s / rad"),
+                                ("torque_limit", 10.0, "N m"), ("fall_drop", 1.0, "m"), ("max_distance", 1.0, "m"),
+                                ("max_tilt", math.pi, "rad")):
+            if getattr(self, name) > top:
+                raise ValueError(f"{name} must be at most {top:g} {unit}, got {getattr(self, name)}")
         for name, cls in (("randomization", RandomizationConfig), ("reward", RewardConfig), ("perturb", Perturbation)):
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f"{name} must be a {cls.__name__}, got {type(getattr(self, name)).__name__}")
+        self._check_physical_limits()
+
+    def _check_physical_limits(self) -> None:
+        """The friction and mass in force (randomization with the perturbation on top) within what the model holds."""
+        rc, p = self.randomization, self.perturb
+        friction = (rc.friction[1] if rc.enabled else sum(rc.friction) / 2) * p.friction_scale
+        if friction > MAX_FRICTION * (1 + 1e-9):
+            top = MAX_FRICTION / (friction / p.friction_scale)
+            raise ValueError(
+                f"perturb.friction_scale {p.friction_scale:g} makes the friction reach {friction:.3g}, above "
+                f"{MAX_FRICTION}, the most the contact model holds (objects sink into the palm beyond it); with this "
+                f"randomization friction_scale must be in (0, {top:.3g}]")
+        mass = (rc.mass[1] if rc.enabled else sum(rc.mass) / 2) + p.added_mass
+        if mass > MAX_OBJECT_MASS * (1 + 1e-9):
+            top = MAX_OBJECT_MASS - (mass - p.added_mass)
+            raise ValueError(
+                f"perturb.added_mass {p.added_mass:g} kg makes the object weigh up to {mass:.3g} kg, above "
+                f"{MAX_OBJECT_MASS} kg, what the 0.5 N m actuators can lift; with this randomization added_mass must "
+                f"be in [0, {top:.3g}] kg")
 
     @property
     def substeps(self) -> int:

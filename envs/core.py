@@ -7,6 +7,7 @@ loop. Env i of a batch seeded s behaves exactly like a single env seeded s + i (
 
 from __future__ import annotations
 
+import numbers
 import os
 import time
 from functools import partial
@@ -18,6 +19,7 @@ import numpy as np
 
 from envs import constants as C
 from envs.config import EnvConfig
+from envs.geometry import tilt_angle
 from envs.grasps import GraspCache, load_default_cache
 from envs.objects import get_object
 from envs.observation import ProprioHistory
@@ -25,6 +27,7 @@ from envs.rng import CounterRNG, env_keys
 from envs.scene import OBJECT_BODY, build_model
 from envs.sensors.digit360 import add_digit360_sensors
 from envs.sensors.tactile_obs import TouchState, tactile_space
+from envs.validation import check_int, check_seed
 
 # Random streams (see envs.rng): one id per use, so adding a draw never shifts another.
 _STREAM_RESET, _STREAM_NOISE, _STREAM_PUSH_P, _STREAM_PUSH_F = 1, 2, 3, 4
@@ -68,8 +71,13 @@ class RotateCupVec:
         self.cfg = cfg = cfg if cfg is not None else EnvConfig()
         if not isinstance(cfg, EnvConfig):
             raise ValueError(f"cfg must be an EnvConfig, got {type(cfg).__name__}")
-        if int(num_envs) < 1:
+        if not isinstance(num_envs, numbers.Integral) or isinstance(num_envs, bool):
+            raise ValueError(f"num_envs must be an integer, got {type(num_envs).__name__} {num_envs!r}")
+        if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if nthread is not None:
+            check_int("nthread", nthread, 1, 1024)
+        seed = check_seed("seed", seed)
         self.num_envs = n = int(num_envs)
         self.obj = get_object(cfg.object)
         rc = cfg.randomization
@@ -197,9 +205,9 @@ class RotateCupVec:
 
     # ------------------------------------------------------------------ API
     def reset(self, seed: int | None = None, ids: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """Reset envs ``ids`` (all by default); a seed re-keys every env (env i gets seed + i)."""
+        """Reset envs ``ids`` (all by default); a seed (0 .. 2**64 - 1) re-keys every env (env i gets seed + i)."""
         if seed is not None:
-            self.rng = CounterRNG(env_keys(int(seed), self.num_envs))
+            self.rng = CounterRNG(env_keys(check_seed("seed", seed), self.num_envs))
             self.episode[:] = -1
             ids = None
         ids = np.arange(self.num_envs) if ids is None else np.asarray(ids, dtype=np.int64)
@@ -295,10 +303,12 @@ class RotateCupVec:
             "torque": rw.torque * (tau**2).sum(-1),
             "work": rw.work * (tau * qdot).sum(-1) ** 2,
         }
+        tilt = tilt_angle(quat)
+        terms["tilt"] = rw.tilt * tilt**2
         finite = np.all(np.isfinite(qpos), axis=1) & np.all(np.isfinite(qvel), axis=1)
-        # fell: dropped below the grasp, or left the hand in any direction (e.g. flicked away)
+        # fell: dropped below the grasp, left the hand in any direction (e.g. flicked away), or tipped over
         away = np.linalg.norm(pos - self.start_pos, axis=1) > cfg.max_distance
-        fell = (pos[:, 2] < self.start_pos[:, 2] - cfg.fall_drop) | away | ~finite
+        fell = (pos[:, 2] < self.start_pos[:, 2] - cfg.fall_drop) | away | (tilt > cfg.max_tilt) | ~finite
         terms["fall"] = rw.fall * fell
         reward = sum(terms.values())
         reward = np.where(finite, reward, 0.0)
@@ -313,6 +323,7 @@ class RotateCupVec:
         info.update(
             rotation=spin * dt,
             height=pos[:, 2].copy(),
+            tilt=np.where(finite, tilt, np.pi),
             lin_vel=np.linalg.norm(lin_vel, axis=1),
             torque=np.abs(tau).mean(axis=1),
             fell=fell,

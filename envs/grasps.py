@@ -3,7 +3,8 @@
 Generation (reference/hora.md "Grasp cache"): sample a canonical closed pose + U(-0.25, 0.25) rad per joint, start
 with the fingers opened a little and the object floating at its nominal place, close the fingers on it, release
 it under gravity, run 50 policy steps, and keep the grasp if all four fingertips are within 10 cm of the object
-centre, at least two touch it, and it did not fall. A cached row is 16 joint positions + 7 object pose numbers.
+centre, at least two touch it, it did not fall, and (our addition for the upright-cup task) its up axis is within
+`max_tilt` of vertical. A cached row is 16 joint positions + 7 object pose numbers.
 
 The cache file (.npz) holds `object` (name), `scales` (S,), `grasps` (S, G, 23) and `seed`; one bucket per
 randomization scale. Reset picks the bucket of the env's scale and a row uniformly.
@@ -21,7 +22,8 @@ import mujoco.batch
 import numpy as np
 
 from envs import constants as C
-from envs.objects import ObjectSpec, get_object
+from envs.geometry import tilt_angle
+from envs.objects import OBJECTS, ObjectSpec, get_object
 from envs.scene import OBJECT_BODY, OBJECT_START, build_model
 
 GRASP_DIM = C.NUM_JOINTS + 7
@@ -30,6 +32,10 @@ CANONICAL_POSE = np.array(
 )
 """Pose putting three fingertips on the +x side and the thumb on the -x side of an object at OBJECT_START
 (found by a sampling IK on fingertip targets); grasps are sampled around it."""
+DEFAULT_MAX_TILT = 0.15
+"""Grasps must hold the object's up axis within this angle (rad, about 9 degrees) of vertical after settling:
+the task is rotating an upright cup, and grasps that already lean 15-25 degrees tipped over under zero action in
+about 40% of 10 s holds (with the default randomization and pushes)."""
 TIP_RADIUS = 0.014
 """Digit 360 dome radius (m), the fingertip geoms in the hand MJCF."""
 
@@ -44,19 +50,27 @@ class GraspCache:
     grasps: np.ndarray
     """(S, G, 23): 16 joint positions (rad, bus order) + object position (3, m) and quaternion (4, wxyz)."""
     seed: int = 0
+    source: str = ""
+    """Where the cache was read from (named in error messages); empty for a cache built in memory."""
 
     def __post_init__(self) -> None:
+        where = self.where
         self.scales = np.asarray(self.scales, dtype=np.float64)
         self.grasps = np.asarray(self.grasps, dtype=np.float64)
+        if self.scales.ndim != 1 or not np.all(np.isfinite(self.scales) & (self.scales >= 0.1) & (self.scales <= 3.0)):
+            raise ValueError(f"{where}: scales must be finite numbers in [0.1, 3.0] (one per bucket), got "
+                             f"{self.scales.tolist()}")
         if self.grasps.ndim != 3 or self.grasps.shape[2] != GRASP_DIM or self.grasps.shape[0] != len(self.scales):
             raise ValueError(
-                f"grasp cache for {self.object!r}: grasps must have shape (S={len(self.scales)}, G, {GRASP_DIM}), "
-                f"got {self.grasps.shape}"
+                f"{where}: grasps must have shape (S={len(self.scales)}, G, {GRASP_DIM}), got {self.grasps.shape}"
             )
         if self.grasps.shape[1] == 0:
-            raise ValueError(f"grasp cache for {self.object!r} is empty")
-        if not np.all(np.isfinite(self.grasps)):
-            raise ValueError(f"grasp cache for {self.object!r} holds non-finite values")
+            raise ValueError(f"{where} is empty")
+        _check_rows(self.grasps, self.scales, where)
+
+    @property
+    def where(self) -> str:
+        return f"grasp cache {self.source}" if self.source else f"grasp cache for {self.object!r}"
 
     def sample(self, bucket: np.ndarray, scale: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows for envs with the given scales; ``u`` in [0, 1) picks the row. Returns q (k, 16), pose (k, 7)."""
@@ -96,7 +110,50 @@ class GraspCache:
             except damaged as err:
                 raise ValueError(f"grasp cache {path} is corrupted ({type(err).__name__}: {err}); "
                                  f"regenerate it with `rotate grasps`") from err
-        return cls(name, scales, grasps, seed)
+        if name not in OBJECTS:
+            raise ValueError(f"grasp cache {path}: unknown object {name!r}; known objects: "
+                             f"{', '.join(sorted(OBJECTS))}")
+        return cls(name, scales, grasps, seed, source=str(path))
+
+
+JOINT_TOLERANCE = 0.02
+"""How far (rad) a cached joint may lie outside its limit: the PD settles a few mrad past it (the shipped caches:
+at most 7.5 mrad)."""
+QUAT_TOLERANCE = 1e-4
+"""How far a cached quaternion's norm may be from 1 (rows are stored as float32: about 3e-8)."""
+MAX_OBJECT_OFFSET = 0.10
+"""How far (m) a cached object centre may be from OBJECT_START, where grasps are generated: Hora's rule keeps every
+fingertip within 10 cm of it (the shipped caches: at most 5 cm)."""
+
+
+def _check_rows(grasps: np.ndarray, scales: np.ndarray, where: str) -> None:
+    """Every row is finite, its joints within the limits, its quaternion a unit one, its object in the hand."""
+
+    def fail(mask: np.ndarray, what: str) -> None:
+        b, g = (int(i) for i in np.argwhere(mask)[0][:2])
+        raise ValueError(f"{where}: bucket {b} (scale {scales[b]:g}), row {g}: {what(b, g)}; "
+                         f"{int(mask.sum())} row(s) like it. Regenerate the cache with `rotate grasps`")
+
+    finite = np.all(np.isfinite(grasps), axis=2)
+    if not finite.all():
+        fail(~finite, lambda b, g: f"non-finite values {grasps[b, g].tolist()}")
+    q = grasps[..., : C.NUM_JOINTS]
+    outside = (q < C.JOINT_LOWER - JOINT_TOLERANCE) | (q > C.JOINT_UPPER + JOINT_TOLERANCE)  # (S, G, 16)
+    if outside.any():
+        def joint(b: int, g: int) -> str:
+            j = int(np.flatnonzero(outside[b, g])[0])
+            return (f"joint {j} ({C.JOINT_NAMES[j]}) = {q[b, g, j]:.4f} rad is outside its limits "
+                    f"[{C.JOINT_LOWER[j]}, {C.JOINT_UPPER[j]}] (+-{JOINT_TOLERANCE})")
+        fail(outside.any(axis=2), joint)
+    norm = np.linalg.norm(grasps[..., C.NUM_JOINTS + 3 :], axis=2)
+    bad = np.abs(norm - 1.0) > QUAT_TOLERANCE
+    if bad.any():
+        fail(bad, lambda b, g: f"the object quaternion has norm {norm[b, g]:.6f}, not 1 (+-{QUAT_TOLERANCE})")
+    offset = np.linalg.norm(grasps[..., C.NUM_JOINTS : C.NUM_JOINTS + 3] - OBJECT_START, axis=2)
+    far = offset > MAX_OBJECT_OFFSET
+    if far.any():
+        fail(far, lambda b, g: f"the object centre {grasps[b, g, 16:19].tolist()} m is {offset[b, g]:.3f} m from "
+                               f"the hand's grasp point {OBJECT_START.tolist()} (at most {MAX_OBJECT_OFFSET} m)")
 
 
 def default_cache_path(object_name: str) -> Path:
@@ -152,7 +209,7 @@ def _penetration(model: mujoco.MjModel, data: mujoco.MjData, q: np.ndarray, pos:
 
 def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int, seed: int = 0,
                     batch_size: int = 128, max_rounds: int = 200, noise: float = 0.25, nthread: int | None = None,
-                    progress=None) -> GraspCache:
+                    progress=None, max_tilt: float = DEFAULT_MAX_TILT) -> GraspCache:
     """Generate ``per_scale`` accepted grasps for each scale (see the module docstring for the rule)."""
     if per_scale < 1:
         raise ValueError(f"per_scale must be >= 1, got {per_scale}")
@@ -216,7 +273,9 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
             near = np.linalg.norm(tips - pos[:, None], axis=2).max(axis=1) < 0.10
             touching = (surface_distance(obj, np.full(batch_size, scale), pos, quat, tips) < TIP_RADIUS + 0.004).sum(1)
             still = np.linalg.norm(qvel[:, 16:19], axis=1) < 0.05
-            ok = clear & near & (touching >= 2) & (pos[:, 2] > z0 - 0.02) & still & np.all(np.isfinite(qpos), axis=1)
+            upright = tilt_angle(quat) < max_tilt
+            ok = clear & near & (touching >= 2) & (pos[:, 2] > z0 - 0.02) & still & upright
+            ok &= np.all(np.isfinite(qpos), axis=1)
             for i in np.flatnonzero(ok):
                 accepted.append(np.concatenate([qpos[i, :16], qpos[i, o : o + 7]]))
             if progress is not None:

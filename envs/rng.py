@@ -24,8 +24,9 @@ def splitmix64(x: np.ndarray) -> np.ndarray:
 
 
 def env_keys(seed: int, num_envs: int) -> np.ndarray:
-    """Keys of envs seed, seed+1, ... (uint64, (num_envs,))."""
-    seeds = (np.int64(seed) + np.arange(num_envs, dtype=np.int64)).astype(np.uint64)
+    """Keys of envs seed, seed+1, ... (uint64, (num_envs,)); seeds count modulo 2**64 (envs.validation.MAX_SEED)."""
+    with np.errstate(over="ignore"):
+        seeds = np.uint64(int(seed) % 2**64) + np.arange(num_envs, dtype=np.uint64)  # wraps past 2**64 - 1
     return splitmix64(splitmix64(seeds))
 
 

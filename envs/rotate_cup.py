@@ -10,6 +10,7 @@ import numpy as np
 
 from envs.config import EnvConfig, Perturbation, RandomizationConfig, RewardConfig
 from envs.core import RotateCupVec
+from envs.validation import check_seed
 
 
 def config_from_kwargs(cfg: EnvConfig | None = None, **kwargs: Any) -> EnvConfig:
@@ -19,6 +20,11 @@ def config_from_kwargs(cfg: EnvConfig | None = None, **kwargs: Any) -> EnvConfig
     if cfg is not None:
         return cfg
     return EnvConfig(**_nested(kwargs))
+
+
+def fresh_seed() -> int:
+    """A seed drawn from the OS's entropy (gymnasium's rule for the first reset without a seed)."""
+    return int(np.random.SeedSequence().entropy) % 2**64
 
 
 def _nested(kwargs: dict[str, Any]) -> dict[str, Any]:
@@ -54,12 +60,21 @@ class RotateCupEnv(gym.Env):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
         self.core = RotateCupVec(self.cfg, num_envs=1, seed=0, nthread=1)
+        self._seeded = False  # the first reset without a seed draws fresh entropy (gymnasium's convention)
         self.observation_space = self.core.single_observation_space
         self.action_space = self.core.single_action_space
         self._renderer = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Seeded: reproducible (the same episodes as env i of a batch seeded seed - i). Unseeded: the next episode
+        of this env's stream, which the first reset of a fresh env draws from the OS's entropy, so separate
+        instances (e.g. the copies in a SyncVectorEnv) differ."""
+        if seed is not None:
+            seed = check_seed("seed", seed)
+        elif not self._seeded:
+            seed = fresh_seed()
         super().reset(seed=seed)
+        self._seeded = True
         obs = self.core.reset(seed=seed)
         return {k: v[0] for k, v in obs.items()}, {}
 

@@ -10,7 +10,8 @@ from gymnasium.vector import AutoresetMode
 
 from envs.config import EnvConfig
 from envs.core import RotateCupVec
-from envs.rotate_cup import config_from_kwargs
+from envs.rotate_cup import config_from_kwargs, fresh_seed
+from envs.validation import check_seed
 
 
 class RotateCupVectorEnv(gym.vector.VectorEnv):
@@ -25,6 +26,7 @@ class RotateCupVectorEnv(gym.vector.VectorEnv):
     def __init__(self, num_envs: int = 1, cfg: EnvConfig | None = None, nthread: int | None = None, **kwargs: Any):
         self.cfg = config_from_kwargs(cfg, **kwargs)
         self.core = RotateCupVec(self.cfg, num_envs=num_envs, seed=0, nthread=nthread)
+        self._seeded = False  # the first reset without a seed draws fresh entropy (gymnasium's convention)
         self.num_envs = num_envs
         self.single_observation_space = self.core.single_observation_space
         self.single_action_space = self.core.single_action_space
@@ -32,6 +34,13 @@ class RotateCupVectorEnv(gym.vector.VectorEnv):
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, num_envs)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Seeded: env i starts the episodes of a single env seeded seed + i. Unseeded: the next episodes; the first
+        reset of a fresh vector env draws its seed from the OS's entropy."""
+        if seed is not None:
+            seed = check_seed("seed", seed)
+        elif not self._seeded:
+            seed = fresh_seed()
+        self._seeded = True
         return self.core.reset(seed=seed), {}
 
     def step(self, actions):

@@ -28,6 +28,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "collect": ("rotation.jobs.collect", "record simulated touch sessions (Digit 360 on) with a policy"),
     "inspect-tactile": ("rotation.jobs.inspect_tactile", "plot every touch modality of a session window (PNG)"),
     "deploy": ("rotation.deploy.job", "run a policy on a real or emulated hand with safety limits and recording"),
+    "encoder-info": ("rotation.tactile.encoder_info", "describe a touch encoder; check that a checkpoint loads"),
+    "cache-touch": ("rotation.data.window_cache", "pre-render touch windows of sessions into shards for fast training"),
+    "pretrain": ("rotation.tactile.pretrain", "pretrain a touch encoder by self-distillation (DINO, EMA teacher)"),
+    "probe": ("rotation.tactile.probe", "probe frozen vs end-to-end touch encoders at several label budgets"),
 }
 """Subcommand registry; later issues add their jobs here."""
 
@@ -80,13 +84,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             cfg = dataclass_from_args(module.Config, args)
         result = module.run(cfg)
-    except KeyboardInterrupt:
-        print("rotate: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:
+        # 130 for Ctrl-C, 143 for SIGTERM (rotation.interrupt.Interrupted, raised after the job saved its outputs)
+        code = getattr(err, "exit_code", 130)
+        print(f"rotate {args.command}: {err or 'interrupted'} (exit status {code})", file=sys.stderr)
+        return code
     except ValueError as err:
         # bad input: one clear line instead of a traceback
         print(f"rotate {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:
+        # a fault of the file system or a device (disk full, permission, a vanished path): one line, status 1
+        print(f"rotate {args.command}: error: {err}", file=sys.stderr)
+        return 1
     # a job that ends itself cleanly on a fault or a signal (deploy) reports its exit status in its result
     if isinstance(result, dict) and isinstance(result.get("exit_code"), int):
         return result["exit_code"]

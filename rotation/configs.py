@@ -13,6 +13,7 @@ import ast
 import dataclasses
 import inspect
 import json
+import math
 import textwrap
 import types
 import typing
@@ -89,12 +90,61 @@ def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, prefix: 
         parser.add_argument(flag, type=_scalar_type(tp), help=help_text + show, **kw)
 
 
+def _finite_float(text: str) -> float:
+    """argparse type of float options: a finite number ('nan', 'inf' and text are usage errors, exit status 2)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def _integer(text: str) -> int:
+    """argparse type of int options: a whole number ('1.5', '1e6' and text are usage errors)."""
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid integer: {text!r}") from None
+
+
+def _path(text: str) -> Path:
+    """argparse type of path options: a non-empty path (an empty one would mean the current directory)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path is not allowed")
+    return Path(text)
+
+
 def _scalar_type(tp: Any) -> Any:
-    if tp in (int, float, str):
-        return tp
+    if tp is float:
+        return _finite_float
+    if tp is int:
+        return _integer
     if tp is Path:
-        return Path
+        return _path
     return str
+
+
+def check_device(name: str, device: str) -> None:
+    """``device`` names a torch device that exists here: 'cpu', or 'cuda' / 'cuda:N' with a GPU (never a silent CPU
+    fallback)."""
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"{name}: {device!r} is not a torch device; use 'cpu' or 'cuda' (or 'cuda:N')") from None
+    if dev.type == "cpu":
+        return
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"{name} {device!r}: no CUDA GPU is available to torch here; use --{name} cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{name} {device!r}: there are only {torch.cuda.device_count()} CUDA device(s) "
+                             f"(cuda:0 .. cuda:{torch.cuda.device_count() - 1})")
+        return
+    raise ValueError(f"{name} {device!r}: only 'cpu' and 'cuda' (or 'cuda:N') are supported")
 
 
 def dataclass_from_args(cls: type, args: argparse.Namespace, prefix: str = "", **overrides: Any) -> Any:

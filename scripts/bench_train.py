@@ -49,6 +49,8 @@ class Config:
     torch_threads: int | None = None
     """torch CPU threads during training; None = train-teacher's default. On a loaded 2-core machine more torch
     threads than free cores can slow PPO down many times over (OpenMP threads spin waiting for each other)."""
+    overlap: bool = teacher.Config.overlap
+    """Collect the next rollout while PPO updates (train-teacher's default); --no-overlap times plain PPO."""
     seed: int = 0
     """Seed of the envs and of torch."""
 
@@ -57,7 +59,8 @@ def teacher_config(cfg: Config, out: Path) -> teacher.Config:
     threads = {} if cfg.torch_threads is None else {"torch_threads": cfg.torch_threads}
     return teacher.Config(out=out, object=cfg.object, num_envs=cfg.num_envs, total_steps=cfg.train_steps,
                           seed=cfg.seed, n_steps=cfg.n_steps, n_epochs=cfg.n_epochs, grasp_cache=cfg.grasp_cache,
-                          batch_size=min(cfg.batch_size, cfg.num_envs * cfg.n_steps), progress=False, **threads)
+                          batch_size=min(cfg.batch_size, cfg.num_envs * cfg.n_steps), progress=False,
+                          overlap=cfg.overlap, **threads)
 
 
 def bench_env(cfg: Config, tcfg: teacher.Config) -> float:
@@ -74,7 +77,7 @@ def bench_train(cfg: Config, tcfg: teacher.Config) -> tuple[float, int]:
     torch.set_num_threads(tcfg.torch_threads)
     torch.manual_seed(cfg.seed)
     env = RotateCupSB3VecEnv(tcfg.env_config(), cfg.num_envs, seed=cfg.seed, nthread=cfg.nthread or None,
-                             reward_scale=tcfg.reward_scale)
+                             reward_scale=tcfg.reward_scale, obs_groups=teacher.TEACHER_GROUPS)
     model = teacher.build_model(tcfg, env)
     rollout = cfg.num_envs * cfg.n_steps
     total = max(1, -(-cfg.train_steps // rollout)) * rollout
@@ -95,6 +98,7 @@ def run(cfg: Config) -> dict:
         train_sps, timed = bench_train(cfg, tcfg)
     result = {
         "num_envs": cfg.num_envs,
+        "overlap": cfg.overlap,
         "torch_threads": tcfg.torch_threads,
         "env_steps_per_s": round(env_sps, 1),
         "train_steps_per_s": round(train_sps, 1),

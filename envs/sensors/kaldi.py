@@ -1,7 +1,7 @@
 """Kaldi-compatible log-mel filterbank in numpy, for the env's `tactile` observation (envs/ has no torch).
 
 The same computation as ``rotation.tactile.audio.fbank`` (whose docstring lists the steps and options, from the
-Sparsh-X audio contract in reference/sparsh.md); both are tested against shared/fixtures/kaldi_fbank_48k_128mel.npz.
+Sparsh-X audio contract in reference/sparsh.md); both are tested against tests/fixtures/kaldi_fbank_48k_128mel.npz.
 The torch one serves the data loaders (batched, GPU); this one serves the simulator's per-step windows.
 """
 

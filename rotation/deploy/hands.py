@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -73,6 +74,9 @@ class OpenedHand:
         self.setup = setup
         self.hand: Hand | None = None
         """The driver (set once it has started)."""
+        self.driver: Any = None
+        """The driver from before its start-up on: whether it switched the motors on and whether the hand confirmed
+        them off can be read even when the start-up failed half way."""
         self.emulator = emulator
         self.physics = emulator.physics if emulator is not None else None
         self.emulator_saw_motors_off: bool | None = None
@@ -149,9 +153,14 @@ def _leap(setup: HandSetup, port: str):
     return LeapHand(port, LeapConfig(**options))
 
 
-def open_hand(setup: HandSetup, stack: contextlib.ExitStack) -> OpenedHand:
+def open_hand(setup: HandSetup, stack: contextlib.ExitStack,
+              created: Callable[[OpenedHand], None] | None = None) -> OpenedHand:
     """Start the hand (and its emulator) inside ``stack``; leaving the stack switches the motors off, then stops
-    the emulator. Raises what the driver raises when the hand does not come up (HandFault, CAN/serial errors)."""
+    the emulator. Raises what the driver raises when the hand does not come up (HandFault, CAN/serial errors).
+
+    ``created`` receives the :class:`OpenedHand` as soon as its driver exists, before the start-up: a caller learns
+    whether the motors were switched on (and confirmed off) also when the start-up fails.
+    """
     emulator = None
     if setup.emulated:
         from rotation.sim_hardware.hand_physics import HandPhysics
@@ -175,6 +184,9 @@ def open_hand(setup: HandSetup, stack: contextlib.ExitStack) -> OpenedHand:
     if emulator is not None:  # runs after the driver's exit (motors off) and before the emulator stops
         stack.callback(opened._check_emulator_after_exit)
     driver = _allegro(setup, address) if setup.kind == "allegro" else _leap(setup, address)
+    opened.driver = driver
+    if created is not None:
+        created(opened)
     opened.hand = stack.enter_context(driver)
     if opened.physics is not None:
         opened.physics.release()  # the driver holds the grasp now: let the emulated world move

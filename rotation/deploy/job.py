@@ -11,6 +11,11 @@ env does and sends them through the driver, whose safety layer clamps joints and
 rate and holds the last target if commands stop. Ctrl-C or SIGTERM end the run: motors off, recording closed.
 Prints a live status line (stderr), then the summary as one JSON object on the last line of stdout. Exit status:
 0 run completed, 1 fault, 130 Ctrl-C (SIGINT), 143 SIGTERM, 2 bad options (nothing was started).
+
+Nothing is reported as safe or done unless it was: the bundle, the --record file and the --digit360 sensors are
+checked before any motor is switched on; a run whose steps were mostly late or held is a fault; the summary's
+"motors_off" is true only when confirmed (by the emulated hand, or by the real hand's answer), and a motors-off
+that was not confirmed ends with a non-zero status and the instruction to cut the hand's power.
 """
 
 from __future__ import annotations
@@ -20,18 +25,19 @@ import contextlib
 import json
 import logging
 import math
-import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from envs.validation import check_int, check_number, check_types
 from rotation.configs import add_dataclass_arguments, dataclass_from_args, to_jsonable
 from rotation.deploy.hands import HANDS, HandSetup, OpenedHand, open_hand
-from rotation.deploy.sensors import parse_digit360
+from rotation.deploy.sensors import check_digit360, parse_digit360
 
 log = logging.getLogger("rotation.deploy")
 
@@ -81,6 +87,7 @@ class Config:
     def __post_init__(self) -> None:
         if self.hand not in HANDS:
             raise ValueError(f"hand: unknown hand {self.hand!r}; choose one of {', '.join(HANDS)}")
+        check_types(self)
         if not self.policy:
             raise ValueError("policy: give a bundle directory or a shipped bundle name (--policy student)")
         if not (math.isfinite(self.duration) and self.duration >= 0):
@@ -112,6 +119,15 @@ class Config:
             raise ValueError(f"policy_budget must be in (0, 1] control periods, got {self.policy_budget}")
         if not (self.hold_limit_s > 0 and self.status_every_s > 0):
             raise ValueError("hold_limit_s and status_every_s must be > 0 s")
+        # ceilings that catch typos and unit slips (every option is checked, whether this hand uses it or not)
+        from rotation.hardware.dynamixel_protocol import BAUD_CODES
+
+        if self.baud not in BAUD_CODES:
+            raise ValueError(f"baud: {self.baud} is not a Dynamixel baud rate; choose one of {sorted(BAUD_CODES)}")
+        check_number("duration", self.duration, 0.0, 7 * 24 * 3600.0, unit="s (0: until Ctrl-C)")
+        check_int("grasp", self.grasp, 0, 10**6)
+        check_number("hold_limit_s", self.hold_limit_s, 0.0, 60.0, low_open=True, unit="s")
+        check_number("status_every_s", self.status_every_s, 0.0, 3600.0, low_open=True, unit="s")
 
 
 REQUIRED = ("hand", "policy")
@@ -186,16 +202,35 @@ def _ensure_logging() -> None:
         pkg.setLevel(logging.INFO)
 
 
+def _check_record_path(path: Path, overwrite: bool) -> None:
+    """ValueError unless a session file can be created at ``path``: never an existing file without ``--overwrite``
+    (a recording is never replaced silently), never a directory, and a location this process can write to."""
+    if path.is_dir():
+        raise ValueError(f"record: {path} is a directory; give a file name such as {path / 'run.h5'}")
+    if path.exists() and not overwrite:
+        raise ValueError(f"record: {path} exists; choose a new file name, or pass --overwrite to replace it")
+    parent = path.parent if str(path.parent) else Path(".")
+    existing = next((p for p in (parent, *parent.parents) if p.exists()), Path("."))
+    if not existing.is_dir():
+        raise ValueError(f"record: cannot create {path}: {existing} is not a directory")
+    # try it: permission bits say nothing when running as root or on a read-only file system
+    try:
+        if path.exists():
+            with open(path, "r+b"):
+                pass
+        else:
+            with tempfile.TemporaryFile(dir=existing):
+                pass
+    except OSError as err:
+        raise ValueError(f"record: cannot write {path} ({err.strerror or err} in {existing}); choose a writable "
+                         "location") from err
+
+
 def _check_before_start(cfg: Config) -> None:
     """Everything that can be checked without touching the hardware (ValueError: bad input)."""
     if cfg.record:
-        path = Path(cfg.record)
-        if path.exists() and not (cfg.overwrite and path.is_file()):
-            raise ValueError(f"record: {path} exists; choose a new file name (or --overwrite a file)")
-        parent = path.parent if str(path.parent) else Path(".")
-        existing = next((p for p in (parent, *parent.parents) if p.exists()), Path("."))
-        if not (existing.is_dir() and os.access(existing, os.W_OK)):
-            raise ValueError(f"record: cannot create {path} ({existing} is not a writable directory)")
+        _check_record_path(Path(cfg.record), cfg.overwrite)
+    check_digit360(parse_digit360(cfg.digit360, emulated=cfg.hand.startswith("sim-")))
     if cfg.hand.startswith("sim-"):
         from envs.grasps import load_default_cache
 
@@ -211,6 +246,7 @@ def _classify(err: BaseException) -> tuple[str, int, bool]:
 
     from rotation.data.session import SessionError
     from rotation.deploy.policy import PolicyFault
+    from rotation.deploy.sensors import SensorError
     from rotation.hardware.hand import HandFault
 
     if isinstance(err, KeyboardInterrupt):
@@ -224,6 +260,8 @@ def _classify(err: BaseException) -> tuple[str, int, bool]:
         return f"policy fault: {err}", EXIT_FAULT, True
     if isinstance(err, SessionError):
         return f"recording failed: {err}", EXIT_FAULT, True
+    if isinstance(err, SensorError):
+        return f"touch sensor failed: {err}", EXIT_FAULT, True
     if isinstance(err, can.CanError | OSError):
         return f"hand connection failed: {err}", EXIT_FAULT, True
     return f"{type(err).__name__}: {err}", EXIT_FAULT, False
@@ -264,7 +302,7 @@ def run(cfg: Config) -> dict[str, Any]:
     hw_log = logging.getLogger("rotation.hardware")
     hw_log.addHandler(critical)
     switch_interval, torch_threads = sys.getswitchinterval(), torch.get_num_threads()
-    opened: OpenedHand | None = None
+    created: list[OpenedHand] = []  # the hand as soon as its driver exists, also when its start-up fails
     loop: ControlLoop | None = None
     recorder: DeployRecorder | None = None
     fault: str | None = None
@@ -284,7 +322,8 @@ def run(cfg: Config) -> dict[str, Any]:
                 sys.setswitchinterval(5e-4)
             sched = set_realtime_priority(cfg.rt_priority)
             readers = open_digit360(digit_specs, stack)  # before the hand: the hand leaves first on exit
-            opened = open_hand(setup, stack)  # motors on, holding the current pose; the stack switches them off
+            # motors on, holding the current pose; the stack switches them off
+            opened = open_hand(setup, stack, created=created.append)
             hand = opened.hand
             info = hand.info()
             temps = np.asarray(info.temperatures, dtype=np.float64)
@@ -297,6 +336,10 @@ def run(cfg: Config) -> dict[str, Any]:
             loop = ControlLoop(opened, bundle, loop_cfg, recorder=recorder, readers=readers, status_out=sys.stderr,
                                temperature_c=temp0)
             loop.run()
+        # the motors are off; a run that was mostly late or held did not run the policy as it was trained
+        shortfall = loop.stats.shortfall(loop_cfg.max_degraded_fraction)
+        if shortfall is not None:
+            fault, exit_code = f"the loop could not hold {hz:g} Hz: {shortfall}", EXIT_FAULT
     except BaseException as err:  # noqa: B036 - every way out ends here, Ctrl-C and SIGTERM included
         fault, exit_code, expected = _classify(err)
         if not expected:
@@ -314,13 +357,14 @@ def run(cfg: Config) -> dict[str, Any]:
                 fault = fault or f"recording failed: {err}"
                 exit_code = exit_code or EXIT_FAULT
     try:
+        opened = created[0] if created else None
         return _finish(cfg, hz, opened, loop, recorder, critical, fault, exit_code, time.monotonic() - t_start)
     finally:
         signals.restore()
 
 
 def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple[str, ...], hz: float):
-    from rotation.data.session import SessionMeta
+    from rotation.data.session import SessionError, SessionMeta
     from rotation.deploy.recording import DeployRecorder
 
     properties: dict[str, Any] = {}
@@ -339,19 +383,36 @@ def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple
     }
     meta = SessionMeta(source=opened.source, object=cfg.object, control_hz=hz, hand=opened.kind,
                        properties=properties, extra=json.loads(json.dumps(extra, default=str)))
-    recorder = DeployRecorder(cfg.record, meta, fingers=fingers, object_pose=physics is not None,
-                              overwrite=cfg.overwrite)
+    try:
+        recorder = DeployRecorder(cfg.record, meta, fingers=fingers, object_pose=physics is not None,
+                                  overwrite=cfg.overwrite)
+    except OSError as err:  # checked before the start, but the disk may have changed since
+        raise SessionError(f"could not create {cfg.record}: {err}") from err
     log.info("recording to %s", recorder.path)
     return recorder
+
+
+def _motors_off_state(opened: OpenedHand | None) -> tuple[bool, bool | None, str | None]:
+    """(motors_off, motors_off_confirmed, witness) at the end of a run.
+
+    ``motors_off`` is True only when it is known: the motors were never switched on (confirmed None, witness
+    None), or the emulated hand saw them off (witness 'emulator'), or the real hand answered that they are off
+    (witness 'hand', rotation.hardware.hand.FeedbackMixin.motors_off_confirmed). A motors-off command that was
+    merely sent is not enough: after a lost bus it goes nowhere without an error."""
+    driver = opened.driver if opened is not None else None
+    if driver is None or not getattr(driver, "motors_switched_on", True):
+        return True, None, None
+    if opened is not None and opened.emulator is not None:
+        confirmed = bool(opened.emulator_saw_motors_off)
+        return confirmed, confirmed, "emulator"
+    confirmed = getattr(driver, "motors_off_confirmed", None) is True
+    return confirmed, confirmed, "hand"
 
 
 def _finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, critical: _CriticalRecords,
             fault: str | None, exit_code: int, wall_s: float) -> dict[str, Any]:
     """Summary dict, final log lines, and the JSON line on stdout."""
-    if opened is not None and opened.emulator is not None:
-        motors_off, witness = bool(opened.emulator_saw_motors_off), "emulator"
-    else:
-        motors_off, witness = not critical.messages, "driver"
+    motors_off, confirmed, witness = _motors_off_state(opened)
     stats = loop.stats.summary(1.0 / hz) if loop is not None else {
         "steps": 0, "loop_hz": None, "late_steps": 0, "skipped_slots": 0, "held_steps": 0, "rejected_actions": 0,
         "jitter_p50_ms": None, "jitter_p99_ms": None, "max_temperature_c": None, "rotation_rad": None,
@@ -359,18 +420,20 @@ def _finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, c
     summary: dict[str, Any] = {
         "hand": cfg.hand, "source": "sim" if cfg.hand.startswith("sim-") else "real", "policy": cfg.policy,
         "control_hz": hz, **stats, "wall_s": wall_s, "fault": fault, "motors_off": motors_off,
-        "motors_off_witness": witness, "record": str(recorder.path) if recorder is not None else None,
-        "exit_code": exit_code,
+        "motors_off_confirmed": confirmed, "motors_off_witness": witness,
+        "record": str(recorder.path) if recorder is not None else None, "exit_code": exit_code,
     }
     rot = "" if summary["rotation_rad"] is None else f" (object rotation {summary['rotation_rad']:+.2f} rad)"
     rate = "n/a" if summary["loop_hz"] is None else f"{summary['loop_hz']:.1f} Hz"
-    if motors_off:
-        off = "motors off" + (" (the emulated hand saw it)" if witness == "emulator" else
-                              " (sent by the driver; no failure reported)")
+    if witness is None:
+        off = "motors never switched on"
+    elif motors_off:
+        off = "motors off (" + ("the emulated hand saw it" if witness == "emulator" else "confirmed by the hand") + ")"
     else:
-        msgs = critical.messages or [f"the {witness} did not see it"]
+        msgs = critical.messages or [f"the {'emulated hand' if witness == 'emulator' else 'hand'} did not confirm it"]
         why_not = "; ".join(msgs[:2]) + (f"; and {len(msgs) - 2} more" if len(msgs) > 2 else "")
-        off = f"MOTORS NOT CONFIRMED OFF ({why_not}): switch the hand off at its power supply"
+        off = (f"MOTORS NOT CONFIRMED OFF ({why_not}): the hand may still be driving its joints; SWITCH THE HAND OFF "
+               "AT ITS POWER SUPPLY NOW")
     if fault is None:
         log.info("deploy: done after %d steps at %s, late %d, held %d%s -- %s", summary["steps"], rate,
                  summary["late_steps"], summary["held_steps"], rot, off)
@@ -379,6 +442,8 @@ def _finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, c
         log.log(level, "deploy: stopped after %d steps%s: %s -- %s", summary["steps"], rot, fault, off)
     if not motors_off:
         log.critical("deploy: %s", off)
+        # also straight to the terminal: whatever the logging setup, the person at the hand must read this
+        print(f"rotate deploy: {off}", file=sys.stderr, flush=True)
         summary["exit_code"] = summary["exit_code"] or EXIT_FAULT
     print(json.dumps(summary))
     return summary

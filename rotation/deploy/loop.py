@@ -70,6 +70,9 @@ class LoopConfig:
     """Joint temperature poll period (s), on its own thread (a LEAP poll is 48 register reads)."""
     drain_every_s: float = 0.25
     """Period (s) of moving Digit 360 samples into the recording."""
+    max_degraded_fraction: float = 0.5
+    """A run in which more than this fraction of the control slots were late, held or skipped did not run the
+    policy at its rate: ``rotate deploy`` reports it as a fault (exit status 1), not as done."""
 
 
 @dataclass
@@ -81,6 +84,8 @@ class LoopStats:
     late_steps: int = 0
     skipped_slots: int = 0
     held_steps: int = 0
+    degraded_steps: int = 0
+    """Steps that were late, held, or both (each counted once)."""
     rejected_actions: int = 0
     rotation_rad: float | None = None
     """Object rotation (rad) about ROTATION_AXIS since the start (emulation), up to a fall."""
@@ -106,6 +111,17 @@ class LoopStats:
             "object_fell": self.object_fell,
         }
         return out
+
+    def shortfall(self, max_fraction: float) -> str | None:
+        """Why the loop did not hold its rate: more than ``max_fraction`` of its slots (steps run + slots skipped)
+        were late, held or skipped; None when it did."""
+        slots = len(self.tick_times) + self.skipped_slots
+        bad = self.degraded_steps + self.skipped_slots
+        if slots == 0 or bad <= max_fraction * slots:
+            return None
+        return (f"{bad} of {slots} control slots were late, held or skipped (more than {max_fraction:.0%}; late "
+                f"{self.late_steps}, held {self.held_steps}, skipped {self.skipped_slots}): the policy did not run "
+                "as it was trained")
 
 
 class RotationMeter:
@@ -228,7 +244,8 @@ class ControlLoop:
                 now = time.monotonic()
                 if cfg.duration_s > 0 and now - start >= cfg.duration_s:
                     break
-                if now - next_tick > cfg.late_fraction * self.period:
+                degraded = now - next_tick > cfg.late_fraction * self.period  # late; held steps join below
+                if degraded:
                     stats.late_steps += 1
                     if stats.late_steps == 1 or stats.late_steps % 20 == 0:
                         log.warning("step %d started %.1f ms late (%d late steps so far)", k,
@@ -264,6 +281,7 @@ class ControlLoop:
                     held_since = None
                 else:
                     stats.held_steps += 1
+                    degraded = True
                     if held_since is None:
                         held_since = now
                         if not why.startswith("rejected"):  # a rejection has its own line above
@@ -271,6 +289,8 @@ class ControlLoop:
                     if now - held_since >= cfg.hold_limit_s:
                         raise PolicyFault(f"no usable action for {now - held_since:.2f} s "
                                           f"(>= {cfg.hold_limit_s} s): {why}")
+
+                stats.degraded_steps += int(degraded)  # once per step, whether late, held or both
 
                 # 4. command (the driver's safety layer clamps and rate-limits)
                 hand.set_targets(policy.targets)

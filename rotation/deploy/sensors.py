@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import time
 from typing import Any
 
@@ -63,23 +64,53 @@ def parse_digit360(spec: str, emulated: bool) -> dict[str, str]:
     return dict(zip(FINGERS, entries, strict=True))
 
 
+class SensorError(RuntimeError):
+    """A Digit 360 named by ``--digit360`` could not be opened (the hand had not been started yet)."""
+
+
+def check_digit360(specs: dict[str, str]) -> None:
+    """ValueError (naming ``--digit360``) unless every named sensor is there now: a tty path exists, a USB serial
+    number belongs to a connected Digit 360. Run before anything starts, so a typo never follows a motors-on."""
+    real = {finger: value for finger, value in specs.items() if value != "sim"}
+    if not real:
+        return
+    from rotation.hardware.digit360 import find_digit360_ports
+
+    connected = find_digit360_ports()  # (tty, USB serial) of every Digit 360 plugged in now
+    serials = {serial for _, serial in connected}
+    missing = []
+    for finger, value in real.items():
+        if value.startswith("/"):
+            if not os.path.exists(value):
+                missing.append(f"{finger}={value} (no such device)")
+        elif value not in serials:
+            missing.append(f"{finger}={value} (no connected Digit 360 has this USB serial)")
+    if missing:
+        found = ", ".join(sorted(serial or tty for tty, serial in connected)) or "none"
+        raise ValueError(f"--digit360: {'; '.join(missing)}. Connected Digit 360 sensors: {found}")
+
+
 def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack) -> dict[str, Any]:
-    """Start one reader per finger (and its emulator for 'sim') inside ``stack``; {finger: Digit360}."""
+    """Start one reader per finger (and its emulator for 'sim') inside ``stack``; {finger: Digit360}. A sensor that
+    does not open raises :class:`SensorError` naming the finger."""
     if not specs:
         return {}
     from rotation.hardware.digit360 import Digit360, Digit360Config
 
     readers: dict[str, Any] = {}
     for finger, value in specs.items():
-        if value == "sim":
-            from rotation.sim_hardware.digit360_emulator import Digit360Emulator
+        try:
+            if value == "sim":
+                from rotation.sim_hardware.digit360_emulator import Digit360Emulator
 
-            cfg = Digit360Config(port=stack.enter_context(Digit360Emulator()).path)
-        elif value.startswith("/"):
-            cfg = Digit360Config(port=value)
-        else:
-            cfg = Digit360Config(serial_number=value)
-        readers[finger] = stack.enter_context(Digit360(cfg, name=f"digit360-{finger}"))
+                cfg = Digit360Config(port=stack.enter_context(Digit360Emulator()).path)
+            elif value.startswith("/"):
+                cfg = Digit360Config(port=value)
+            else:
+                cfg = Digit360Config(serial_number=value)
+            readers[finger] = stack.enter_context(Digit360(cfg, name=f"digit360-{finger}"))
+        except OSError as err:  # pyserial's SerialException is an OSError
+            raise SensorError(f"digit360 {finger} ({value}) did not open: {err}") from err
         log.info("digit360 %s: %s", finger, value if value != "sim" else f"emulated on {cfg.port}")
     return readers
 

@@ -8,12 +8,21 @@ condition with the policies side by side (headless rendering: MUJOCO_GL=egl).
 
     rotate evaluate --policy teacher=teacher --policy student=runs/student/bundle --suite perturbations
     rotate evaluate --policy student --friction-scale 0.5 --added-mass 0.1 --episodes 20 --out runs/eval_slippery
+    rotate evaluate --policy teacher=teacher --policy student=runs/student/bundle --suite perturbations --resume
+
+Each condition's rows are kept in OUT/conditions/ as soon as it finishes: Ctrl-C or SIGTERM (exit status 130 / 143)
+lose at most the condition that was running, and the same command again (or with --resume) runs only the rest. An
+OUT that holds an evaluation with other settings or other policy weights is refused, with the differences.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import signal
+import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,10 +31,13 @@ from tqdm import tqdm
 
 from envs.config import EnvConfig, Perturbation, RandomizationConfig
 from envs.core import RotateCupVec
+from envs.validation import check_int, check_optional_file, check_output_dir, check_seed, check_types
 from rotation.configs import save_config
+from rotation.evaluate import finished
 from rotation.evaluate.report import make_row, write_report
 from rotation.evaluate.rollout import run_episodes
 from rotation.evaluate.suites import SUITES, Condition, get_suite, make_condition
+from rotation.interrupt import SIGNAL_NAMES, Interrupted
 from rotation.policy.bundle import PolicyBundle, load_bundle, shipped_bundles
 
 
@@ -73,6 +85,33 @@ class Config:
     """torch CPU threads for the policies (1 keeps runs bit-reproducible and leaves the cores to MuJoCo)."""
     progress: bool = True
     """Show a progress bar."""
+    resume: bool = False
+    """Continue the evaluation in `out` (an interrupted one): keep its finished conditions, run the rest. Running
+    the same command into the same `out` does this too; --resume also insists that there is something to continue."""
+
+    def __post_init__(self) -> None:
+        check_types(self, skip=("com_shift",))  # Perturbation checks com_shift with its own message
+        self.out = Path(self.out)
+        if self.suite is not None and self.suite not in SUITES:
+            raise ValueError(f"suite: unknown suite {self.suite!r}; choose one of: {', '.join(SUITES)}")
+        check_int("episodes", self.episodes, 1, 10**6)
+        check_seed("seed", self.seed)
+        check_output_dir("out", self.out)
+        check_int("num_envs", self.num_envs, 1, 4096)
+        check_optional_file("grasp_cache", self.grasp_cache, "generate one with `rotate grasps`")
+        check_int("video_size width", self.video_size[0], 16, 640, "pixels (MuJoCo's offscreen framebuffer)")
+        check_int("video_size height", self.video_size[1], 16, 480, "pixels (MuJoCo's offscreen framebuffer)")
+        check_int("nthread", self.nthread, 0, 1024, "(0 = one per CPU core)")
+        check_int("torch_threads", self.torch_threads, 1, 1024)
+        if self.com_shift is not None and (not isinstance(self.com_shift, tuple | list) or len(self.com_shift) != 3):
+            raise ValueError(f"com_shift needs 3 values (X Y Z, m), got {self.com_shift!r}")
+        rand = RandomizationConfig() if self.randomize else RandomizationConfig(enabled=False)
+        try:
+            conditions = resolve_conditions(self)
+        except ValueError as err:
+            raise ValueError(f"conditions: {err}" if "condition" in str(err) else str(err)) from None
+        for cond in conditions:  # the object, the episode length and each perturbation's physical limits
+            EnvConfig(object=self.object, episode_steps=self.episode_steps, randomization=rand, perturb=cond.perturb)
 
 
 def _policy_arg(text: str) -> tuple[str, str]:
@@ -117,13 +156,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--torch-threads", type=int, default=d.torch_threads, help="torch CPU threads (default 1)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=d.progress,
                         help="show a progress bar")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the interrupted evaluation in --out (its finished conditions are kept; the "
+                        "same command without --resume continues it too)")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
     names = [n for n, _ in args.policies]
     duplicated = sorted({n for n in names if names.count(n) > 1})
     if duplicated:
-        raise SystemExit(f"rotate evaluate: error: policy label(s) {duplicated} given more than once")
+        raise ValueError(f"--policy: label(s) {duplicated} given more than once; give each policy its own label "
+                         "(--policy NAME=PATH)")
     return Config(
         policies=dict(args.policies), suite=args.suite, conditions=tuple(args.conditions),
         friction_scale=args.friction_scale, added_mass=args.added_mass,
@@ -131,7 +174,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
         seed=args.seed, out=args.out, num_envs=args.num_envs, object=args.object, grasp_cache=args.grasp_cache,
         episode_steps=args.episode_steps, randomize=args.randomize, video=args.video,
         video_size=tuple(args.video_size), nthread=args.nthread, torch_threads=args.torch_threads,
-        progress=args.progress,
+        progress=args.progress, resume=args.resume,
     )
 
 
@@ -149,9 +192,14 @@ def resolve_conditions(cfg: Config) -> list[Condition]:
     return [make_condition(Perturbation(**custom))]
 
 
+def policy_paths(cfg: Config) -> dict[str, str]:
+    """Label -> bundle directory or shipped name: the given policies, or every shipped bundle."""
+    return dict(cfg.policies) or {name: name for name in shipped_bundles()}
+
+
 def load_policies(cfg: Config) -> dict[str, PolicyBundle]:
     """Load every bundle up front (a bad name fails before any simulation) and check they share a control rate."""
-    policies = cfg.policies or {name: name for name in shipped_bundles()}
+    policies = policy_paths(cfg)
     if not policies:
         raise ValueError("no policies given (--policy NAME=PATH) and no bundles are shipped with the package")
     bundles = {name: load_bundle(path) for name, path in policies.items()}
@@ -171,7 +219,11 @@ def env_config(cfg: Config, bundle: PolicyBundle, perturb: Perturbation) -> EnvC
 
 
 def run(cfg: Config) -> list[dict]:
-    """Evaluate every policy under every condition; returns the result rows (also written to ``cfg.out``)."""
+    """Evaluate every policy under every condition; returns the result rows (also written to ``cfg.out``).
+
+    Each finished condition is kept on disk at once (rotation.evaluate.finished); a run into an `out` that holds
+    the same evaluation continues it. Ctrl-C / SIGTERM stop at once, keep every finished condition and raise
+    Interrupted (exit status 130 / 143)."""
     if cfg.episodes < 1 or cfg.num_envs < 1:
         raise ValueError(f"episodes and num_envs must be >= 1, got {cfg.episodes} and {cfg.num_envs}")
     torch.set_num_threads(cfg.torch_threads)
@@ -179,33 +231,80 @@ def run(cfg: Config) -> list[dict]:
     bundles = load_policies(cfg)
     first = next(iter(bundles.values()))
     out = Path(cfg.out)
+    ident = finished.identity(cfg, policy_paths(cfg))
+    continuing = finished.check_out(out, ident, cfg.resume)  # refuses another evaluation's folder: reads only
+    names = list(bundles)
+    done = {c.name: rows for c in conditions if (rows := finished.rows(out, c.name, names)) is not None}
+    if continuing:
+        print(f"evaluate: continuing the evaluation in {out}: {len(done)} of {len(conditions)} conditions done")
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.json")
+    finished.start(out, ident)
 
-    rows = []
-    total = len(conditions) * len(bundles) * cfg.episodes
-    with tqdm(total=total, unit="episode", desc="evaluate", disable=not cfg.progress, dynamic_ncols=True) as bar:
-        for cond in conditions:
-            env = RotateCupVec(env_config(cfg, first, cond.perturb), num_envs=min(cfg.num_envs, cfg.episodes),
-                               seed=cfg.seed, nthread=cfg.nthread or None)
-            recorder = None
-            if cfg.video:
-                from rotation.evaluate.video import FrameRecorder
-
-                recorder = FrameRecorder(env, *cfg.video_size)
-            for name, bundle in bundles.items():
-                bar.set_postfix(condition=cond.name, policy=name)
-                hook = recorder.hook(name) if recorder is not None else None
-                episodes = run_episodes(bundle, env, cfg.episodes, cfg.seed, on_frame=hook,
-                                        on_episode=lambda: bar.update(1))
-                rows.append(make_row(name, cond, episodes))
-            if recorder is not None:
-                recorder.write(out / "videos" / f"{cond.name}.mp4", fps=_video_fps(first))
-                recorder.close()
-            env.close()
+    todo = [c for c in conditions if c.name not in done]
+    total = len(todo) * len(bundles) * cfg.episodes
+    try:
+        with _sigterm_interrupts(), tqdm(total=total, unit="episode", desc="evaluate", disable=not cfg.progress,
+                                         dynamic_ncols=True) as bar:
+            for cond in todo:
+                done[cond.name] = _run_condition(cfg, cond, bundles, first, out, bar)
+                finished.save_rows(out, cond.name, done[cond.name])  # kept now, whatever happens next
+    except KeyboardInterrupt as err:  # Ctrl-C, or SIGTERM through _sigterm_interrupts
+        signum = getattr(err, "signum", signal.SIGINT)
+        message = (f"evaluate: stopped by {SIGNAL_NAMES.get(signum, f'signal {signum}')}; {len(done)} of "
+                   f"{len(conditions)} conditions are kept in {out / finished.CONDITIONS_DIR}; run the same command "
+                   "again (or add --resume) to finish the rest")
+        print(message, flush=True)
+        raise Interrupted(signum, message) from None
+    rows = [row for cond in conditions for row in done[cond.name]]
     write_report(out, rows, dataclasses.replace(cfg, out=out), conditions)
     print(f"evaluate: {len(rows)} rows -> {out / 'results.md'}")
     return rows
+
+
+def _run_condition(cfg: Config, cond: Condition, bundles: dict[str, PolicyBundle], first: PolicyBundle, out: Path,
+                   bar: tqdm) -> list[dict]:
+    """Every policy under one condition (same env, same seeds): one row per policy; the video if asked for."""
+    env = RotateCupVec(env_config(cfg, first, cond.perturb), num_envs=min(cfg.num_envs, cfg.episodes),
+                       seed=cfg.seed, nthread=cfg.nthread or None)
+    recorder = None
+    try:
+        if cfg.video:
+            from rotation.evaluate.video import FrameRecorder
+
+            recorder = FrameRecorder(env, *cfg.video_size)
+        rows = []
+        for name, bundle in bundles.items():
+            bar.set_postfix(condition=cond.name, policy=name)
+            hook = recorder.hook(name) if recorder is not None else None
+            episodes = run_episodes(bundle, env, cfg.episodes, cfg.seed, on_frame=hook,
+                                    on_episode=lambda: bar.update(1))
+            rows.append(make_row(name, cond, episodes))
+        if recorder is not None:
+            recorder.write(out / "videos" / f"{cond.name}.mp4", fps=_video_fps(first))
+        return rows
+    finally:
+        if recorder is not None:
+            recorder.close()
+        env.close()
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM stops the evaluation at once, as Ctrl-C does (finished conditions are on disk already): it raises
+    Interrupted(SIGTERM) in the main thread. Elsewhere Python cannot install handlers and nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, frame: object) -> None:
+        raise Interrupted(signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _video_fps(bundle: PolicyBundle) -> int:

@@ -7,6 +7,7 @@ evaluation report, so a rotation rate means one thing everywhere.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -17,6 +18,7 @@ METRICS: dict[str, str] = {
     "rotation_rate": "rad/s",
     "rotation_total": "rad",
     "ttf": "fraction",
+    "upright": "fraction",
     "vertical_drift": "m",
     "lin_vel": "m/s",
     "torque": "N m",
@@ -24,6 +26,8 @@ METRICS: dict[str, str] = {
 """Reported metric -> unit, in report order."""
 
 _POS_Z = C.PRIV_FIELDS.index("pos_z")
+UPRIGHT_TILT = math.radians(30.0)
+"""The object counts as upright while its up axis is within this angle (rad) of the world vertical."""
 
 
 @dataclass(frozen=True)
@@ -40,8 +44,13 @@ class EpisodeMetrics:
     """Signed rotation about the commanded axis while in hand (rad): sum of info['rotation'] before any fall."""
     rotation_rate: float
     """rotation_total / time in hand (rad/s); 0 when the object fell on the first step."""
+    in_hand_time: float
+    """Seconds the object spent in the hand."""
     ttf: float
     """Time to fall / episode duration (episode_steps / control_hz); 1.0 = never fell."""
+    upright: float
+    """Fraction of the time in hand with the object's up axis within 30 degrees of vertical (info['tilt']); 0 when
+    the object fell on the first step."""
     vertical_drift: float
     """Mean |object height - height at the episode start| over the episode's steps (m)."""
     lin_vel: float
@@ -59,7 +68,8 @@ class EpisodeTracker:
     def __init__(self, num_envs: int, control_dt: float, episode_steps: int) -> None:
         self.n, self.dt, self.episode_steps = num_envs, control_dt, episode_steps
         self.start_z = np.zeros(num_envs)
-        self.sums = {k: np.zeros(num_envs) for k in ("reward", "rotation", "in_hand", "drift", "lin_vel", "torque")}
+        self.sums = {k: np.zeros(num_envs) for k in ("reward", "rotation", "in_hand", "upright", "drift", "lin_vel",
+                                                  "torque")}
         self.length = np.zeros(num_envs, dtype=np.int64)
 
     def begin(self, obs: dict[str, np.ndarray], ids: np.ndarray | None = None) -> None:
@@ -78,6 +88,7 @@ class EpisodeTracker:
         s["reward"] += reward
         s["rotation"] += np.where(in_hand, info["rotation"], 0.0)
         s["in_hand"] += in_hand
+        s["upright"] += in_hand & (np.asarray(info["tilt"]) < UPRIGHT_TILT)
         s["drift"] += np.abs(info["height"] - self.start_z)
         s["lin_vel"] += info["lin_vel"]
         s["torque"] += info["torque"]
@@ -93,8 +104,10 @@ class EpisodeTracker:
             length=n,
             fell=fell,
             rotation_total=float(s["rotation"][i]),
+            in_hand_time=float(in_hand_time),
             rotation_rate=float(s["rotation"][i] / in_hand_time) if in_hand_time > 0 else 0.0,
             ttf=min(1.0, n / self.episode_steps) if fell else 1.0,
+            upright=float(s["upright"][i] / s["in_hand"][i]) if s["in_hand"][i] > 0 else 0.0,
             vertical_drift=float(s["drift"][i] / n),
             lin_vel=float(s["lin_vel"][i] / n),
             torque=float(s["torque"][i] / n),
@@ -106,6 +119,9 @@ def summarize(episodes: list[EpisodeMetrics]) -> dict[str, float]:
     if not episodes:
         raise ValueError("no finished episodes to summarize")
     out = {k: float(np.mean([getattr(e, k) for e in episodes])) for k in METRICS}
+    in_hand = sum(e.in_hand_time for e in episodes)
+    # the pooled rate: total rotation over total time in hand (long episodes weigh more than a quick drop)
+    out["net_rotation_rate"] = float(sum(e.rotation_total for e in episodes) / in_hand) if in_hand > 0 else 0.0
     out["reward"] = float(np.mean([e.reward for e in episodes]))
     out["length"] = float(np.mean([e.length for e in episodes]))
     out["episodes"] = len(episodes)

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from rotation.configs import to_jsonable
-from rotation.evaluate.metrics import METRICS, EpisodeMetrics
+from rotation.evaluate.metrics import METRICS, EpisodeMetrics, summarize
 from rotation.evaluate.suites import NOMINAL, Condition, axis_level
 
 PLOT_AXES = {"friction": "friction scale", "mass": "added mass (kg)", "com": "CoM shift (m)"}
@@ -28,6 +28,7 @@ def make_row(policy: str, cond: Condition, episodes: list[EpisodeMetrics]) -> di
         values = np.array([getattr(e, key) for e in episodes], dtype=np.float64)
         row[key] = float(values.mean())
         row[f"{key}_std"] = float(values.std())
+    row["net_rotation_rate"] = summarize(episodes)["net_rotation_rate"]
     return row
 
 
@@ -41,14 +42,16 @@ def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions:
 
 def markdown_table(rows: list[dict[str, Any]]) -> str:
     """Rows grouped by condition, one line per policy, each metric as mean ± std."""
-    head = ["condition", "policy", "episodes", *(f"{k} ({u})" for k, u in METRICS.items())]
+    head = ["condition", "policy", "episodes", "net_rotation_rate (rad/s)", *(f"{k} ({u})" for k, u in METRICS.items())]
     lines = ["# Evaluation", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        cells = [r["condition"], r["policy"], str(r["episodes"])]
+        cells = [r["condition"], r["policy"], str(r["episodes"]), f"{r['net_rotation_rate']:.3g}"]
         cells += [f"{r[k]:.3g} ± {r[k + '_std']:.2g}" for k in METRICS]
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "rotation_rate: signed rotation about the commanded axis per second in hand; ttf: time to fall / "
-              "episode length (1 = never fell); vertical_drift: mean |object height - start height|.", ""]
+    lines += ["", "net_rotation_rate: total signed rotation about the commanded axis / total time in hand over all "
+              "episodes; rotation_rate: the same per episode, averaged; ttf: time to fall / episode length (1 = never "
+              "fell; tipping past the env's max_tilt counts as a fall); upright: fraction of the time in hand with the "
+              "object's axis within 30 degrees of vertical; vertical_drift: mean |object height - start height|.", ""]
     return "\n".join(lines)
 
 

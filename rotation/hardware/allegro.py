@@ -65,6 +65,7 @@ class AllegroHand(FeedbackMixin):
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._off_requested = threading.Event()
+        self._closing = threading.Event()
         self._first_cycle = threading.Event()
         self._waiters: dict[int, list] = {}
         self._servo_on = False
@@ -115,6 +116,7 @@ class AllegroHand(FeedbackMixin):
         if cfg.enable_motors:
             self._exit.enter_context(motors_off_on_exit(self._motors_off, self._off_requested.set, self.name))
             with self._send_lock:
+                self._motors_switched_on = True  # before the send: the frame may reach the hand even if it raises
                 self._send_checked(ap.Msg.SYSTEM_ON)
                 self._servo_on = True
             log.info("%s: servo on, holding the current pose", self.name)
@@ -124,8 +126,11 @@ class AllegroHand(FeedbackMixin):
             self._exit.close()  # motors off (once) and signal handlers restored
             if self._bus is not None and self._thread is not None:
                 self._motors_off("shutdown")
+                self._closing.set()  # the stream stops now: its silence is no fault
                 with contextlib.suppress(can.CanError, OSError):
                     self._send(ap.wire_id(ap.Msg.SET_PERIOD, self.cfg.hand_id), ap.encode_period(0, 0, 0))
+                if self._motors_switched_on:  # the receive thread still runs: it routes the hand's answer
+                    self._off_confirmed = self._confirm_motors_off()
         finally:
             self._stop.set()
             if self._thread is not None:
@@ -153,6 +158,39 @@ class AllegroHand(FeedbackMixin):
             except (can.CanError, OSError) as err:
                 log.critical("%s: could not send SYSTEM_OFF (%s): %s; switch the hand off at its power supply",
                              self.name, reason, err)
+
+    def _confirm_motors_off(self) -> bool:
+        """Ask the hand whether its servo is off (HAND_INFO status bit 0), sending SYSTEM_OFF again while it says
+        on. Only the hand's answer counts: on a bus in BUS-OFF or with the cable out, SYSTEM_OFF "succeeds" into
+        the adapter's queue and never arrives. Works after a fault too (the request bypasses the fault check).
+        False, logged at CRITICAL, when no answer said 'off' within ``request_retries`` requests."""
+        arb = ap.wire_id(ap.Msg.HAND_INFO, self.cfg.hand_id)
+        for attempt in range(1, self.cfg.request_retries + 1):
+            waiter: list = [threading.Event(), b""]
+            with self._lock:
+                self._waiters[arb] = waiter
+            try:
+                self._send(arb, remote=True)
+            except (can.CanError, OSError) as err:
+                log.error("%s: could not ask whether the servo is off (attempt %d): %s", self.name, attempt, err)
+            # a fault wakes every waiter without data: only a reply with data is an answer
+            if waiter[0].wait(self.cfg.reply_timeout_s) and waiter[1]:
+                try:
+                    status = ap.decode_hand_info(waiter[1]).status
+                except ValueError as err:
+                    log.error("%s: unreadable HAND_INFO reply: %s", self.name, err)
+                    continue
+                if not status & ap.STATUS_SERVO_ON:
+                    log.info("%s: the hand confirms its servo is off", self.name)
+                    return True
+                log.error("%s: the hand still reports its servo on; sending SYSTEM_OFF again", self.name)
+                with contextlib.suppress(can.CanError, OSError):
+                    self._send(ap.wire_id(ap.Msg.SYSTEM_OFF, self.cfg.hand_id))
+        with self._lock:
+            self._waiters.pop(arb, None)
+        log.critical("%s: the hand did not confirm that its servo is off (%d requests); its motors may still be on: "
+                     "switch the hand off at its power supply", self.name, self.cfg.request_retries)
+        return False
 
     # ------------------------------------------------------------------ public API
     def set_targets(self, q: np.ndarray) -> bool:
@@ -257,7 +295,7 @@ class AllegroHand(FeedbackMixin):
                 if msg is not None:
                     self._recv_errors = 0
                     self._dispatch(msg, now)
-                if self._first_cycle.is_set() and self._fault is None:
+                if self._first_cycle.is_set() and self._fault is None and not self._closing.is_set():
                     stall = now - self._t_cycle
                     if stall > self.cfg.feedback_timeout_s:
                         limit = 1e3 * self.cfg.feedback_timeout_s

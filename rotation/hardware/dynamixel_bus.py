@@ -132,20 +132,31 @@ class DynamixelBus:
         if result != sdk.COMM_SUCCESS:
             log.warning("%s: goal position sync write: %s", self.name, self.ph.getTxRxResult(result))
 
-    def torque_off_all(self) -> None:
-        """Torque off at every servo: one broadcast write, then per-servo writes; failures are logged, not raised."""
+    def torque_off_all(self) -> bool:
+        """Torque off at every servo: one broadcast write, then a write to each servo, whose status reply is the
+        confirmation. True only if every servo replied without an error number (the alert bit alone is fine: a
+        servo in alert has switched its torque off itself); every failure is logged at CRITICAL, never raised."""
         if not self.port.is_open:
-            return
+            log.critical("%s: torque off not sent: %s is closed; cut the power of the hand", self.name, self.port_name)
+            return False
+        confirmed = True
         with self.io:
             try:
                 self.ph.write1ByteTxOnly(self.port, dp.BROADCAST_ID, R["torque_enable"].addr, 0)
                 for i in self.ids:
-                    result, _ = self.ph.write1ByteTxRx(self.port, i, R["torque_enable"].addr, 0)
+                    result, error = self.ph.write1ByteTxRx(self.port, i, R["torque_enable"].addr, 0)
                     if result != sdk.COMM_SUCCESS:
+                        confirmed = False
                         log.critical("%s: torque off not confirmed by servo %d (%s); cut its power if it moves",
                                      self.name, i, self.ph.getTxRxResult(result))
+                    elif error & ~dp.ERROR_ALERT:  # an error number: the servo did not take the write
+                        confirmed = False
+                        log.critical("%s: servo %d answered torque off with an error (%s); cut its power if it moves",
+                                     self.name, i, dp.describe_error(error))
             except PORT_ERRORS as err:
                 log.critical("%s: torque off could not be sent (%s); cut the power of the hand", self.name, err)
+                return False
+        return confirmed
 
     # ------------------------------------------------------------------ sync read
     def sync_read(self, addr: int, length: int, fast: bool = True) -> dict[int, bytes]:

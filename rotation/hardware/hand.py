@@ -99,15 +99,33 @@ class Hand(Protocol):
 
 
 class FeedbackMixin:
-    """What every driver shares: the latest feedback under a lock, and a fault that ends all further calls.
+    """What every driver shares: the latest feedback under a lock, a fault that ends all further calls, and whether
+    the motors were switched on and whether the hand confirmed they went off again.
 
-    Drivers set ``name``, ``_lock``, ``_state`` (None until the first feedback) and ``_fault`` in their constructor.
+    Drivers set ``name``, ``_lock``, ``_state`` (None until the first feedback) and ``_fault`` in their constructor,
+    ``_motors_switched_on`` just before they send the command that enables the motors, and ``_off_confirmed`` from
+    the hand's own answer to the motors-off command (never from the mere absence of a send error: with the bus off
+    or the cable out, frames go nowhere without any error).
     """
 
     name: str
     _lock: threading.Lock
     _state: HandState | None
     _fault: HandFault | None
+    _motors_switched_on: bool = False
+    _off_confirmed: bool | None = None
+
+    @property
+    def motors_switched_on(self) -> bool:
+        """True once the driver sent the command that enables the motors (it may have reached the hand even if the
+        start-up failed afterwards); False for read-only use or a start-up that failed before it."""
+        return self._motors_switched_on
+
+    @property
+    def motors_off_confirmed(self) -> bool | None:
+        """After the last motors-off command: True if the hand answered that its motors are off, False if it did not
+        (the motors may still be on: cut the hand's power); None if none was sent since the motors were last on."""
+        return self._off_confirmed
 
     def read_state(self) -> HandState:
         """Latest complete feedback (see :class:`HandState`)."""

@@ -163,6 +163,7 @@ class LeapHand(FeedbackMixin):
                 self._bus.write(i, "position_d_gain", int(round(cfg.d_gain * scale)))
                 self._bus.write(i, "goal_current", cfg.current_limit_ma)
             self._write_goals(q)
+            self._motors_switched_on = True  # before the writes: some servos may take it even if a later one fails
             self._bus.write_all("torque_enable", 1)
             self._torque_on = True
             log.info("%s: torque on at %d servos, holding the current pose", self.name, len(self._ids))
@@ -183,9 +184,10 @@ class LeapHand(FeedbackMixin):
             self._bus.close()
 
     def _motors_off(self) -> None:
-        """Torque off at every servo (failures logged at CRITICAL, never raised)."""
+        """Torque off at every servo (failures logged at CRITICAL, never raised); ``motors_off_confirmed`` says
+        whether every servo acknowledged it."""
         self._torque_on = False
-        self._bus.torque_off_all()
+        self._off_confirmed = self._bus.torque_off_all()
 
     # ------------------------------------------------------------------ public API
     def set_targets(self, q: np.ndarray) -> bool:
@@ -275,6 +277,7 @@ class LeapHand(FeedbackMixin):
         if self._released:  # commands resumed: restart from the present pose, then torque on
             self._released = False
             self._write_goals(q)
+            self._off_confirmed = None  # on again: the earlier confirmation no longer holds
             self._bus.write_all("torque_enable", 1)
             self._torque_on = True
             return

@@ -18,6 +18,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -26,6 +27,7 @@ from envs import constants as C
 from envs.config import EnvConfig, Perturbation
 from envs.core import RotateCupVec
 from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, FINGERS
+from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import to_jsonable
 from rotation.data.session import LATENT_DIM, SessionMeta, SessionReader, SessionWriter, StreamSetup
 
@@ -35,6 +37,9 @@ MANIFEST = "collect.json"
 _SETTINGS = ("policy", "object", "seed", "num_envs", "friction_scale", "added_mass", "com_shift", "episode_steps",
              "random_scale")
 """Settings that must match to resume into an existing output directory."""
+_LATER_SETTINGS = ("control_hz", "action_scale", "policy_weights_sha256")
+"""Also compared on resume, when the earlier manifest recorded them (manifests of older versions lack them): the
+env's timing (a bundle's own) and the digest of a bundle's weights (the same path may hold a retrained policy)."""
 
 
 @dataclass(frozen=True)
@@ -67,14 +72,25 @@ class Config:
     """Show a progress bar."""
 
     def __post_init__(self) -> None:
+        check_types(self, skip=("com_shift",))  # Perturbation below checks com_shift with its own message
+        if not self.policy:
+            raise ValueError("policy: give 'random' or a policy bundle (shipped name or directory)")
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        check_int("episodes", self.episodes, 1, 10**7)
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
+        check_int("num_envs", self.num_envs, 1, 4096)
+        check_seed("seed", self.seed)
         if not 0.0 < self.random_scale <= 1.0:
             raise ValueError(f"random_scale must be in (0, 1], got {self.random_scale}")
-        if len(self.com_shift) != 3:
+        if not isinstance(self.com_shift, tuple | list) or len(self.com_shift) != 3:
             raise ValueError(f"com_shift needs 3 values (X Y Z, m), got {self.com_shift!r}")
+        check_number("flush_interval_s", self.flush_interval_s, 0.0, 3600.0, low_open=True, unit="s")
+        check_output_dir("out", self.out)
+        # the object, the episode length and the perturbation as the env will see them (physical limits included)
+        EnvConfig(object=self.object, tactile=True, episode_steps=self.episode_steps,
+                  perturb=Perturbation(self.friction_scale, self.added_mass, tuple(self.com_shift)))
 
 
 def episode_path(out: Path, episode: int) -> Path:
@@ -115,9 +131,12 @@ class _BundlePolicy:
     """A policy bundle acting on the groups it reads (batched when the bundle offers ``act_batch``)."""
 
     def __init__(self, name_or_path: str):
-        from rotation.policy.bundle import load_bundle
+        import hashlib
+
+        from rotation.policy.bundle import WEIGHTS_FILE, load_bundle, resolve_bundle
 
         self.bundle = load_bundle(name_or_path)
+        self.digest = hashlib.sha256((resolve_bundle(name_or_path) / WEIGHTS_FILE).read_bytes()).hexdigest()[:16]
         cfg = self.bundle.config
         self.groups = tuple(cfg.obs_groups)
         self.privileged = getattr(cfg, "latent_source", None) == "privileged" and cfg.latent_dim == LATENT_DIM
@@ -198,32 +217,72 @@ class _Recorder:
         self.writer.close()
 
 
-def _check_manifest(cfg: Config) -> None:
-    path = cfg.out / MANIFEST
+def _env_config(cfg: Config, policy: _RandomPolicy | _BundlePolicy) -> EnvConfig:
+    """The collection's env; with a bundle, at the control rate and action scale it was trained at."""
+    timing = {}
+    if isinstance(policy, _BundlePolicy):
+        timing = dict(control_hz=policy.bundle.config.control_hz, action_scale=policy.bundle.config.action_scale)
+    return EnvConfig(object=cfg.object, tactile=True, episode_steps=cfg.episode_steps,
+                     perturb=Perturbation(cfg.friction_scale, cfg.added_mass, tuple(cfg.com_shift)), **timing)
+
+
+def _settings(cfg: Config, env_cfg: EnvConfig, policy: _RandomPolicy | _BundlePolicy) -> dict[str, Any]:
     settings = {k: to_jsonable(getattr(cfg, k)) for k in _SETTINGS}
-    if path.is_file():
-        old = json.loads(path.read_text()).get("settings", {})
-        diff = {k: (old.get(k), v) for k, v in settings.items() if old.get(k) != v}
-        if diff:
-            changes = ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in diff.items())
-            raise ValueError(f"{cfg.out} holds a collection with other settings ({changes}); use another --out or "
-                             "the same settings to resume")
+    settings.update(control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale)
+    if isinstance(policy, _BundlePolicy):
+        settings["policy_weights_sha256"] = policy.digest
+    return settings
+
+
+def _check_manifest(cfg: Config, settings: dict[str, Any]) -> None:
+    """Refuse (ValueError) an OUT that holds sessions recorded with other settings; reads, never writes."""
+    path = cfg.out / MANIFEST
+    if cfg.out.exists() and not cfg.out.is_dir():
+        raise ValueError(f"out: {cfg.out} is a file; give a directory for the sessions")
+    if not path.is_file():
+        return
+    try:
+        old = json.loads(path.read_text())["settings"]
+        if not isinstance(old, dict):
+            raise TypeError(f"'settings' is a {type(old).__name__}")
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as err:
+        raise ValueError(f"{path} is not a readable collect manifest ({type(err).__name__}: {err}); use another "
+                         "--out, or remove the file if the sessions beside it are yours to replace") from None
+    diff = {k: (old.get(k), v) for k, v in settings.items()
+            if old.get(k) != v and (k not in _LATER_SETTINGS or k in old)}
+    if not diff:
+        return
+    if not any(cfg.out.glob("shard_*/episode_*.h5")):
+        # an earlier run that recorded nothing (stopped or refused before its first episode): nothing to protect
+        print(f"collect: {path} belongs to a run that recorded no session; replacing its settings")
+        return
+    changes = ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in diff.items())
+    raise ValueError(f"{cfg.out} holds a collection with other settings ({changes}); use another --out or "
+                     "the same settings to resume")
+
+
+def _write_manifest(cfg: Config, settings: dict[str, Any]) -> None:
     cfg.out.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"settings": settings, "config": to_jsonable(cfg)}, indent=2) + "\n")
+    (cfg.out / MANIFEST).write_text(json.dumps({"settings": settings, "config": to_jsonable(cfg)}, indent=2) + "\n")
 
 
 def run(cfg: Config) -> dict[str, float]:
-    """Collect until OUT holds ``cfg.episodes`` complete sessions; returns simple throughput figures."""
-    _check_manifest(cfg)
+    """Collect until OUT holds ``cfg.episodes`` complete sessions; returns simple throughput figures.
+
+    Everything that can refuse the run (the policy bundle, the env settings, the grasp cache, an OUT holding other
+    sessions) is checked before the manifest is written, so a refused run leaves nothing that refuses the corrected
+    one."""
+    m = cfg.num_envs
+    policy = _RandomPolicy(m, cfg.seed, cfg.random_scale) if cfg.policy == "random" else _BundlePolicy(cfg.policy)
+    env_cfg = _env_config(cfg, policy)
+    settings = _settings(cfg, env_cfg, policy)
+    _check_manifest(cfg, settings)
     todo = [e for e in range(cfg.episodes) if not is_complete(episode_path(cfg.out, e))]
     if not todo:
         print(f"collect: {cfg.out} already holds {cfg.episodes} complete sessions")
         return {"episodes": 0, "steps": 0, "steps_per_s": 0.0, "samples_per_s": 0.0}
-    m = cfg.num_envs
-    env_cfg = EnvConfig(object=cfg.object, tactile=True, episode_steps=cfg.episode_steps,
-                        perturb=Perturbation(cfg.friction_scale, cfg.added_mass, tuple(cfg.com_shift)))
-    env = RotateCupVec(env_cfg, num_envs=m, seed=cfg.seed)
-    policy = _RandomPolicy(m, cfg.seed, cfg.random_scale) if cfg.policy == "random" else _BundlePolicy(cfg.policy)
+    env = RotateCupVec(env_cfg, num_envs=m, seed=cfg.seed)  # loads the grasp cache: may still refuse
+    _write_manifest(cfg, settings)
     with_z = isinstance(policy, _BundlePolicy) and policy.privileged
     queues = [[e for e in todo if e % m == i] for i in range(m)]  # slot i runs episodes i, i + m, ...
     obs = env.reset(seed=cfg.seed)

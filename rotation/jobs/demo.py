@@ -14,11 +14,15 @@
 from __future__ import annotations
 
 import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.evaluate import job as evaluate_job
+from rotation.evaluate.suites import get_suite
 from rotation.jobs import view as view_job
 from rotation.policy.bundle import load_bundle
 
@@ -38,8 +42,23 @@ class Config:
     deploy_seconds: float = 5.0
     """Length of the deploy dry run on the emulated Allegro hand (0 skips it)."""
 
+    def __post_init__(self) -> None:
+        check_types(self)
+        self.out = Path(self.out)
+        check_output_dir("out", self.out)
+        check_int("episodes", self.episodes, 1, 10_000)
+        try:
+            get_suite("perturbations", self.conditions)
+        except ValueError as err:  # it lists the suite's conditions
+            raise ValueError(f"conditions: {err}") from None
+        check_seed("seed", self.seed)
+        check_int("video_steps", self.video_steps, 1, 100_000)
+        check_number("deploy_seconds", self.deploy_seconds, 0.0, 3600.0, unit="s")
 
-def run(cfg: Config) -> Path:
+
+def run(cfg: Config) -> dict[str, Any]:
+    """Run the demo; returns ``{"report": path, "exit_code": status}``: the status is the deploy dry run's (0 when
+    it completed or was skipped, non-zero when it faulted or was stopped), so `rotate demo` fails with it."""
     start = time.time()
     cfg.out.mkdir(parents=True, exist_ok=True)
     bundles = {name: load_bundle(name) for name in ("teacher", "student")}
@@ -66,8 +85,9 @@ def run(cfg: Config) -> Path:
         from rotation.deploy import job as deploy_job
 
         deploy_summary = deploy_job.run(deploy_job.Config(
-            hand="sim-allegro", policy="student", duration=cfg.deploy_seconds, record=cfg.out / "deploy_session.h5",
-            overwrite=True))
+            hand="sim-allegro", policy="student", duration=cfg.deploy_seconds,
+            record=str(cfg.out / "deploy_session.h5"), overwrite=True))
+    exit_code = int(deploy_summary["exit_code"]) if deploy_summary is not None else 0
 
     lines = ["# Demo report", "", f"Made by `rotate demo` in {time.time() - start:.0f} s.", "",
              "## Teacher vs student under perturbations", "",
@@ -77,7 +97,9 @@ def run(cfg: Config) -> Path:
                                    for p in sorted((eval_dir / "plots").glob("*.png"))), "",
              "## Student rotating the cup", "", f"[{video.name}]({video.name})", ""]
     if deploy_summary is not None:
-        lines += ["## Deploy dry run (emulated Allegro over CAN)", "", "```",
+        outcome = ("completed" if exit_code == 0 else
+                   f"**FAILED** (exit status {exit_code}): {deploy_summary.get('fault') or 'motors not confirmed off'}")
+        lines += ["## Deploy dry run (emulated Allegro over CAN)", "", f"Result: {outcome}", "", "```",
                   json.dumps(deploy_summary, indent=2, default=str), "```", ""]
     report = cfg.out / "README.md"
     report.write_text("\n".join(lines))
@@ -85,4 +107,8 @@ def run(cfg: Config) -> Path:
     for r in nominal:
         print(f"[demo] nominal {r['policy']}: rotation_rate {r['rotation_rate']:+.3f} rad/s, ttf {r['ttf']:.2f}")
     print(f"[demo] report: {report}")
-    return report
+    if exit_code != 0:
+        # the report is written either way; the status says the demo did not do all it should
+        print(f"[demo] the deploy dry run did not complete (exit status {exit_code}): "
+              f"{deploy_summary.get('fault') if deploy_summary else ''}", file=sys.stderr)
+    return {"report": str(report), "exit_code": exit_code}

@@ -2,7 +2,8 @@
 
 For each object and each randomization scale bucket: sample the canonical closed pose + U(-noise, noise) per joint,
 close the fingers on the floating object, release it under gravity for 50 policy steps, and keep the grasp if all
-four fingertips are within 10 cm of the object, at least two touch it, and it did not fall.
+four fingertips are within 10 cm of the object, at least two touch it, it did not fall, and it stands upright
+(its up axis within --max-tilt of vertical).
 
     rotate grasps --objects cup cylinder --per-scale 100 --out grasps/
     rotate view --object cup --grasp-cache grasps/grasps_cup.npz --out cup.png
@@ -12,6 +13,7 @@ The files are `OUT/grasps_<object>.npz`; pass one to the env as `grasp_cache=...
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,8 +21,9 @@ from pathlib import Path
 from tqdm import tqdm
 
 from envs.config import RandomizationConfig
-from envs.grasps import generate_grasps
-from envs.objects import get_object
+from envs.grasps import DEFAULT_MAX_TILT, generate_grasps
+from envs.objects import OBJECTS, get_object
+from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 
 
 @dataclass
@@ -37,8 +40,29 @@ class Config:
     """Candidate grasps simulated together."""
     noise: float = 0.25
     """Joint noise U(-noise, noise) rad around the canonical pose (Hora: 0.25)."""
+    max_tilt: float = DEFAULT_MAX_TILT
+    """Keep only grasps holding the object's up axis within this angle (rad) of vertical after settling."""
     out: Path = Path("grasps")
     """Output directory."""
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        self.out = Path(self.out)
+        if not self.objects:
+            raise ValueError("objects: name at least one object")
+        for name in self.objects:
+            if name not in OBJECTS:
+                raise ValueError(f"objects: unknown object {name!r}; known objects: {', '.join(sorted(OBJECTS))}")
+        try:
+            RandomizationConfig(scales=tuple(self.scales))
+        except ValueError as err:
+            raise ValueError(f"scales: {err}") from None
+        check_int("per_scale", self.per_scale, 1, 100_000)
+        check_seed("seed", self.seed)
+        check_int("batch_size", self.batch_size, 1, 65_536)
+        check_number("noise", self.noise, 0.0, 1.0, unit="rad")
+        check_number("max_tilt", self.max_tilt, 0.0, math.pi, low_open=True, unit="rad")
+        check_output_dir("out", self.out)
 
 
 def run(cfg: Config) -> list[Path]:
@@ -59,7 +83,7 @@ def run(cfg: Config) -> list[Path]:
             bar.refresh()
 
         cache = generate_grasps(name, tuple(cfg.scales), cfg.per_scale, seed=cfg.seed, batch_size=cfg.batch_size,
-                                noise=cfg.noise, progress=progress)
+                                noise=cfg.noise, progress=progress, max_tilt=cfg.max_tilt)
         bar.close()
         path = cfg.out / f"grasps_{name}.npz"
         cache.save(path)

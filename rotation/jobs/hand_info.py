@@ -29,8 +29,18 @@ class Config:
     """LEAP baud rate."""
 
     def __post_init__(self) -> None:
+        from envs.validation import check_types
+        from rotation.hardware.dynamixel_protocol import BAUD_CODES
+
         if self.hand not in HANDS:
-            raise ValueError(f"unknown hand {self.hand!r}; choose one of {', '.join(HANDS)}")
+            raise ValueError(f"hand: unknown hand {self.hand!r}; choose one of {', '.join(HANDS)}")
+        check_types(self)
+        if self.baud not in BAUD_CODES:
+            raise ValueError(f"baud: {self.baud} is not a Dynamixel baud rate; choose one of {sorted(BAUD_CODES)}")
+        if self.hand == "allegro":
+            from rotation.hardware.can_bus import parse_can_spec
+
+            parse_can_spec(self.can)
 
 
 def _format(info, state) -> str:

@@ -18,6 +18,7 @@ import numpy as np
 
 from envs.constants import FINGERS
 from envs.sensors.digit360_render import AUDIO_HZ, IMU_HZ, PRESSURE_HZ
+from envs.validation import check_int, check_number, check_output_file, check_types
 
 _MODALITY_COLUMNS = 6
 
@@ -34,6 +35,14 @@ class Config:
     """Window end (s since the session start); the last image timestamp at or before it. < 0: mid-session."""
     dpi: int = 80
     """Resolution of the PNG (dots per inch of a 19 x 3.2-per-row inch figure)."""
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        if self.finger not in ("all", *FINGERS):
+            raise ValueError(f"finger: unknown fingertip {self.finger!r}; choose one of all, {', '.join(FINGERS)}")
+        check_number("time", self.time, -1e6, 1e6, unit="s")
+        check_int("dpi", self.dpi, 10, 1200)
+        check_output_file("out", self.out)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -20,7 +20,12 @@ import numpy as np
 
 from envs.config import EnvConfig, RandomizationConfig
 from envs.core import RotateCupVec
+from envs.objects import OBJECTS
 from envs.render import render_frame
+from envs.validation import check_int, check_optional_file, check_output_file, check_seed, check_types
+
+MAX_WIDTH, MAX_HEIGHT = 640, 480
+"""MuJoCo's default offscreen framebuffer (the hand model sets no larger one): the largest frames it renders."""
 
 
 @dataclass
@@ -46,28 +51,53 @@ class Config:
     randomize: bool = True
     """Domain randomization on (as in training)."""
 
+    def __post_init__(self) -> None:
+        check_types(self)
+        self.out = Path(self.out)
+        if self.out.suffix.lower() not in (".png", ".mp4", ".gif"):
+            raise ValueError(f"out must end in .png, .mp4 or .gif, got {self.out}")
+        check_output_file("out", self.out)
+        if self.object not in OBJECTS:
+            raise ValueError(f"object: unknown object {self.object!r}; known objects: {', '.join(sorted(OBJECTS))}")
+        check_seed("seed", self.seed)
+        check_int("steps", self.steps, 1, 100_000)
+        if not self.policy:
+            raise ValueError("policy: give 'zero', 'random' or a policy bundle (shipped name or directory)")
+        check_int("width", self.width, 16, MAX_WIDTH, "pixels (MuJoCo's default offscreen framebuffer)")
+        check_int("height", self.height, 16, MAX_HEIGHT, "pixels (MuJoCo's default offscreen framebuffer)")
+        check_optional_file("grasp_cache", self.grasp_cache, "generate one with `rotate grasps`")
 
-def _actor(cfg: Config, env: RotateCupVec):
+
+def _load_bundle(cfg: Config):
+    """The policy bundle a video acts with, or None ('zero', 'random', or a still that needs no policy)."""
+    if cfg.policy in ("zero", "random") or cfg.out.suffix.lower() == ".png":
+        return None
+    from rotation.policy.bundle import load_bundle
+
+    return load_bundle(cfg.policy)
+
+
+def env_config(cfg: Config, bundle) -> EnvConfig:
+    """The env to render; with a bundle, at the control rate and action scale it was trained at (as evaluate does)."""
+    rc = RandomizationConfig() if cfg.randomize else RandomizationConfig(enabled=False)
+    timing = {} if bundle is None else dict(control_hz=bundle.config.control_hz,
+                                            action_scale=bundle.config.action_scale)
+    return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, randomization=rc, **timing)
+
+
+def _actor(cfg: Config, bundle):
     if cfg.policy == "zero":
         return lambda obs: np.zeros((1, 16))
     if cfg.policy == "random":
         rng = np.random.default_rng(cfg.seed)
         return lambda obs: rng.uniform(-1.0, 1.0, (1, 16))
-    from rotation.policy.bundle import load_bundle
-
-    bundle = load_bundle(cfg.policy)
     return lambda obs: bundle.act_batch(obs)
 
 
 def run(cfg: Config) -> Path:
     suffix = cfg.out.suffix.lower()
-    if suffix not in (".png", ".mp4", ".gif"):
-        raise ValueError(f"out must end in .png, .mp4 or .gif, got {cfg.out}")
-    if cfg.steps < 1:
-        raise ValueError(f"steps must be >= 1, got {cfg.steps}")
-    rc = RandomizationConfig() if cfg.randomize else RandomizationConfig(enabled=False)
-    env = RotateCupVec(EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, randomization=rc), num_envs=1,
-                       seed=cfg.seed, nthread=1)
+    bundle = _load_bundle(cfg)  # before the env: the env runs at the bundle's rate and scale
+    env = RotateCupVec(env_config(cfg, bundle), num_envs=1, seed=cfg.seed, nthread=1)
     cameras = [env.model.camera(i).name for i in range(env.model.ncam)]
     if cfg.camera not in cameras:
         raise ValueError(f"unknown camera {cfg.camera!r}; cameras: {', '.join(cameras)}")
@@ -79,7 +109,7 @@ def run(cfg: Config) -> Path:
             imageio.imwrite(cfg.out, render_frame(renderer, env, 0, cfg.camera))
             print(f"wrote {cfg.out}")
             return cfg.out
-        act = _actor(cfg, env)
+        act = _actor(cfg, bundle)
         frames, total, fell_at = [render_frame(renderer, env, 0, cfg.camera)], 0.0, None
         for t in range(cfg.steps):
             obs, _, terminated, truncated, info = env.step(act(obs))
@@ -90,7 +120,7 @@ def run(cfg: Config) -> Path:
                 break
         fps = int(round(env.cfg.control_hz))
         if suffix == ".gif":
-            imageio.mimsave(cfg.out, frames, duration=1.0 / fps)
+            imageio.mimsave(cfg.out, frames, duration=1000.0 / fps)  # ms per frame (imageio's pillow plugin)
         else:
             imageio.mimsave(cfg.out, frames, fps=fps, macro_block_size=8)
     finally:

@@ -21,7 +21,6 @@ the env-factor encoder over ``priv`` (teacher, ``latent_source="privileged"``) o
 from __future__ import annotations
 
 import json
-import math
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -36,6 +35,7 @@ from torch import nn
 
 from envs import constants as C
 from rotation.configs import from_jsonable, to_jsonable
+from rotation.policy.bundle_checks import type_problems, value_problems
 from rotation.policy.features import LatentExtractor, PrivilegedExtractor, StudentExtractor
 from rotation.policy.networks import AdaptationConfig, EnvFactorEncoderConfig, mlp
 
@@ -99,6 +99,11 @@ class BundleConfig:
     """Env the policy acts in (see ENV_VERSION)."""
 
     def __post_init__(self) -> None:
+        # types first: a string where a number belongs must not surface later as a TypeError (or, on a hand, after
+        # the motors are on); then the ranges (rotation.policy.bundle_checks says which and why)
+        problems = type_problems(self)
+        if problems:
+            raise BundleError("; ".join(problems))
         if self.latent_source not in LATENT_GROUP:
             raise BundleError(f"latent_source must be one of {sorted(LATENT_GROUP)}, got {self.latent_source!r}")
         # defaults for the latent network, then the observation groups implied by the networks
@@ -106,19 +111,15 @@ class BundleConfig:
             object.__setattr__(self, "encoder", EnvFactorEncoderConfig())
         if self.latent_source == "adaptation" and self.adaptation is None:
             object.__setattr__(self, "adaptation", AdaptationConfig())
+        problems = value_problems(self)
+        if problems:
+            raise BundleError("; ".join(problems))
         expected = self.expected_groups()
         groups = {k: tuple(int(d) for d in v) for k, v in self.obs_groups.items()} or expected
         if groups != expected:
             raise BundleError(f"obs_groups {groups} do not match the networks' inputs {expected} "
                               f"(latent_source {self.latent_source!r})")
         object.__setattr__(self, "obs_groups", groups)
-        if len(self.joint_lower) != self.action_dim or len(self.joint_upper) != self.action_dim:
-            raise BundleError(f"joint_lower/joint_upper must have action_dim={self.action_dim} entries, got "
-                              f"{len(self.joint_lower)}/{len(self.joint_upper)}")
-        for name in ("control_hz", "action_scale", "norm_clip"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise BundleError(f"{name} must be finite and > 0, got {value}")
 
     @property
     def latent_dim(self) -> int:
@@ -322,7 +323,10 @@ class PolicyBundle:
             tensors = load_file(str(weights_file))
         except (SafetensorError, OSError) as err:
             raise BundleError(f"{weights_file} is not a readable safetensors file: {err}") from err
-        net = ActorNet(config)
+        try:
+            net = ActorNet(config)
+        except (ValueError, RuntimeError) as err:  # e.g. convolutions longer than the history they read
+            raise BundleError(f"{cfg_file}: the networks it describes cannot be built: {err}") from err
         expected = net.state_dict()
         missing = sorted(set(expected) - set(tensors))
         unexpected = sorted(set(tensors) - set(expected))

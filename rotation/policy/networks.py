@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from envs.constants import HISTORY_STEPS, PRIV_DIM, PROPRIO_DIM
+from envs.validation import check_int, check_types
 
 
 def mlp(sizes: Sequence[int], activation: type[nn.Module] = nn.ELU, activate_last: bool = False) -> nn.Sequential:
@@ -69,6 +70,9 @@ class RunningNorm(nn.Module):
         self.register_buffer("var", torch.ones(cfg.shape))
         self.register_buffer("count", torch.zeros((), dtype=torch.float64))
 
+    frozen: bool = False
+    """Set True to keep the statistics fixed even in training mode (e.g. while only a critic trains)."""
+
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:
         """Merge the moments of ``x`` (..., *shape) into the running statistics."""
@@ -92,7 +96,7 @@ class RunningNorm(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(..., *shape) -> normalized (..., *shape); updates the statistics first when training."""
-        if self.training:
+        if self.training and not self.frozen:
             self.update(x)
         y = (x - self.mean) / torch.sqrt(self.var + self.cfg.eps)
         return y.clamp(-self.cfg.clip, self.cfg.clip)
@@ -153,6 +157,20 @@ class AdaptationConfig:
     """Stride of each Conv1d (Hora: 2, 1, 1); with T = 30 the lengths go 30 -> 11 -> 7 -> 3."""
     latent_dim: int = 8
     """Size of the estimated z (must match the teacher's EnvFactorEncoderConfig.latent_dim)."""
+
+    def __post_init__(self) -> None:
+        check_types(self, "adaptation.")
+        for name in ("in_dim", "steps", "embed_dim", "channels"):
+            check_int(f"adaptation.{name}", getattr(self, name), 1, 4096)
+        check_int("adaptation.latent_dim", self.latent_dim, 1, 1024)
+        if not self.kernels or len(self.kernels) != len(self.strides):
+            raise ValueError(f"adaptation.kernels and adaptation.strides must list one value per convolution (at "
+                             f"least one), got {len(self.kernels)} kernels and {len(self.strides)} strides")
+        for name in ("kernels", "strides"):
+            if not all(1 <= v <= self.steps for v in getattr(self, name)):
+                raise ValueError(f"adaptation.{name} must be integers in [1, {self.steps}], got "
+                                 f"{getattr(self, name)!r}")
+        # that the history outlasts all the convolutions together is checked when the module is built (conv_lengths)
 
     def conv_lengths(self) -> list[int]:
         """Sequence length after each convolution, starting with ``steps``."""

@@ -1,7 +1,7 @@
 """Kaldi-compatible log-mel filterbank features in pure torch (batched, CPU or GPU; no torchaudio).
 
 Reproduces ``torchaudio.compliance.kaldi.fbank`` with the options of the Sparsh-X audio contract
-(reference/sparsh.md "Sparsh-X input contract", shared/fixtures/README.md): per microphone channel,
+(reference/sparsh.md "Sparsh-X input contract", tests/fixtures/README.md): per microphone channel,
 
 1. frames of ``frame_length`` ms every ``frame_shift`` ms, ``snip_edges`` (only whole frames: 1 + (T - L) // S);
 2. DC removal (subtract each frame's mean);

@@ -12,6 +12,10 @@ config beside them, and a student bundle (latent source `adaptation`).
 Exact resume: training is cut into checkpoint intervals and every interval starts from fresh resets of all envs
 (seeded from the interval's first iteration), so a run resumed from a checkpoint is bit-identical to one that was
 never interrupted. Keep checkpoint_every well above num_envs x episode_steps so few episodes are cut short.
+Ctrl-C or SIGTERM stop after the current iteration and save a checkpoint there and the bundle (exit status 130 /
+143); resuming from that checkpoint starts the rest of its interval from fresh resets (seeded from the iteration it
+stopped at), so such a run is reproducible but not bit-identical to an uninterrupted one. A damaged latest checkpoint
+falls back to the previous intact one; `curves.jsonl` holds the log points, flushed with each checkpoint.
 """
 
 from __future__ import annotations
@@ -20,7 +24,10 @@ import dataclasses
 import hashlib
 import json
 import math
+import pickle
+import signal
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,12 +37,26 @@ import torch
 from tqdm import tqdm
 
 from envs.config import EnvConfig
+from envs.constants import HISTORY_STEPS, PROPRIO_DIM
 from envs.core import RotateCupVec
-from rotation.configs import from_jsonable, save_config, to_jsonable
+from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
+from rotation.configs import check_device, from_jsonable, save_config, to_jsonable
 from rotation.evaluate.metrics import EpisodeTracker, summarize
+from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.bundle import PolicyBundle, load_bundle, resolve_bundle
+from rotation.policy.bundle_checks import timing_problems
 from rotation.policy.features import StudentExtractor
 from rotation.policy.networks import AdaptationConfig
+from rotation.train.runs import (
+    CurveLog,
+    DamagedCheckpoint,
+    check_run_dir,
+    clear_outputs,
+    config_differences,
+    refuse_differences,
+    save_atomically,
+    with_fallback,
+)
 
 CHECKPOINT_GLOB = "ckpt_*.pt"
 
@@ -74,9 +95,36 @@ class Config:
     """torch device of the networks ('cpu' or 'cuda')."""
     progress: bool = True
     """Show a progress bar."""
+    overwrite: bool = False
+    """Delete the outputs of an earlier run in `out` (checkpoints, bundle, curves, config, logs) and start over;
+    without it a folder holding a run is refused unless --resume continues it."""
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        self.out = Path(self.out)
+        if not self.teacher:
+            raise ValueError("teacher: give a teacher bundle directory or a shipped bundle name (--teacher teacher)")
+        check_output_dir("out", self.out)
+        check_int("total_steps", self.total_steps, 1, 10**12)
+        check_int("num_envs", self.num_envs, 1, 65_536)
+        check_number("lr", self.lr, 0.0, 1.0, low_open=True)
+        check_int("checkpoint_every", self.checkpoint_every, 1, 10**12)
+        check_int("log_every", self.log_every, 1, 10**9)
+        check_seed("seed", self.seed)
+        check_int("nthread", self.nthread, 0, 1024, "(0 = one per CPU core)")
+        check_int("torch_threads", self.torch_threads, 1, 1024)
+        check_device("device", self.device)
+        for name, want in (("in_dim", PROPRIO_DIM), ("steps", HISTORY_STEPS)):
+            if getattr(self.adaptation, name) != want:  # phi reads the env's proprio_hist group as it is
+                raise ValueError(f"adaptation.{name} must be {want} (the env's proprio_hist is {HISTORY_STEPS} x "
+                                 f"{PROPRIO_DIM}), got {getattr(self.adaptation, name)}")
+        if self.resume and self.overwrite:
+            raise ValueError("--resume continues the run in --out and --overwrite deletes it: give one of them")
 
 
-RESUMABLE_CHANGES = {"out", "total_steps", "resume", "progress", "nthread", "torch_threads", "device"}
+RUN_OUTPUTS = ("config.json", "bundle", "curves.jsonl", "tb")
+"""What a run writes into `out` besides its checkpoints (what --overwrite deletes, with them)."""
+RESUMABLE_CHANGES = {"out", "total_steps", "resume", "progress", "nthread", "torch_threads", "device", "overwrite"}
 """Config fields that may differ between a run and its resumption without breaking exactness of the result."""
 
 
@@ -103,22 +151,35 @@ def _latest_checkpoint(out: Path) -> Path | None:
 
 
 def _check_resumable(cfg: Config, out: Path) -> None:
-    saved = json.loads((out / "config.json").read_text())
-    now = to_jsonable(cfg)
-    diff = sorted(k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k])
-    if diff:
-        raise ValueError(f"--resume: the config differs from the one saved in {out / 'config.json'} in {diff}; "
-                         f"only {sorted(RESUMABLE_CHANGES)} may change on resume")
+    saved = out / "config.json"
+    differences = config_differences(json.loads(saved.read_text()), to_jsonable(cfg), RESUMABLE_CHANGES)
+    refuse_differences(differences, str(saved), RESUMABLE_CHANGES)
+
+
+def _load_checkpoint(path: Path, device: str) -> dict[str, Any]:
+    """A train-student checkpoint; DamagedCheckpoint when it cannot be read back, ValueError for another file."""
+    try:
+        ckpt = torch.load(path, map_location=device, weights_only=True)
+    except (RuntimeError, EOFError, OSError, pickle.UnpicklingError, zipfile.BadZipFile) as err:
+        raise DamagedCheckpoint(f"{path} cannot be read ({type(err).__name__}: "
+                                f"{str(err).splitlines()[0] if str(err) else ''})") from None
+    keys = {"student", "optim", "iteration", "teacher_digest"}
+    if not isinstance(ckpt, dict) or not keys <= set(ckpt):
+        raise ValueError(f"{path} is not a train-student checkpoint (expected the entries {sorted(keys)})")
+    return ckpt
 
 
 def run(cfg: Config) -> Result:
-    """Distill the student; returns the bundle directory and the logged history."""
-    if cfg.total_steps < 1 or cfg.num_envs < 1 or cfg.checkpoint_every < 1 or cfg.log_every < 1:
-        raise ValueError("total_steps, num_envs, checkpoint_every and log_every must all be >= 1")
-    if not (math.isfinite(cfg.lr) and cfg.lr > 0):
-        raise ValueError(f"lr must be finite and > 0, got {cfg.lr}")
-    torch.set_num_threads(cfg.torch_threads)
+    """Distill the student; returns the bundle directory and the logged history. Everything is checked before
+    anything in `out` is written; Ctrl-C / SIGTERM save a checkpoint and the bundle, then raise Interrupted."""
     out = Path(cfg.out)
+    timing = timing_problems(cfg.env.control_hz, cfg.env.action_scale)
+    if timing:  # the student bundle carries the env's timing: refuse now, not after the training
+        raise ValueError(f"env: a student bundle cannot act at this env's timing: {'; '.join(timing)}")
+    checkpoints = sorted(p.name for p in out.glob(CHECKPOINT_GLOB))
+    check_run_dir(out, (*RUN_OUTPUTS, *checkpoints), overwrite=cfg.overwrite, resuming_here=cfg.resume,
+                  resume_hint="pass --resume to continue it")
+    torch.set_num_threads(cfg.torch_threads)
     teacher_dir = resolve_bundle(cfg.teacher)
     teacher = load_bundle(teacher_dir)
     if teacher.config.latent_source != "privileged":
@@ -149,18 +210,28 @@ def run(cfg: Config) -> Result:
         if ckpt_path is None or not (out / "config.json").is_file():
             raise ValueError(f"--resume: no checkpoint ({CHECKPOINT_GLOB}) and config.json in {out}")
         _check_resumable(cfg, out)
-        ckpt = torch.load(ckpt_path, map_location=cfg.device, weights_only=True)
+        older = sorted(out.glob(CHECKPOINT_GLOB), reverse=True)[1:]
+        ckpt, ckpt_path = with_fallback(ckpt_path, older, lambda p: _load_checkpoint(p, cfg.device))
         if ckpt["teacher_digest"] != teacher_digest:
             raise ValueError(f"--resume: {ckpt_path} was trained with another teacher (weights digest "
                              f"{ckpt['teacher_digest']}, this teacher {teacher_digest})")
-        student.net.load_state_dict(ckpt["student"])
-        optim.load_state_dict(ckpt["optim"])
+        try:
+            student.net.load_state_dict(ckpt["student"])
+            optim.load_state_dict(ckpt["optim"])
+        except (RuntimeError, ValueError, KeyError) as err:
+            raise ValueError(f"--resume: {ckpt_path} does not fit this student ({type(err).__name__}: "
+                             f"{str(err).splitlines()[0]})") from None
         start_iter = int(ckpt["iteration"])
-    elif _latest_checkpoint(out) is not None:
-        raise ValueError(f"{out} already holds checkpoints; pass --resume to continue or choose another --out")
+    env = RotateCupVec(cfg.env, num_envs=n, seed=cfg.seed, nthread=cfg.nthread or None)  # checks the grasp cache
+    # every check passed: only now is anything in `out` written or deleted
+    if cfg.overwrite:
+        removed = clear_outputs(out, (*RUN_OUTPUTS, *checkpoints))
+        if removed:
+            print(f"train-student: --overwrite deleted {', '.join(removed)} in {out}")
     save_config(cfg, out / "config.json")
+    curves = CurveLog(out / "curves.jsonl", key="env_steps")
+    curves.trim(start_iter * n)  # points a crashed or interrupted run logged after its last checkpoint
 
-    env = RotateCupVec(cfg.env, num_envs=n, seed=cfg.seed, nthread=cfg.nthread or None)
     tracker = EpisodeTracker(n, cfg.env.control_dt, cfg.env.episode_steps)
     keys = set(teacher.config.obs_groups) | set(student.config.obs_groups)
     writer = _summary_writer(out / "tb", purge_step=start_iter * n)
@@ -170,7 +241,10 @@ def run(cfg: Config) -> Result:
                desc="train-student", dynamic_ncols=True)
     t_log = time.perf_counter()
     obs: dict[str, np.ndarray] = {}
+    done_iters, flushed, signum = start_iter, 0, None
+    stop = StopSignals()
     try:
+        stop.__enter__()
         for it in range(start_iter, total_iters):
             if it == start_iter or it % interval == 0:
                 # each checkpoint interval starts from fresh resets (what makes resume exact)
@@ -209,16 +283,40 @@ def run(cfg: Config) -> Result:
                 history.append(point)
                 bar.set_postfix(latent_mse=f"{point['latent_mse']:.4f}")
                 mse_sum, mse_count, episodes, t_log = 0.0, 0, [], now
-            if (it + 1) % interval == 0 or it + 1 == total_iters:
+            done_iters = it + 1
+            if (it + 1) % interval == 0 or it + 1 == total_iters or stop.requested:
                 _save_checkpoint(out, student, optim, it + 1, teacher_digest)
+                curves.append(history[flushed:])
+                flushed = len(history)
+            if stop.requested:
+                break
+    except KeyboardInterrupt as err:  # a second signal (stop at once), or Ctrl-C where no handler could be installed
+        signum = getattr(err, "signum", signal.SIGINT)
+        _save_checkpoint(out, student, optim, done_iters, teacher_digest)
+        curves.append(history[flushed:])
     finally:
+        stop.__exit__(None, None, None)
         bar.close()
         writer.close()
         env.close()
+    signum = signum or stop.signum
 
-    student.config = dataclasses.replace(student.config, card=_card(cfg, teacher_digest, history))
+    card = _card(cfg, teacher_digest, history)
+    if signum:
+        card["interrupted"] = (f"stopped by {SIGNAL_NAMES.get(signum, signum)} at {done_iters * n} of "
+                               f"{total_iters * n} env steps")
+    # the bundle carries the rate and action scale the student was trained at (cfg.env), not the teacher's:
+    # evaluation, view, collect and deploy all act at the bundle's
+    student.config = dataclasses.replace(student.config, card=card, control_hz=cfg.env.control_hz,
+                                         action_scale=cfg.env.action_scale)
     bundle_dir = student.save(out / "bundle")
     final = f"; final latent MSE {history[-1]['latent_mse']:.5f}" if history else ""
+    if signum:
+        message = (f"train-student: interrupted by {SIGNAL_NAMES.get(signum, signum)} at {done_iters * n} of "
+                   f"{total_iters * n} env steps{final}; saved the checkpoint and the bundle at {bundle_dir}; "
+                   "continue with --resume")
+        print(message)
+        raise Interrupted(signum, message)
     print(f"train-student: {total_iters * n} env steps{final}; bundle at {bundle_dir}")
     return Result(bundle_dir, history)
 
@@ -239,11 +337,10 @@ def _card(cfg: Config, digest: str, history: list[dict[str, float]]) -> dict[str
 def _save_checkpoint(out: Path, student: PolicyBundle, optim: torch.optim.Optimizer, iteration: int,
                      teacher_digest: str) -> Path:
     path = out / f"ckpt_{iteration:09d}.pt"
-    tmp = path.with_suffix(".tmp")
     state = {k: v.detach().cpu() for k, v in student.net.state_dict().items()}
-    torch.save({"student": state, "optim": optim.state_dict(), "iteration": iteration,
-                "teacher_digest": teacher_digest}, tmp)
-    tmp.replace(path)  # atomic: a crash never leaves a half-written checkpoint as the latest
+    # atomic: a crash never leaves a half-written checkpoint as the latest
+    save_atomically(lambda tmp: torch.save({"student": state, "optim": optim.state_dict(), "iteration": iteration,
+                                            "teacher_digest": teacher_digest}, tmp), path)
     return path
 
 

@@ -13,8 +13,12 @@ the env a lighter pose penalty and a fall penalty (envs.config.RewardConfig says
     rotate train-teacher --out runs/teacher --resume runs/teacher/checkpoints/last.zip --total-steps 40000000
     tensorboard --logdir runs/teacher/tb
 
-Writes checkpoints (`checkpoints/step_*.zip`, `checkpoints/last.zip`), `config.json`, TensorBoard logs and the
-final policy bundle `bundle/` (weights + config, what evaluation and deploy load).
+Writes checkpoints (`checkpoints/step_*.zip`, `checkpoints/last.zip`), `config.json`, TensorBoard logs, the training
+curve `curves.jsonl` (flushed with each checkpoint) and the final policy bundle `bundle/` (weights + config, what
+evaluation and deploy load). An `--out` holding another run is refused unless `--resume` continues it or
+`--overwrite` replaces it; a resume refuses options that differ from the run's (but the length and speed ones) and
+falls back from a damaged checkpoint to the previous intact one. Ctrl-C / SIGTERM stop at the next step, save the
+checkpoint, curves and bundle, and exit with status 130 / 143.
 """
 
 from __future__ import annotations
@@ -23,6 +27,9 @@ import dataclasses
 import json
 import signal
 import time
+import warnings
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,9 +39,24 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 
 from envs.config import EnvConfig, RandomizationConfig
-from rotation.configs import save_config
-from rotation.policy.bundle import PolicyBundle
-from rotation.policy.features import policy_kwargs
+from envs.objects import OBJECTS
+from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
+from rotation.configs import check_device, save_config, to_jsonable
+from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
+from rotation.policy.bundle import PolicyBundle, load_bundle
+from rotation.policy.features import PrivilegedExtractor, policy_kwargs
+from rotation.policy.networks import RunningNorm
+from rotation.train.overlap import RolloutPrefetch
+from rotation.train.runs import (
+    CurveLog,
+    DamagedCheckpoint,
+    check_run_dir,
+    clear_outputs,
+    config_differences,
+    refuse_differences,
+    save_atomically,
+    with_fallback,
+)
 from rotation.train.vec_env import RotateCupSB3VecEnv
 
 
@@ -96,11 +118,73 @@ class Config:
     """Show a progress bar."""
     device: str = "cpu"
     """Torch device for PPO ('cpu' is fastest for these small MLPs)."""
+    init_from: Path | None = None
+    """A teacher bundle (directory) to start the actor from: its normalization, env-factor encoder, actor MLP and
+    action head are copied into the new policy; the critic and the action std start fresh. For continuing a run
+    whose checkpoint is gone (a bundle is all that was kept); --resume continues exactly."""
+    critic_warmup: int = 20
+    """With --init-from: PPO updates that train only the fresh critic before the actor moves."""
+    overlap: bool = True
+    """Collect the next rollout on a background thread while PPO updates on the last one (one update of policy
+    lag, see rotation.train.overlap): on 2 cores the update no longer leaves a core idle."""
+    overwrite: bool = False
+    """Delete the outputs of an earlier run in `out` (checkpoints, bundle, curves, config, logs) and start over;
+    without it a folder holding a run is refused unless --resume continues that run."""
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        self.out = Path(self.out)
+        if self.resume is not None:
+            self.resume = Path(self.resume)
+        if self.init_from is not None:
+            self.init_from = Path(self.init_from)
+            if not (self.init_from / "config.json").is_file():
+                raise ValueError(f"init_from: {self.init_from} is not a policy bundle directory (no config.json)")
+            if self.resume is not None:
+                raise ValueError("init_from and resume exclude each other: --resume continues a run exactly")
+        check_output_dir("out", self.out)
+        if self.object not in OBJECTS:
+            raise ValueError(f"object: unknown object {self.object!r}; known objects: {', '.join(sorted(OBJECTS))}")
+        check_int("num_envs", self.num_envs, 1, 65_536)
+        check_int("total_steps", self.total_steps, 1, 10**12)
+        check_seed("seed", self.seed)
+        check_int("n_steps", self.n_steps, 1, 100_000)
+        if self.num_envs * self.n_steps < 2:
+            raise ValueError("num_envs x n_steps must be >= 2 transitions per update (PPO normalizes advantages)")
+        check_int("batch_size", self.batch_size, 2, self.num_envs * self.n_steps, "(2 .. num_envs x n_steps)")
+        check_int("n_epochs", self.n_epochs, 1, 1000)
+        # the adaptive-KL schedule keeps the rate within [1e-6, 1e-2]: a start outside would be clamped after one update
+        check_number("learning_rate", self.learning_rate, 1e-6, 1e-2)
+        check_number("target_kl", self.target_kl, 0.0, 10.0, low_open=True)
+        check_number("gamma", self.gamma, 0.0, 1.0, low_open=True)
+        check_number("gae_lambda", self.gae_lambda, 0.0, 1.0)
+        check_number("clip_range", self.clip_range, 0.0, 1.0, low_open=True)
+        check_number("vf_coef", self.vf_coef, 0.0, 1000.0, low_open=True)
+        check_number("ent_coef", self.ent_coef, 0.0, 1.0)
+        check_number("max_grad_norm", self.max_grad_norm, 0.0, 1000.0, low_open=True)
+        if not 1 <= len(self.net_arch) <= 16 or not all(1 <= w <= 8192 for w in self.net_arch):
+            raise ValueError(f"net_arch must be 1 to 16 layer widths, each in [1, 8192], got {self.net_arch!r}")
+        check_number("log_std_init", self.log_std_init, -10.0, 2.0)  # std e^-10 .. e^2 for actions in [-1, 1]
+        check_number("reward_scale", self.reward_scale, 0.0, 1000.0, low_open=True)
+        check_int("checkpoint_every", self.checkpoint_every, 1, 10**12)
+        check_int("torch_threads", self.torch_threads, 1, 1024)
+        check_int("critic_warmup", self.critic_warmup, 0, 10**6)
+        if self.grasp_cache and not Path(self.grasp_cache).is_file():
+            raise ValueError(f"grasp_cache: no such file: {self.grasp_cache!r} (generate one with `rotate grasps`)")
+        check_device("device", self.device)
+        if self.resume is not None and self.overwrite and self.resume.resolve().is_relative_to(self.out.resolve()):
+            raise ValueError(f"--overwrite would delete the checkpoint --resume {self.resume} continues from; "
+                             "resume into another --out, or drop --overwrite")
+        self.env_config()  # episode_steps and the rest of the env, checked by EnvConfig
 
     def env_config(self) -> EnvConfig:
         rc = RandomizationConfig() if self.randomize else RandomizationConfig(enabled=False)
         return EnvConfig(object=self.object, episode_steps=self.episode_steps, randomization=rc,
                          grasp_cache=self.grasp_cache)
+
+
+TEACHER_GROUPS = ("proprio", "priv")
+"""Observation groups the teacher reads (rotation.policy.features.PrivilegedExtractor)."""
 
 
 class KLSchedule:
@@ -120,20 +204,48 @@ class KLSchedule:
             self.lr = min(self.lr * 1.5, 1e-2)
 
 
-class AdaptiveKLPPO(PPO):
-    """PPO whose learning rate follows the adaptive-KL rule after every update (rl_games / Hora)."""
+class AdaptiveKLPPO(RolloutPrefetch, PPO):
+    """PPO whose learning rate follows the adaptive-KL rule after every update (rl_games / Hora), optionally with
+    the next rollout collected during the update (``overlap``; rotation.train.overlap)."""
 
     def _setup_model(self) -> None:
         super()._setup_model()
         if not isinstance(self.lr_schedule, KLSchedule):
             self.lr_schedule = KLSchedule(float(self.learning_rate), 0.02)
 
+    critic_warmup: int = 0
+    """Updates left that train only the critic (after --init-from: a fresh critic's first value estimates would
+    otherwise steer the copied actor with noise)."""
+
     def train(self) -> None:
+        if self.critic_warmup > 0:
+            self._train_critic_only()
+            return
         super().train()
         kl = self.logger.name_to_value.get("train/approx_kl")
         if kl is not None and np.isfinite(kl):
+            # with overlap the KL is taken from the policy that acted, one update back (lag + this update): the
+            # schedule judges both together, which keeps each update inside the trust region the target sets
             self.lr_schedule.update(float(kl))
         self.logger.record("train/adaptive_lr", self.lr_schedule.lr)
+
+    def _train_critic_only(self) -> None:
+        critic = ("mlp_extractor.value_net.", "value_net.")
+        frozen = [p for n, p in self.policy.named_parameters() if not n.startswith(critic) and p.requires_grad]
+        norms = [m for m in self.policy.modules() if isinstance(m, RunningNorm)]
+        for p in frozen:
+            p.requires_grad_(False)
+        try:
+            for m in norms:  # the actor's input statistics stay as they were too
+                m.frozen = True
+            super().train()  # the schedule is left alone: the actor did not move
+        finally:
+            for p in frozen:
+                p.requires_grad_(True)
+            for m in norms:
+                m.frozen = False
+        self.critic_warmup -= 1
+        self.logger.record("train/critic_warmup_left", self.critic_warmup)
 
 
 class EpisodeStats(BaseCallback):
@@ -163,11 +275,16 @@ class EpisodeStats(BaseCallback):
 
 
 class Checkpoints(BaseCallback):
-    """Saves `step_<n>.zip` every `every` steps and `last.zip` (keeps the newest two numbered ones)."""
+    """Saves `step_<n>.zip` every `every` steps and `last.zip` (keeps the newest two numbered ones), each written
+    atomically, and appends the curve rows logged since the last one to `curves` (flushed to disk). Stops training
+    (returns False) once ``stop`` saw a signal."""
 
-    def __init__(self, folder: Path, every: int) -> None:
+    def __init__(self, folder: Path, every: int, stats: EpisodeStats | None = None, curves: CurveLog | None = None,
+                 stop: StopSignals | None = None) -> None:
         super().__init__()
         self.folder, self.every = folder, every
+        self.stats, self.curves, self.stop = stats, curves, stop
+        self.flushed = 0  # rows of stats.history already in curves
         self.next_at = 0
 
     def _on_training_start(self) -> None:
@@ -178,15 +295,81 @@ class Checkpoints(BaseCallback):
         if self.num_timesteps >= self.next_at:
             self.save()
             self.next_at += self.every
-        return True
+        return not (self.stop is not None and self.stop.requested)
 
     def save(self) -> Path:
+        self.folder.mkdir(parents=True, exist_ok=True)
         path = self.folder / f"step_{self.num_timesteps:010d}.zip"
-        self.model.save(path)
-        self.model.save(self.folder / "last.zip")
+        save_atomically(self.model.save, path)
+        save_atomically(self.model.save, self.folder / "last.zip")
         for old in sorted(self.folder.glob("step_*.zip"))[:-2]:
             old.unlink()
+        if self.stats is not None and self.curves is not None:
+            self.curves.append(self.stats.history[self.flushed :])
+            self.flushed = len(self.stats.history)
         return path
+
+
+def load_checkpoint(path: str | Path, env: RotateCupSB3VecEnv | None = None, device: str = "cpu") -> AdaptiveKLPPO:
+    """A train-teacher checkpoint (.zip). Raises DamagedCheckpoint for a file that cannot be read back (truncated,
+    corrupted) and ValueError for one of another program, policy or observation space."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"no such checkpoint: {path}" + (" (a directory; give a .zip file)" if path.is_dir() else ""))
+    try:
+        with zipfile.ZipFile(path) as archive:
+            names = archive.namelist()
+            broken = archive.testzip()  # reads every member and checks its CRC
+    except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as err:
+        raise DamagedCheckpoint(f"{path} is not a readable zip file ({type(err).__name__}: {err})") from None
+    if broken is not None:
+        raise DamagedCheckpoint(f"{path}: member {broken!r} is corrupted")
+    if not {"data", "policy.pth"} <= set(names):
+        raise ValueError(f"{path} is not a train-teacher checkpoint: a zip of {sorted(names)[:6]}, not a "
+                         "stable-baselines3 model ('data', 'policy.pth')")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # SB3 warns about version differences; a mismatch fails below
+            model = AdaptiveKLPPO.load(path, env=env, device=device)
+    except Exception as err:  # SB3 raises many kinds (ValueError for other spaces, KeyError, pickle errors)
+        raise ValueError(f"{path} cannot be loaded as a train-teacher checkpoint ({type(err).__name__}: "
+                         f"{str(err).splitlines()[0] if str(err) else ''})") from None
+    extractor = getattr(model.policy, "features_extractor", None)
+    if not isinstance(extractor, PrivilegedExtractor):
+        raise ValueError(f"{path} holds a {type(model.policy).__name__} with a {type(extractor).__name__} features "
+                         "extractor, not the teacher's privileged policy (PrivilegedExtractor)")
+    return model
+
+
+def _older_checkpoints(path: Path) -> list[Path]:
+    """The numbered checkpoints beside ``path`` that precede it, newest first (all of them for last.zip)."""
+    steps = sorted(path.parent.glob("step_*.zip"), reverse=True)
+    if path.name.startswith("step_"):
+        steps = [p for p in steps if p.name < path.name]
+    return [p for p in steps if p != path]
+
+
+PPO_OPTIONS = ("n_steps", "batch_size", "n_epochs", "learning_rate", "target_kl", "gamma", "gae_lambda",
+               "clip_range", "vf_coef", "ent_coef", "max_grad_norm", "net_arch", "log_std_init")
+"""Options a checkpoint records itself (compared on resume even without the run's config.json)."""
+RESUMABLE_CHANGES = {"out", "total_steps", "progress", "checkpoint_every", "resume", "torch_threads", "device",
+                     "overwrite", "overlap", "init_from", "critic_warmup"}
+"""Options that may change on resume: the run's length, where it writes, and how fast it runs."""
+
+
+def _checkpoint_options(model: AdaptiveKLPPO) -> dict:
+    """The PPO options a checkpoint was trained with, in Config's names and JSON form."""
+    arch = model.policy_kwargs.get("net_arch", {})
+    arch = arch.get("pi") if isinstance(arch, dict) else arch
+    schedule = model.lr_schedule
+    return to_jsonable({
+        "num_envs": model.n_envs, "n_steps": model.n_steps, "batch_size": model.batch_size,
+        "n_epochs": model.n_epochs, "learning_rate": float(model.learning_rate),
+        "target_kl": schedule.target if isinstance(schedule, KLSchedule) else None, "gamma": model.gamma,
+        "gae_lambda": model.gae_lambda, "clip_range": float(model.clip_range(1.0)), "vf_coef": model.vf_coef,
+        "ent_coef": model.ent_coef, "max_grad_norm": model.max_grad_norm, "net_arch": list(arch or []),
+        "log_std_init": model.policy_kwargs.get("log_std_init"),
+    })
 
 
 def bundle_from_checkpoint(path: str | Path, card: dict | None = None) -> PolicyBundle:
@@ -194,7 +377,7 @@ def bundle_from_checkpoint(path: str | Path, card: dict | None = None) -> Policy
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"no such checkpoint: {path}")
-    model = AdaptiveKLPPO.load(path, device="cpu")
+    model = load_checkpoint(path)
     run_cfg = path.parent.parent / "config.json"
     train_config = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}
     info = {"role": "teacher", "object": train_config.get("object", "cup"), "steps": int(model.num_timesteps),
@@ -216,54 +399,123 @@ def build_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
         tensorboard_log=str(cfg.out / "tb"), seed=cfg.seed, device=cfg.device, verbose=0,
     )
     model.lr_schedule = KLSchedule(cfg.learning_rate, cfg.target_kl)
+    model.overlap = cfg.overlap
+    if cfg.init_from is not None:
+        init_actor(model, cfg.init_from)
+        model.critic_warmup = cfg.critic_warmup
     return model
 
 
-def _raise_interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
+def init_actor(model: AdaptiveKLPPO, path: Path) -> None:
+    """Copy a teacher bundle's acting path (normalization, encoder, actor MLP, action head) into ``model``."""
+    bundle = load_bundle(path)
+    if bundle.config.latent_source != "privileged":
+        raise ValueError(f"--init-from {path}: needs a teacher bundle (latent_source 'privileged'), got "
+                         f"{bundle.config.latent_source!r}")
+    policy = model.policy
+    try:
+        policy.features_extractor.load_state_dict(bundle.net.extractor.state_dict())
+        policy.mlp_extractor.policy_net.load_state_dict(bundle.net.actor.state_dict())
+        policy.action_net.load_state_dict(bundle.net.action_mean.state_dict())
+    except RuntimeError as err:  # other layer sizes
+        raise ValueError(f"--init-from {path}: the bundle's networks do not fit this run's (--net-arch "
+                         f"{list(policy.mlp_extractor.policy_net)}): {str(err).splitlines()[0]}") from None
+
+
+RUN_OUTPUTS = ("config.json", "checkpoints", "bundle", "curves.jsonl", "tb")
+"""What a run writes into `out` (what --overwrite deletes)."""
+
+
+def _run_dir_of(checkpoint: Path) -> Path | None:
+    """The run folder of a checkpoint at <run>/checkpoints/<name>.zip."""
+    return checkpoint.parent.parent if checkpoint.parent.name == "checkpoints" else None
 
 
 def run(cfg: Config) -> PolicyBundle:
-    if cfg.total_steps < 1 or cfg.num_envs < 1:
-        raise ValueError(f"total_steps and num_envs must be >= 1, got {cfg.total_steps}, {cfg.num_envs}")
-    if cfg.batch_size > cfg.num_envs * cfg.n_steps:
-        raise ValueError(f"batch_size {cfg.batch_size} exceeds the rollout size num_envs x n_steps = "
-                         f"{cfg.num_envs * cfg.n_steps}")
+    """Train (or continue) the teacher. Everything is checked before anything is written: a folder holding another
+    run, a resume whose options differ from the run's, a checkpoint of another program. Ctrl-C / SIGTERM stop at the
+    next step, save the checkpoint, curves and bundle, then raise Interrupted (exit status 130 / 143)."""
+    out = cfg.out
+    resume_dir = _run_dir_of(cfg.resume) if cfg.resume is not None else None
+    resuming_here = resume_dir is not None and resume_dir.resolve() == out.resolve()
+    check_run_dir(out, RUN_OUTPUTS, overwrite=cfg.overwrite, resuming_here=resuming_here,
+                  resume_hint=f"pass --resume {out / 'checkpoints' / 'last.zip'} to continue it")
+    now = to_jsonable(cfg)
+    if cfg.resume is not None:
+        if not cfg.resume.is_file():
+            raise ValueError(f"--resume {cfg.resume}: no such checkpoint")
+        saved = resume_dir / "config.json" if resume_dir is not None else None
+        if saved is not None and saved.is_file():
+            differences = config_differences(json.loads(saved.read_text()), now, RESUMABLE_CHANGES)
+            refuse_differences(differences, str(saved), RESUMABLE_CHANGES)
     torch.set_num_threads(cfg.torch_threads)
     torch.manual_seed(cfg.seed)
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, cfg.out / "config.json")
     env_cfg = cfg.env_config()
-    env = RotateCupSB3VecEnv(env_cfg, cfg.num_envs, seed=cfg.seed, reward_scale=cfg.reward_scale)
-    model = build_model(cfg, env)
-    if cfg.resume is not None:
-        env.seed(cfg.seed + model.num_timesteps)  # fresh, reproducible episodes after a resume
-    stats, ckpt = EpisodeStats(), Checkpoints(cfg.out / "checkpoints", cfg.checkpoint_every)
-    remaining = cfg.total_steps - model.num_timesteps
-    start = time.time()
-    if remaining > 0:
-        # Ctrl-C or SIGTERM stop training early; the checkpoint, curves and bundle below are still written
-        previous = signal.signal(signal.SIGTERM, _raise_interrupt)
-        try:
-            model.learn(remaining, callback=CallbackList([stats, ckpt]), progress_bar=cfg.progress,
-                        reset_num_timesteps=cfg.resume is None, tb_log_name="teacher")
-        except KeyboardInterrupt:
-            print(f"teacher: interrupted at {model.num_timesteps} steps; saving a checkpoint and the bundle")
-        finally:
-            signal.signal(signal.SIGTERM, previous)
-    wall = time.time() - start
-    ckpt.model = model
-    ckpt.num_timesteps = model.num_timesteps
-    ckpt.save()
-    curves = cfg.out / "curves.jsonl"
-    with curves.open("a") as f:
-        for row in stats.history:
-            f.write(json.dumps(row) + "\n")
-    card = {"role": "teacher", "object": cfg.object, "steps": int(model.num_timesteps), "seed": cfg.seed,
-            "wall_time_s": round(wall, 1), "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out),
-                                                                                   "resume": str(cfg.resume)}}
-    bundle = PolicyBundle.from_sb3(model, control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale, card=card)
-    bundle.save(cfg.out / "bundle")
-    env.close()
-    print(f"teacher: {model.num_timesteps} steps in {wall:.0f} s; bundle at {cfg.out / 'bundle'}")
+    env = RotateCupSB3VecEnv(env_cfg, cfg.num_envs, seed=cfg.seed, reward_scale=cfg.reward_scale,
+                             obs_groups=TEACHER_GROUPS)
+    try:
+        resumed_from = None
+        if cfg.resume is not None:
+            model, resumed_from = with_fallback(cfg.resume, _older_checkpoints(cfg.resume),
+                                                lambda p: load_checkpoint(p, env, cfg.device))
+            differences = config_differences(_checkpoint_options(model), {k: now[k] for k in PPO_OPTIONS}, ())
+            refuse_differences(differences, f"recorded in {resumed_from}", RESUMABLE_CHANGES)
+            env.seed(cfg.seed + model.num_timesteps)  # fresh, reproducible episodes after a resume
+        else:
+            model = build_model(cfg, env)
+        model.overlap = cfg.overlap
+        # every check passed: only now is anything in `out` written or deleted
+        if cfg.overwrite and not resuming_here:
+            removed = clear_outputs(out, RUN_OUTPUTS)
+            if removed:
+                print(f"teacher: --overwrite deleted {', '.join(removed)} in {out}")
+        out.mkdir(parents=True, exist_ok=True)
+        save_config(cfg, out / "config.json")
+        curves = CurveLog(out / "curves.jsonl")
+        if resuming_here and (dropped := curves.trim(model.num_timesteps)):
+            print(f"teacher: dropped {dropped} curve rows logged after step {model.num_timesteps} (not in the "
+                  "checkpoint resumed from)")
+        return _train(cfg, model, env, env_cfg, curves, resumed_from)
+    finally:
+        env.close()
+
+
+def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: EnvConfig, curves: CurveLog,
+           resumed_from: Path | None) -> PolicyBundle:
+    stats = EpisodeStats()
+    with StopSignals() as stop:
+        ckpt = Checkpoints(cfg.out / "checkpoints", cfg.checkpoint_every, stats, curves, stop)
+        remaining = cfg.total_steps - model.num_timesteps
+        start = time.time()
+        signum = None
+        if remaining > 0:
+            try:
+                model.learn(remaining, callback=CallbackList([stats, ckpt]), progress_bar=cfg.progress,
+                            reset_num_timesteps=cfg.resume is None, tb_log_name="teacher")
+            except KeyboardInterrupt as err:  # a second signal, or Ctrl-C where no handler could be installed
+                signum = getattr(err, "signum", signal.SIGINT)
+        signum = signum or stop.signum
+        wall = time.time() - start
+        # the checkpoint, curves and bundle are written whether training finished or was stopped
+        ckpt.model = model
+        ckpt.num_timesteps = model.num_timesteps
+        ckpt.save()
+        steps = int(model.num_timesteps)
+        card = {"role": "teacher", "object": cfg.object, "steps": steps, "seed": cfg.seed,
+                "wall_time_s": round(wall, 1), "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out),
+                                                                                       "resume": str(cfg.resume)}}
+        if resumed_from is not None:
+            card["resumed_from"] = str(resumed_from)
+        if signum:
+            card["interrupted"] = f"stopped by {SIGNAL_NAMES.get(signum, signum)} at {steps} of {cfg.total_steps} steps"
+        bundle = PolicyBundle.from_sb3(model, control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale,
+                                       card=card)
+        bundle.save(cfg.out / "bundle")
+    last = cfg.out / "checkpoints" / "last.zip"
+    if signum:
+        message = (f"teacher: interrupted by {SIGNAL_NAMES.get(signum, signum)} at {steps} of {cfg.total_steps} "
+                   f"steps; saved {last} and the bundle {cfg.out / 'bundle'}; continue with --resume {last}")
+        print(message)
+        raise Interrupted(signum, message)
+    print(f"teacher: {steps} steps in {wall:.0f} s; bundle at {cfg.out / 'bundle'}")
     return bundle

@@ -11,33 +11,46 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from gymnasium import spaces
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from envs.config import EnvConfig
 from envs.core import RotateCupVec
+from rotation.evaluate.metrics import UPRIGHT_TILT
 
 
 class RotateCupSB3VecEnv(VecEnv):
     """SB3 view of a :class:`RotateCupVec`; ``reward_scale`` multiplies rewards seen by the learner only."""
 
     def __init__(self, cfg: EnvConfig, num_envs: int, seed: int = 0, nthread: int | None = None,
-                 reward_scale: float = 1.0):
+                 reward_scale: float = 1.0, obs_groups: tuple[str, ...] | None = None):
         self.core = RotateCupVec(cfg, num_envs=num_envs, seed=seed, nthread=nthread)
-        super().__init__(num_envs, self.core.single_observation_space, self.core.single_action_space)
+        space = self.core.single_observation_space
+        # only the groups the learner reads: PPO's rollout buffer copies every group of every transition, and the
+        # teacher's unused 30-step history (960 numbers) would be 90% of that traffic
+        self.obs_groups = tuple(space.spaces) if obs_groups is None else tuple(obs_groups)
+        unknown = sorted(set(self.obs_groups) - set(space.spaces))
+        if unknown or not self.obs_groups:
+            raise ValueError(f"obs_groups must name some of the env's groups {sorted(space.spaces)}, got "
+                             f"{list(self.obs_groups)}")
+        space = spaces.Dict({k: space.spaces[k] for k in self.obs_groups})
+        super().__init__(num_envs, space, self.core.single_action_space)
         self.reward_scale = float(reward_scale)
         self._seed = seed
         self._actions: np.ndarray | None = None
         self._ep_return = np.zeros(num_envs)
         self._ep_terms: dict[str, np.ndarray] = {}
         self._ep_rotation = np.zeros(num_envs)
+        self._ep_upright = np.zeros(num_envs)
 
     # -- VecEnv API
     def reset(self):
         seed = self._seed if self._seed is not None else None
         self._seed = None  # later resets continue the episode counters
-        obs = self.core.reset(seed=seed)
+        obs = self._select(self.core.reset(seed=seed))
         self._ep_return[:] = 0
         self._ep_rotation[:] = 0
+        self._ep_upright[:] = 0
         self._ep_terms = {}
         return obs
 
@@ -47,8 +60,10 @@ class RotateCupSB3VecEnv(VecEnv):
     def step_wait(self):
         assert self._actions is not None, "step_async must come first"
         obs, reward, terminated, truncated, info = self.core.step(self._actions)
+        obs = self._select(obs)
         self._ep_return += reward
         self._ep_rotation += info["rotation"]
+        self._ep_upright += (info["tilt"] < UPRIGHT_TILT) & ~info["fell"]
         for k, v in info.items():
             if k.startswith("rew_"):
                 self._ep_terms.setdefault(k, np.zeros(self.num_envs))
@@ -62,17 +77,22 @@ class RotateCupSB3VecEnv(VecEnv):
                 ep = {"r": float(self._ep_return[i]), "l": steps,
                       "rotation": float(self._ep_rotation[i]),
                       "rotation_rate": float(self._ep_rotation[i] / (steps * self.core.cfg.control_dt)),
-                      "ttf": steps / self.core.cfg.episode_steps if terminated[i] else 1.0}
+                      "ttf": steps / self.core.cfg.episode_steps if terminated[i] else 1.0,
+                      "upright": float(self._ep_upright[i] / steps)}
                 ep.update({k: float(v[i]) for k, v in self._ep_terms.items()})
                 infos[i] = {"terminal_observation": {k: v[i].copy() for k, v in obs.items()},
                             "TimeLimit.truncated": bool(truncated[i] and not terminated[i]), "episode": ep}
             self._ep_return[ids] = 0
             self._ep_rotation[ids] = 0
+            self._ep_upright[ids] = 0
             for v in self._ep_terms.values():
                 v[ids] = 0
             self.core._reset_ids(ids)
-            obs = self.core._observe()
+            obs = self._select(self.core._observe())
         return obs, (reward * self.reward_scale).astype(np.float32), done, infos
+
+    def _select(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        return {k: obs[k] for k in self.obs_groups}
 
     def close(self) -> None:
         self.core.close()

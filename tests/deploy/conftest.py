@@ -57,8 +57,8 @@ def hand_hook(monkeypatch):
     hook = HandHook()
     real_open_hand = job.open_hand
 
-    def open_hand(setup, stack):
-        opened = real_open_hand(setup, stack)
+    def open_hand(setup, stack, **kw):
+        opened = real_open_hand(setup, stack, **kw)
         hook.opened = opened
         for delay, fn in hook.actions:
             timer = threading.Timer(delay, fn, args=(opened,))

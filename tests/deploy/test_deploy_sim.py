@@ -73,7 +73,7 @@ def test_sim_leap_run(tmp_path, policy, hand_hook):
 
 def test_real_allegro_path_against_an_emulator_on_a_virtual_bus(tmp_path, policy, monkeypatch):
     """`--hand allegro --can virtual:NAME` takes the real-hand path (no emulator known to deploy): source 'real',
-    no object pose, motors off as reported by the driver; the emulator on that bus still sees SYSTEM_OFF."""
+    no object pose, motors off as the hand itself answered (HAND_INFO); the emulator on that bus saw SYSTEM_OFF."""
     import functools
 
     from rotation.hardware import allegro
@@ -87,7 +87,7 @@ def test_real_allegro_path_against_an_emulator_on_a_virtual_bus(tmp_path, policy
         summary = run(Config(hand="allegro", can="virtual:deploy-test-bus", policy=policy, duration=1.5,
                              record=str(record)))
         assert summary["exit_code"] == 0 and summary["source"] == "real" and summary["rotation_rad"] is None
-        assert summary["motors_off"] and summary["motors_off_witness"] == "driver"
+        assert summary["motors_off"] and summary["motors_off_confirmed"] and summary["motors_off_witness"] == "hand"
         assert not emu.servo_on
     with read_session(record, summary["steps"]) as r:
         assert r.meta.source == "real" and not r.has("labels/object_pose") and r.meta.properties == {}

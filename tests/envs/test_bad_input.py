@@ -29,14 +29,14 @@ CONFIG_ERRORS = [
     (RandomizationConfig, dict(scale_jitter=0.9), r"randomization\.scale_jitter must be in \[0, 0\.7\)"),
     (RandomizationConfig, dict(mass=(0.2, 0.1)),
      r"randomization\.mass is inverted: low 0\.2 > high 0\.1; expected a \(low, high\) pair with low <= high within "
-     r"\[0\.0001, inf\]"),
+     r"\[0\.0001, 0\.5\]"),
     (RandomizationConfig, dict(mass=(-0.1, 0.2)), r"randomization\.mass=\(-0\.1, 0\.2\) is outside the allowed "
-                                                  r"interval \[0\.0001, inf\]"),
+                                                  r"interval \[0\.0001, 0\.5\]"),
     (RandomizationConfig, dict(mass=(-0.2, -0.1)), r"randomization\.mass=.* outside the allowed interval"),
     (RandomizationConfig, dict(mass=0.1), r"randomization\.mass must be a \(low, high\) pair .* got 0\.1"),
     (RandomizationConfig, dict(mass=(0.1, 0.2, 0.3)), r"randomization\.mass must be a \(low, high\) pair"),
     (RandomizationConfig, dict(friction=(0.3, math.inf)), r"randomization\.friction must be finite"),
-    (RandomizationConfig, dict(friction=(0.0, 1.0)), r"randomization\.friction=.* allowed interval \[0\.01, inf\]"),
+    (RandomizationConfig, dict(friction=(0.0, 1.0)), r"randomization\.friction=.* allowed interval \[0\.01, 3\.0\]"),
     (RandomizationConfig, dict(com=(-0.1, 0.1)), r"randomization\.com=.* allowed interval \[-0\.05, 0\.05\]"),
     (RandomizationConfig, dict(kp=(3.1, 2.9)), r"randomization\.kp is inverted"),
     (RandomizationConfig, dict(joint_noise=-0.01), r"randomization\.joint_noise must be finite and >= 0"),
@@ -135,3 +135,84 @@ def test_step_before_reset():
 def re_shape(shape: tuple[int, ...]) -> str:
     """The regex of a shape as numpy prints it, e.g. (3, 16) -> '\\(3, 16\\)'."""
     return str(tuple(shape)).replace("(", r"\(").replace(")", r"\)")
+
+
+# -- types, physical limits ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    (dict(tactile="no"), r"tactile must be True or False, got str 'no'"),
+    (dict(tactile=1), r"tactile must be True or False, got int 1"),
+    (dict(episode_steps=400.0), r"episode_steps must be an integer, got float 400\.0"),
+    (dict(episode_steps=True), r"episode_steps must be an integer, got bool True"),
+    (dict(kp="3"), r"kp must be a number, got str '3'"),
+    (dict(object=3), r"object must be a string, got int 3"),
+    (dict(grasp_cache=None), r"grasp_cache must be a string, got NoneType None"),
+    (dict(randomization={"enabled": "no"}), r"randomization\.enabled must be True or False, got str 'no'"),
+    (dict(randomization={"scales": (0.8, "0.9")}),
+     r"randomization\.scales must be a tuple of numbers, got tuple \(0\.8, '0\.9'\)"),
+    (dict(randomization={"mass": ("0.1", 0.2)}), r"randomization\.mass must be a \(low, high\) pair"),
+    (dict(reward={"tilt": float("nan")}), r"reward\.tilt must be a finite number, got nan"),
+    (dict(reward={"fall": "-20"}), r"reward\.fall must be a number, got str '-20'"),
+    (dict(reward={"axis": (0, 0, True)}), r"reward\.axis must be a unit 3-vector"),
+    (dict(perturb={"friction_scale": True}), r"perturb\.friction_scale must be a number, got bool True"),
+    (dict(perturb={"com_shift": ("0.01", 0, 0)}), r"perturb\.com_shift must be 3 finite values"),
+    (dict(kp=1e30), r"kp must be at most 100 N m / rad, got 1e\+30"),
+    (dict(max_distance=12.0), r"max_distance must be at most 1 m, got 12\.0"),
+])
+def test_values_of_the_wrong_type_or_size_are_refused_through_gymnasium(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        gym.make("envs:RotateCup-v0", **kwargs)
+    with pytest.raises(ValueError, match=message):
+        gym.make_vec("envs:RotateCup-v0", num_envs=2, vectorization_mode="vector_entry_point", **kwargs)
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    (dict(num_envs="3"), r"num_envs must be an integer, got str '3'"),
+    (dict(num_envs=2.7), r"num_envs must be an integer, got float 2\.7"),
+    (dict(nthread=0), r"nthread must be an integer in \[1, 1024\], got 0"),
+    (dict(nthread="2"), r"nthread must be an integer in \[1, 1024\], got '2'"),
+])
+def test_bad_vector_arguments(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        gym.make_vec("envs:RotateCup-v0", vectorization_mode="vector_entry_point", **{"num_envs": 2, **kwargs})
+
+
+def test_friction_above_what_the_contact_model_holds_is_refused():
+    from envs.config import MAX_FRICTION
+
+    assert MAX_FRICTION == 3.0
+    # the default randomization reaches 3.0 already: any friction_scale above 1 exceeds the limit
+    with pytest.raises(ValueError, match=r"perturb\.friction_scale 3 makes the friction reach 9, above 3\.0, the most "
+                                         r"the contact model holds .*friction_scale must be in \(0, 1\]"):
+        EnvConfig(perturb=Perturbation(friction_scale=3.0))
+    with pytest.raises(ValueError, match=r"friction_scale must be in \(0, 1\]"):
+        gym.make("envs:RotateCup-v0", perturb={"friction_scale": 1.2})
+    # without randomization the friction is the middle of the range (1.65): up to x1.82
+    nominal = RandomizationConfig(enabled=False)
+    EnvConfig(randomization=nominal, perturb=Perturbation(friction_scale=1.8))
+    with pytest.raises(ValueError, match=r"friction_scale must be in \(0, 1\.82\]"):
+        EnvConfig(randomization=nominal, perturb=Perturbation(friction_scale=1.9))
+    with pytest.raises(ValueError, match=r"randomization\.friction=\(0\.3, 4\.0\) is outside the allowed interval "
+                                         r"\[0\.01, 3\.0\]"):
+        RandomizationConfig(friction=(0.3, 4.0))
+
+
+def test_added_mass_above_what_the_actuators_lift_is_refused():
+    EnvConfig(perturb=Perturbation(added_mass=0.25))  # 0.25 kg randomized + 0.25 kg = 0.5 kg, the ceiling
+    with pytest.raises(ValueError, match=r"perturb\.added_mass 0\.3 kg makes the object weigh up to 0\.55 kg, above "
+                                         r"0\.5 kg, what the 0\.5 N m actuators can lift; .* added_mass must be in "
+                                         r"\[0, 0\.25\] kg"):
+        EnvConfig(perturb=Perturbation(added_mass=0.3))
+    with pytest.raises(ValueError, match=r"perturb\.added_mass must be in \[0, 0\.5\] kg"):
+        Perturbation(added_mass=2.0)
+    with pytest.raises(ValueError, match=r"randomization\.mass=\(0\.1, 1\.0\) is outside the allowed interval"):
+        RandomizationConfig(mass=(0.1, 1.0))
+
+
+def test_every_shipped_evaluation_condition_is_within_the_limits():
+    from rotation.evaluate.suites import SUITES
+
+    for suite in SUITES.values():
+        for cond in suite():
+            EnvConfig(perturb=cond.perturb)

@@ -18,8 +18,8 @@ from envs.vector import RotateCupVectorEnv
 
 OBS_SHAPES = {"proprio": (C.PROPRIO_STEPS, C.PROPRIO_DIM), "proprio_hist": (C.HISTORY_STEPS, C.PROPRIO_DIM),
               "priv": (C.PRIV_DIM,)}
-INFO_KEYS = {"rotation", "height", "lin_vel", "torque", "fell", "elapsed_steps", "rew_rotate", "rew_obj_linvel",
-             "rew_pose_diff", "rew_torque", "rew_work", "rew_fall"}
+INFO_KEYS = {"rotation", "height", "tilt", "lin_vel", "torque", "fell", "elapsed_steps", "rew_rotate", "rew_obj_linvel",
+             "rew_pose_diff", "rew_torque", "rew_work", "rew_tilt", "rew_fall"}
 
 
 def test_gymnasium_env_checker():

@@ -9,7 +9,7 @@ import pytest
 
 from envs import EnvConfig, RotateCupVec
 from envs import constants as C
-from envs.grasps import GRASP_DIM, GraspCache, generate_grasps, load_default_cache
+from envs.grasps import CANONICAL_POSE, GRASP_DIM, GraspCache, generate_grasps, load_default_cache
 from envs.objects import get_object
 from envs.scene import OBJECT_BODY, OBJECT_START, build_model
 
@@ -18,13 +18,15 @@ SCALES = (0.74, 0.82)
 
 @pytest.fixture(scope="module")
 def generated():
-    return generate_grasps("cylinder", SCALES, per_scale=3, batch_size=8, max_rounds=5, seed=0, nthread=1)
+    return generate_grasps("cylinder", SCALES, per_scale=3, batch_size=8, max_rounds=20, seed=0, nthread=1)
 
 
 def small_cache(obj: str = "cylinder") -> GraspCache:
-    """2 buckets x 4 rows; row g of bucket b has joint 0 = 10 b + g, so a sampled row tells where it came from."""
+    """2 buckets x 4 rows of the canonical pose; row g of bucket b has joint 0 = (10 b + g) / 100 rad, so a sampled
+    row tells where it came from."""
     grasps = np.zeros((2, 4, GRASP_DIM))
-    grasps[:, :, 0] = 10 * np.arange(2)[:, None] + np.arange(4)[None]
+    grasps[:, :, :16] = CANONICAL_POSE
+    grasps[:, :, 0] = (10 * np.arange(2)[:, None] + np.arange(4)[None]) / 100
     grasps[:, :, 16:19] = OBJECT_START
     grasps[:, :, 19] = 1.0  # identity quaternion
     return GraspCache(obj, np.array([0.7, 0.8]), grasps, seed=4)
@@ -33,7 +35,7 @@ def small_cache(obj: str = "cylinder") -> GraspCache:
 def test_sample_picks_the_nearest_bucket_and_the_row_by_u():
     q, pose = small_cache().sample(np.zeros(4, int), np.array([0.71, 0.79, 0.76, 0.74]), np.array([0, 0.99, 0.5, 0.3]))
     # 0.76 is nearer 0.8 than 0.7; 0.74 nearer 0.7; row = floor(u x 4)
-    np.testing.assert_array_equal(q[:, 0], [0, 13, 12, 1])
+    np.testing.assert_array_equal(np.round(q[:, 0] * 100), [0, 13, 12, 1])
     assert q.shape == (4, 16) and pose.shape == (4, 7)
     np.testing.assert_array_equal(pose[:, 3], 1.0)
 
@@ -82,7 +84,7 @@ def test_generated_grasps_follow_horas_rule(generated):
 
 
 def test_generation_is_seeded(generated):
-    again = generate_grasps("cylinder", SCALES, per_scale=3, batch_size=8, max_rounds=5, seed=0, nthread=1)
+    again = generate_grasps("cylinder", SCALES, per_scale=3, batch_size=8, max_rounds=20, seed=0, nthread=1)
     np.testing.assert_array_equal(again.grasps, generated.grasps)
 
 
@@ -155,3 +157,53 @@ def test_generate_rejects_bad_budgets():
         generate_grasps("cylinder", (0.8,), per_scale=0)
     with pytest.raises(ValueError, match="unknown object 'mug'"):
         generate_grasps("mug", (0.8,), per_scale=1)
+
+
+def _saved_with(tmp_path, name: str, edit) -> str:
+    """A copy of the small cache with one edit, saved as ``name``; returns the path."""
+    cache = small_cache()
+    grasps, scales = cache.grasps.copy(), cache.scales.copy()
+    edit(grasps, scales)
+    path = tmp_path / name
+    np.savez(path, object="cylinder", scales=scales, grasps=grasps, seed=0)
+    return str(path)
+
+
+BAD_ROWS = {
+    # name: (edit of (grasps, scales), the message must match)
+    "joint_high": (lambda g, s: g.__setitem__((1, 2, 5), 2.5),
+                   r"bad\.npz: bucket 1 \(scale 0\.8\), row 2: joint 5 \(middle_1\) = 2\.5000 rad is outside its "
+                   r"limits \[-0\.196, 1\.61\]"),
+    "joint_low": (lambda g, s: g.__setitem__((0, 3, 12), 0.0),
+                  r"bucket 0 \(scale 0\.7\), row 3: joint 12 \(thumb_0\) = 0\.0000 rad is outside its limits"),
+    "quaternion": (lambda g, s: g.__setitem__((0, 1, 19), 0.5),
+                   r"bucket 0 \(scale 0\.7\), row 1: the object quaternion has norm 0\.5\d*, not 1"),
+    "far_object": (lambda g, s: g.__setitem__((1, 0, 18), 0.5),
+                   r"bucket 1 \(scale 0\.8\), row 0: the object centre .* m from the hand's grasp point"),
+    "nan_row": (lambda g, s: g.__setitem__((1, 3, 7), np.nan), r"bucket 1 \(scale 0\.8\), row 3: non-finite values"),
+    "nan_scale": (lambda g, s: s.__setitem__(0, np.nan), r"bad\.npz: scales must be finite numbers in \[0\.1, 3\.0\]"),
+    "zero_scale": (lambda g, s: s.__setitem__(1, 0.0), r"scales must be finite numbers in \[0\.1, 3\.0\]"),
+}
+
+
+@pytest.mark.parametrize("kind", list(BAD_ROWS))
+def test_bad_rows_name_the_file_and_the_row(tmp_path, kind):
+    edit, message = BAD_ROWS[kind]
+    path = _saved_with(tmp_path, "bad.npz", edit)
+    with pytest.raises(ValueError, match=message):
+        GraspCache.load(path)
+    with pytest.raises(ValueError, match=message):  # also through the env
+        RotateCupVec(EnvConfig(object="cylinder", grasp_cache=path))
+
+
+def test_unknown_object_in_the_file(tmp_path):
+    np.savez(tmp_path / "mug.npz", object="mug", scales=small_cache().scales, grasps=small_cache().grasps)
+    with pytest.raises(ValueError, match=r"mug\.npz: unknown object 'mug'; known objects: cup"):
+        GraspCache.load(tmp_path / "mug.npz")
+
+
+def test_shipped_caches_are_valid():
+    from envs.grasps import default_cache_path
+
+    for name in ("cup", "cup_small", "cup_large", "cylinder"):
+        assert GraspCache.load(default_cache_path(name)).source.endswith(f"grasps_{name}.npz")

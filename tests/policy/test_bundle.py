@@ -182,3 +182,62 @@ def test_rejects_bad_observations(teacher):
         teacher.act_batch(obs)
     with pytest.raises(BundleError, match="non-finite"):
         teacher.act({**obs, "proprio": np.full((3, 32), np.nan)})
+
+
+# a config.json edit -> the words the loader's BundleError must contain (field and what is allowed)
+HAND = {"lower": list(B.C.JOINT_LOWER), "upper": list(B.C.JOINT_UPPER)}
+BAD_CONFIGS = [
+    ("inverted limits", dict(joint_lower=HAND["upper"], joint_upper=HAND["lower"]),
+     r"joint_lower must be < joint_upper at every joint \(joint 0: 0\.47 >= -0\.47"),
+    ("limits past the hand", dict(joint_upper=[HAND["upper"][0] + 0.5, *HAND["upper"][1:]]),
+     r"joint_upper lies outside the hand's joint limits.*joint 0: 0\.97 vs 0\.47"),
+    ("non-finite limit", dict(joint_lower=[None, *HAND["lower"][1:]]), r"joint_lower must be a list of numbers"),
+    ("too few limits", dict(joint_lower=HAND["lower"][:15]), r"must have 16 entries"),
+    ("rate a loop cannot hold", dict(control_hz=1000.0), r"control_hz must be in \[5, 100\] Hz.*got 1000"),
+    ("rate too slow", dict(control_hz=1.0), r"control_hz must be in \[5, 100\] Hz"),
+    ("huge action scale", dict(action_scale=2.0), r"action_scale must be in \(0, 0\.25\] rad per step, got 2\.0"),
+    ("negative action scale", dict(action_scale=-0.01), r"action_scale must be in \(0, 0\.25\]"),
+    ("number as a string", dict(control_hz="20"), r"control_hz must be a number, got '20' \(str\)"),
+    ("scale as a string", dict(action_scale="0.04"), r"action_scale must be a number, got '0\.04' \(str\)"),
+    ("limit as a string", dict(joint_upper=["1.0", *HAND["upper"][1:]]), r"joint_upper must be a list of numbers"),
+    ("bool as a number", dict(norm_clip=True), r"norm_clip must be a number, got True \(bool\)"),
+    ("width as a string", dict(actor_hidden=["512", 256, 128]), r"actor_hidden must be a list of integers"),
+    ("zero width", dict(actor_hidden=[512, 0, 128]), r"actor_hidden must hold sizes >= 1"),
+    ("nested size as a string", dict(encoder={"in_dim": "9", "hidden": [256, 128], "latent_dim": 8}),
+     r"encoder\.in_dim.*'9'"),
+    ("network as a string", dict(encoder="big"), r"encoder must be a EnvFactorEncoderConfig \(a JSON object\) or "
+                                                 r"null, got 'big'"),
+    ("wrong action count", dict(action_dim=12), r"action_dim must be 16"),
+    ("card not an object", dict(card=[1, 2]), r"card must be a JSON object"),
+]
+
+
+@pytest.mark.parametrize(("what", "changes", "match"), BAD_CONFIGS, ids=[c[0] for c in BAD_CONFIGS])
+def test_loader_validates_every_field_before_use(tmp_path, teacher, what, changes, match):
+    """A bundle is refused by the loader (so by evaluation, the demo and deploy alike) with the file, the field and
+    what is allowed; never accepted to fail later (on a hand: after the motors are on)."""
+    path = teacher.save(tmp_path / "b")
+    edit_config(path, **changes)
+    with pytest.raises(BundleError, match=match) as err:
+        load_bundle(path)
+    assert str(path / "config.json") in str(err.value)
+
+
+def test_valid_edge_values_load(tmp_path, teacher):
+    """The ranges are inclusive, and a bundle may narrow the hand's joint limits."""
+    narrow = [lo + 0.1 for lo in HAND["lower"]]
+    path = teacher.save(tmp_path / "b")
+    edit_config(path, control_hz=10, action_scale=0.25, joint_lower=narrow)  # an int rate is a number too
+    cfg = load_bundle(path).config
+    assert cfg.control_hz == 10 and cfg.action_scale == 0.25 and cfg.joint_lower == tuple(narrow)
+    edit_config(path, control_hz=100.0, action_scale=0.2)
+    assert load_bundle(path).config.control_hz == 100.0
+
+
+def test_networks_that_cannot_be_built_are_a_bundle_error(tmp_path, teacher):
+    path = teacher.to_student().save(tmp_path / "s")
+    cfg = json.loads((path / "config.json").read_text())
+    cfg["adaptation"]["kernels"] = [29, 5, 5]  # longer than the 30-step history allows
+    (path / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(BundleError, match="cannot be built.*too short for kernels"):
+        load_bundle(path)

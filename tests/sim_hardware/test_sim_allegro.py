@@ -147,6 +147,25 @@ def test_fault_bus_off(allegro_emu):
             hand.set_targets(np.zeros(16))
 
 
+def test_motors_off_is_confirmed_by_the_hands_answer(allegro_emu):
+    with AllegroHand(allegro_emu.spec, CFG) as hand:
+        assert hand.motors_switched_on and hand.motors_off_confirmed is None
+    assert hand.motors_off_confirmed is True and not allegro_emu.servo_on
+    with AllegroHand(allegro_emu.spec, AllegroConfig(enable_motors=False)) as hand:
+        hand.read_state()
+    assert not hand.motors_switched_on and hand.motors_off_confirmed is None  # read-only: nothing to confirm
+
+
+def test_fault_bus_off_leaves_motors_off_unconfirmed(allegro_emu, caplog):
+    """SYSTEM_OFF into a dead bus raises no error; only the missing answer shows the hand never got it."""
+    with AllegroHand(allegro_emu.spec, CFG) as hand, caplog.at_level(logging.CRITICAL):
+        assert wait_until(lambda: allegro_emu.servo_on)  # the hand heard SYSTEM_ON before the bus went down
+        allegro_emu.faults.bus_off = True
+        assert wait_until(lambda: hand.fault is not None, timeout=2.0)
+    assert hand.motors_off_confirmed is False and allegro_emu.servo_on
+    assert "did not confirm that its servo is off" in caplog.text and "power supply" in caplog.text
+
+
 def test_fault_no_reply_raises_not_responding(allegro_emu):
     allegro_emu.faults.ignore_requests = True
     t0 = time.monotonic()

@@ -165,6 +165,19 @@ def test_fault_disconnect_switches_off_within_timeout(leap_emu, caplog):
         assert "FAULT" in caplog.text
 
 
+def test_torque_off_is_confirmed_by_every_servo(leap_emu):
+    with LeapHand(leap_emu.path, CFG) as hand:
+        assert hand.motors_switched_on and hand.motors_off_confirmed is None
+    assert hand.motors_off_confirmed is True
+
+
+def test_fault_disconnect_leaves_torque_off_unconfirmed(leap_emu, caplog):
+    with LeapHand(leap_emu.path, CFG) as hand, caplog.at_level(logging.CRITICAL):
+        leap_emu.disconnect()
+        assert wait_until(lambda: hand.fault is not None, timeout=3.0)
+    assert hand.motors_off_confirmed is False and "cut the power" in caplog.text
+
+
 def test_policy_stall_release_and_resume(leap_emu):
     safety = SafetyConfig(policy_timeout_s=0.1, on_policy_stall="release")
     cfg = LeapConfig(feedback_timeout_s=0.5, max_retries=6, safety=safety)

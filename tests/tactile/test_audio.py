@@ -11,14 +11,15 @@ import torch
 from envs.sensors import kaldi
 from rotation.tactile.audio import EPS, SPARSH_FBANK, FbankConfig, fbank
 
-FIXTURE = Path(__file__).resolve().parents[2] / ".." / "shared" / "fixtures" / "kaldi_fbank_48k_128mel.npz"
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "kaldi_fbank_48k_128mel.npz"
+"""torchaudio's output for three signals (provenance: tests/fixtures/README.md)."""
 CASES = ("noise", "chirp_impacts", "int16_scale")
 
 
 @pytest.fixture(scope="module")
 def reference():
     if not FIXTURE.is_file():
-        pytest.fail(f"missing fixture {FIXTURE} (the shared/ folder sits beside the repository)")
+        pytest.fail(f"missing fixture {FIXTURE} (it is part of the repository: tests/fixtures/)")
     with np.load(FIXTURE) as f:
         return {k: f[k] for k in f.files}
 

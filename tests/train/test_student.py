@@ -23,7 +23,7 @@ def setup(tmp_path_factory):
     with torch.no_grad():  # a latent that varies strongly with the privileged vector, so there is much to learn
         teacher.net.extractor.encoder.mlp[0].weight.mul_(20.0)
     teacher.save(root / "teacher")
-    cache = generate_grasps("cylinder", (0.78,), per_scale=4, batch_size=16, max_rounds=5, seed=0, nthread=1)
+    cache = generate_grasps("cylinder", (0.78,), per_scale=4, batch_size=16, max_rounds=20, seed=0, nthread=1)
     cache.save(root / "grasps.npz")
     return root
 
@@ -75,7 +75,92 @@ def test_bad_input(setup, tmp_path):
     with pytest.raises(ValueError, match="no checkpoint"):
         student.run(make_cfg(setup, tmp_path / "y", resume=True))
     student.run(make_cfg(setup, tmp_path / "z", total_steps=8 * 2))
-    with pytest.raises(ValueError, match="already holds checkpoints"):
+    with pytest.raises(ValueError, match=r"already holds a run \(config\.json, bundle, curves\.jsonl, tb, "
+                                         r"ckpt_000000002\.pt\); pass --resume to continue it, pass --overwrite"):
         student.run(make_cfg(setup, tmp_path / "z", total_steps=8 * 2))
-    with pytest.raises(ValueError, match=r"differs .* in \['lr'\]"):
+    with pytest.raises(ValueError, match=r"options differ from the run's .*config\.json\): lr: 0\.0003 -> 0\.01"):
         student.run(make_cfg(setup, tmp_path / "z", total_steps=8 * 4, lr=1e-2, resume=True))
+
+
+# -- runs never lose or mix data -------------------------------------------------------------------------------------
+
+
+def test_a_folder_holding_any_run_is_refused_and_left_alone(setup, tmp_path):
+    out = tmp_path / "teacher_run"  # e.g. a teacher's run folder given as --out by mistake: no ckpt_*.pt in it
+    (out / "bundle").mkdir(parents=True)
+    (out / "config.json").write_text("{}")
+    with pytest.raises(ValueError, match=r"already holds a run \(config\.json, bundle\)"):
+        student.run(make_cfg(setup, out, total_steps=8 * 2))
+    assert (out / "config.json").read_text() == "{}"
+
+
+def test_overwrite_clears_the_old_run(setup, tmp_path):
+    out = tmp_path / "run"
+    student.run(make_cfg(setup, out, total_steps=8 * 4, checkpoint_every=8 * 2))
+    assert sorted(p.name for p in out.glob("ckpt_*.pt")) == ["ckpt_000000002.pt", "ckpt_000000004.pt"]
+    student.run(make_cfg(setup, out, total_steps=8 * 3, checkpoint_every=8 * 3, overwrite=True))
+    assert sorted(p.name for p in out.glob("ckpt_*.pt")) == ["ckpt_000000003.pt"]  # the old ones are gone
+    with pytest.raises(ValueError, match="give one of them"):
+        make_cfg(setup, out, resume=True, overwrite=True)
+
+
+def test_failed_resume_keeps_the_config(setup, tmp_path):
+    out = tmp_path / "run"
+    student.run(make_cfg(setup, out, total_steps=8 * 2))
+    saved = (out / "config.json").read_bytes()
+    with pytest.raises(ValueError, match=r"options differ .*: env\.episode_steps: 40 -> 30; seed: 0 -> 3"):
+        student.run(make_cfg(setup, out, total_steps=8 * 4, seed=3, resume=True,
+                             env=EnvConfig(object="cylinder", episode_steps=30,
+                                           grasp_cache=str(setup / "grasps.npz"))))
+    assert (out / "config.json").read_bytes() == saved
+
+
+def test_damaged_latest_checkpoint_falls_back(setup, tmp_path, capsys):
+    out = tmp_path / "run"
+    student.run(make_cfg(setup, out, total_steps=8 * 4, checkpoint_every=8 * 2))
+    latest = out / "ckpt_000000004.pt"
+    latest.write_bytes(latest.read_bytes()[:100])  # truncated
+    result = student.run(make_cfg(setup, out, total_steps=8 * 6, checkpoint_every=8 * 2, resume=True))
+    err = capsys.readouterr().err
+    assert "ckpt_000000004.pt is damaged" in err and "resuming from" in err and "ckpt_000000002.pt" in err
+    assert result.history[0]["iteration"] > 2  # it continued from iteration 2
+    assert load_bundle(result.bundle_dir).config.card["env_steps"] == 8 * 6
+    rows = [json.loads(line)["env_steps"] for line in (out / "curves.jsonl").read_text().splitlines()]
+    assert rows == sorted(rows) and len(rows) == len(set(rows))  # points after step 16 were logged once
+
+
+def test_a_foreign_checkpoint_is_a_clear_error(setup, tmp_path):
+    out = tmp_path / "run"
+    student.run(make_cfg(setup, out, total_steps=8 * 2))
+    torch.save({"weights": torch.zeros(3)}, out / "ckpt_000000009.pt")
+    with pytest.raises(ValueError, match=r"ckpt_000000009\.pt is not a train-student checkpoint"):
+        student.run(make_cfg(setup, out, total_steps=8 * 12, resume=True))
+
+
+@pytest.mark.parametrize(("signum", "code"), [(2, 130), (15, 143)])
+def test_signal_saves_checkpoint_and_bundle_then_exits_with_its_status(setup, tmp_path, monkeypatch, capsys, signum,
+                                                                       code):
+    import os
+
+    from rotation import cli
+
+    original = student._log
+
+    def log_then_signal(writer, point):
+        original(writer, point)
+        if point["iteration"] == 3:
+            os.kill(os.getpid(), signum)
+
+    monkeypatch.setattr(student, "_log", log_then_signal)
+    out = tmp_path / "run"
+    status = cli.main(["train-student", "--teacher", str(setup / "teacher"), "--out", str(out), "--num-envs", "8",
+                       "--total-steps", str(8 * 100), "--log-every", "1", "--nthread", "1", "--no-progress",
+                       "--env.object", "cylinder", "--env.episode-steps", "40",
+                       "--env.grasp-cache", str(setup / "grasps.npz")])
+    assert status == code
+    captured = capsys.readouterr()
+    assert "train-student: interrupted by SIG" in captured.out and "Traceback" not in captured.err
+    assert sorted(p.name for p in out.glob("ckpt_*.pt")) == ["ckpt_000000003.pt"]
+    card = load_bundle(out / "bundle").config.card
+    assert "stopped by SIG" in card["interrupted"] and card["env_steps"] == 8 * 3
+    assert [json.loads(line)["iteration"] for line in (out / "curves.jsonl").read_text().splitlines()] == [1, 2, 3]

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from envs.core import RotateCupVec
+from rotation.interrupt import Interrupted
 from rotation.policy.bundle import load_bundle
 from rotation.train import teacher
 from rotation.train.teacher import AdaptiveKLPPO, KLSchedule
@@ -21,14 +22,15 @@ def _cfg(tmp_path, **kw) -> teacher.Config:
     return teacher.Config(**base)
 
 
-def _mean_return(model, cfg: teacher.Config, seed: int) -> tuple[float, int]:
-    """Mean return and number of drops of the stochastic policy in 64 envs over one 50-step episode each."""
-    env = RotateCupVec(cfg.env_config(), num_envs=64, seed=seed, nthread=1)
+def _mean_return(model, cfg: teacher.Config, seed: int, n: int = 256) -> tuple[float, int]:
+    """Mean return and number of drops of the stochastic policy in n envs over one episode each (same seed, so
+    the same grasps and the same action noise draws for every policy compared)."""
+    env = RotateCupVec(cfg.env_config(), num_envs=n, seed=seed, nthread=1)
     obs = env.reset(seed=seed)
-    alive, total = np.ones(64, dtype=bool), np.zeros(64)
+    alive, total = np.ones(n, dtype=bool), np.zeros(n)
     torch.manual_seed(seed)
     for _ in range(cfg.episode_steps):
-        actions, _ = model.predict(obs, deterministic=False)
+        actions, _ = model.predict({k: obs[k] for k in teacher.TEACHER_GROUPS}, deterministic=False)
         obs, reward, terminated, _, _ = env.step(actions)
         total += np.where(alive, reward, 0.0)
         alive &= ~terminated
@@ -45,21 +47,32 @@ def test_kl_schedule_follows_the_rl_games_rule():
     assert s.lr == pytest.approx(1e-3)
 
 
+LEARNING_SEEDS = (0, 1)
+
+
 def test_tiny_teacher_learns_to_keep_the_object(tmp_path):
-    cfg = _cfg(tmp_path, total_steps=24_576, checkpoint_every=100_000)
-    env = teacher.RotateCupSB3VecEnv(cfg.env_config(), cfg.num_envs, seed=cfg.seed, reward_scale=cfg.reward_scale)
-    before, dropped_before = _mean_return(teacher.build_model(cfg, env), cfg, seed=123)
-    env.close()
-    teacher.run(cfg)
-    trained = AdaptiveKLPPO.load(cfg.out / "checkpoints" / "last.zip", device="cpu")
-    after, dropped_after = _mean_return(trained, cfg, seed=123)
-    print(f"return {before:.2f} -> {after:.2f}, drops {dropped_before} -> {dropped_after}")
-    # with std 1 the random policy drops many objects (fall penalty -20) and pays for jerky motion; a few
-    # updates teach it to hold on and move less
-    assert dropped_before >= 12 and dropped_after <= 0.75 * dropped_before, (dropped_before, dropped_after)
-    assert after > before, (before, after)
+    """24k steps of PPO per seed raise the return of a std-1 policy that tips or drops the cup in most episodes.
+
+    Measured on this project's machines: +3.4, +2.2 and +2.7 mean return (256 episodes) for seeds 0, 1, 2, and
+    +0.09 with the update switched off (PPO's train() a no-op). The bound, +1.0 averaged over two seeds, is
+    ten times what a broken update gives and well under what one run of either seed gave: float differences
+    between CPUs change a run's details, not whether it learns.
+    """
+    gains = []
+    for seed in LEARNING_SEEDS:
+        cfg = _cfg(tmp_path / f"seed{seed}", total_steps=24_576, checkpoint_every=100_000, seed=seed)
+        env = teacher.RotateCupSB3VecEnv(cfg.env_config(), cfg.num_envs, seed=cfg.seed,
+                                         reward_scale=cfg.reward_scale, obs_groups=teacher.TEACHER_GROUPS)
+        before, dropped_before = _mean_return(teacher.build_model(cfg, env), cfg, seed=123)
+        env.close()
+        teacher.run(cfg)
+        trained = AdaptiveKLPPO.load(cfg.out / "checkpoints" / "last.zip", device="cpu")
+        after, dropped_after = _mean_return(trained, cfg, seed=123)
+        print(f"seed {seed}: return {before:.2f} -> {after:.2f}, drops {dropped_before} -> {dropped_after} of 256")
+        gains.append(after - before)
+    assert np.mean(gains) > 1.0, gains
     curves = [json.loads(line) for line in (cfg.out / "curves.jsonl").read_text().splitlines()]
-    assert curves and {"r", "l", "ttf", "rotation_rate", "rew_rotate"} <= set(curves[0])
+    assert curves and {"r", "l", "ttf", "upright", "rotation_rate", "rew_rotate", "rew_tilt"} <= set(curves[0])
     bundle = load_bundle(cfg.out / "bundle")
     assert bundle.config.latent_source == "privileged"
     assert bundle.config.card["steps"] == 24_576
@@ -93,6 +106,176 @@ def test_interrupt_still_saves_checkpoint_and_bundle(tmp_path, monkeypatch):
 
     monkeypatch.setattr(AdaptiveKLPPO, "learn", interrupted_learn)
     cfg = _cfg(tmp_path)
-    teacher.run(cfg)
+    with pytest.raises(Interrupted, match="interrupted by SIGINT") as err:
+        teacher.run(cfg)
+    assert err.value.exit_code == 130  # reported as interrupted, not as done
     assert (cfg.out / "checkpoints" / "last.zip").is_file()
-    assert load_bundle(cfg.out / "bundle").config.card["steps"] == 0
+    card = load_bundle(cfg.out / "bundle").config.card
+    assert card["steps"] == 0 and "SIGINT" in card["interrupted"]
+
+
+# -- runs never lose or mix data -------------------------------------------------------------------------------------
+
+
+def _curve_steps(out) -> list[int]:
+    return [json.loads(line)["steps"] for line in (out / "curves.jsonl").read_text().splitlines()]
+
+
+def test_existing_run_is_refused_without_resume(tmp_path):
+    cfg = _cfg(tmp_path, total_steps=1024)
+    teacher.run(cfg)
+    before = {p: p.read_bytes() for p in (cfg.out / "config.json", cfg.out / "curves.jsonl",
+                                          cfg.out / "checkpoints" / "last.zip")}
+    with pytest.raises(ValueError, match=r"already holds a run \(config\.json, checkpoints, bundle, curves\.jsonl"
+                                         r".*--resume .*last\.zip to continue it, pass --overwrite"):
+        teacher.run(_cfg(tmp_path, total_steps=1024, seed=5))
+    assert {p: p.read_bytes() for p in before} == before  # nothing was touched
+
+
+def test_overwrite_clears_the_old_run_first(tmp_path):
+    out = tmp_path / "run"
+    (out / "bundle").mkdir(parents=True)
+    (out / "bundle" / "stale.txt").write_text("from an older run")
+    (out / "curves.jsonl").write_text(json.dumps({"steps": 99_999, "r": 1.0}) + "\n")
+    (out / "notes.txt").write_text("the user's own file")
+    teacher.run(_cfg(tmp_path, total_steps=1024, overwrite=True))
+    assert not (out / "bundle" / "stale.txt").exists()
+    assert 99_999 not in _curve_steps(out)
+    assert (out / "notes.txt").read_text() == "the user's own file"  # only the run's outputs are deleted
+
+
+def test_resume_with_other_ppo_options_is_refused_and_keeps_config(tmp_path):
+    first = _cfg(tmp_path, total_steps=1024)
+    teacher.run(first)
+    ckpt = first.out / "checkpoints" / "last.zip"
+    saved = (first.out / "config.json").read_bytes()
+    with pytest.raises(ValueError, match=r"options differ from the run's .*config\.json\): gamma: 0\.99 -> 0\.9; "
+                                         r"n_epochs: 4 -> 2\. .* only checkpoint_every, device, out, overwrite"):
+        teacher.run(_cfg(tmp_path, total_steps=2048, resume=ckpt, n_epochs=2, gamma=0.9))
+    assert (first.out / "config.json").read_bytes() == saved  # a failed resume writes nothing
+    # without the run's config.json the checkpoint's own record still catches PPO options
+    (first.out / "config.json").unlink()
+    with pytest.raises(ValueError, match=r"recorded in .*last\.zip\): clip_range: 0\.2 -> 0\.3"):
+        teacher.run(_cfg(tmp_path, total_steps=2048, resume=ckpt, clip_range=0.3))
+
+
+def test_curves_are_on_disk_with_each_checkpoint(tmp_path, monkeypatch):
+    """A crash (here an exception after the second checkpoint, as a SIGKILL would) keeps the curve rows so far."""
+    original = teacher.Checkpoints.save
+
+    def save_then_crash(self):
+        path = original(self)
+        if self.num_timesteps >= 2048:
+            raise RuntimeError("killed")
+        return path
+
+    monkeypatch.setattr(teacher.Checkpoints, "save", save_then_crash)
+    cfg = _cfg(tmp_path, total_steps=4096, checkpoint_every=1024)
+    with pytest.raises(RuntimeError, match="killed"):
+        teacher.run(cfg)
+    steps = _curve_steps(cfg.out)
+    assert steps and max(steps) <= 2048 and steps == sorted(steps)
+
+
+def test_damaged_last_checkpoint_falls_back_to_the_previous_intact_one(tmp_path, capsys):
+    cfg = _cfg(tmp_path, total_steps=2048, checkpoint_every=1024)
+    teacher.run(cfg)
+    folder = cfg.out / "checkpoints"
+    assert sorted(p.name for p in folder.glob("step_*.zip")) == ["step_0000001024.zip", "step_0000002048.zip"]
+    for name in ("last.zip", "step_0000002048.zip"):  # truncated, as by a full disk
+        data = (folder / name).read_bytes()
+        (folder / name).write_bytes(data[: len(data) // 2])
+    teacher.run(_cfg(tmp_path, total_steps=3072, checkpoint_every=1024, resume=folder / "last.zip"))
+    err = capsys.readouterr().err
+    assert "warning: checkpoint" in err and "last.zip is damaged" in err and "step_0000001024.zip" in err
+    assert AdaptiveKLPPO.load(folder / "last.zip", device="cpu").num_timesteps == 3072
+    steps = _curve_steps(cfg.out)
+    assert steps == sorted(steps)  # the rows after step 1024 of the lost part were dropped before appending
+
+
+def test_checkpoints_of_other_programs_are_clear_errors(tmp_path):
+    import zipfile
+
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+
+    (tmp_path / "other.zip").write_bytes(b"")
+    with zipfile.ZipFile(tmp_path / "other.zip", "w") as z:
+        z.writestr("hello.txt", "not a model")
+    with pytest.raises(ValueError, match=r"other\.zip is not a train-teacher checkpoint: a zip of \['hello\.txt'\]"):
+        teacher.run(_cfg(tmp_path, resume=tmp_path / "other.zip"))
+    PPO("MlpPolicy", gym.make("Pendulum-v1"), n_steps=64, batch_size=64).save(tmp_path / "pendulum.zip")
+    with pytest.raises(ValueError, match=r"pendulum\.zip cannot be loaded as a train-teacher checkpoint "
+                                         r"\(ValueError: Observation spaces do not match"):
+        teacher.run(_cfg(tmp_path, resume=tmp_path / "pendulum.zip"))
+    # the teacher's observation space, but SB3's plain policy instead of the privileged one
+    env = teacher.RotateCupSB3VecEnv(_cfg(tmp_path).env_config(), 2, seed=0,
+                                     obs_groups=getattr(teacher, "TEACHER_GROUPS", None))
+    PPO("MultiInputPolicy", env, n_steps=64, batch_size=64).save(tmp_path / "plain.zip")
+    env.close()
+    with pytest.raises(ValueError, match=r"plain\.zip holds a MultiInputActorCriticPolicy with a "
+                                         r"CombinedExtractor features extractor, not the teacher's privileged policy"):
+        teacher.run(_cfg(tmp_path, resume=tmp_path / "plain.zip"))
+    (tmp_path / "garbage.zip").write_bytes(b"PK\x03\x04 not really")
+    with pytest.raises(ValueError, match=r"garbage\.zip is damaged .*not a readable zip file"):
+        teacher.run(_cfg(tmp_path, resume=tmp_path / "garbage.zip"))
+    assert not (tmp_path / "run" / "config.json").exists()  # none of these wrote anything
+
+
+@pytest.mark.parametrize(("signum", "code", "name"), [(2, 130, "SIGINT"), (15, 143, "SIGTERM")])
+def test_signal_stops_saves_and_exits_with_its_status(tmp_path, monkeypatch, capsys, signum, code, name):
+    import os
+
+    from rotation import cli
+
+    original = teacher.EpisodeStats._on_rollout_end
+
+    def signal_after_first_update(self):
+        original(self)
+        if self.num_timesteps == 1024:
+            os.kill(os.getpid(), signum)
+
+    monkeypatch.setattr(teacher.EpisodeStats, "_on_rollout_end", signal_after_first_update)
+    out = tmp_path / "run"
+    status = cli.main(["train-teacher", "--out", str(out), "--num-envs", "32", "--n-steps", "32", "--batch-size",
+                       "256", "--n-epochs", "1", "--total-steps", "8192", "--episode-steps", "50", "--no-progress"])
+    assert status == code
+    captured = capsys.readouterr()
+    assert f"interrupted by {name}" in captured.out and "Traceback" not in captured.err
+    assert f"(exit status {code})" in captured.err
+    steps = AdaptiveKLPPO.load(out / "checkpoints" / "last.zip", device="cpu").num_timesteps
+    assert 1024 <= steps < 8192
+    assert load_bundle(out / "bundle").config.card["steps"] == steps
+
+
+def test_bad_options_are_refused_on_construction(tmp_path):
+    for kw, message in [
+        (dict(gamma=0.0), r"gamma must be a finite number in \(0, 1\], got 0\.0"),
+        (dict(gamma=1.5), r"gamma must be"),
+        (dict(gae_lambda=float("nan")), r"gae_lambda must be a finite number in \[0, 1\]"),
+        (dict(clip_range=-0.1), r"clip_range must be"),
+        (dict(n_epochs=0), r"n_epochs must be an integer in \[1, 1000\], got 0"),
+        (dict(checkpoint_every=0), r"checkpoint_every must be an integer in \[1, "),
+        (dict(net_arch=(512, 0)), r"net_arch must be 1 to 16 layer widths, each in \[1, 8192\]"),
+        (dict(net_arch=()), r"net_arch must be"),
+        (dict(torch_threads=0), r"torch_threads must be an integer in \[1, 1024\]"),
+        (dict(learning_rate=0.1), r"learning_rate must be a finite number in \[1e-06, 0\.01\]"),
+        (dict(reward_scale=float("inf")), r"reward_scale must be"),
+        (dict(randomize="no"), r"randomize must be True or False, got str 'no'"),
+        (dict(batch_size=100_000), r"batch_size must be an integer in \[2, 1024\] \(2 \.\. num_envs x n_steps\)"),
+        (dict(device="tpu"), r"device: 'tpu' is not a torch device; use 'cpu' or 'cuda'"),
+        (dict(device="meta"), r"device 'meta': only 'cpu' and 'cuda'"),
+        (dict(seed=-1), r"seed must be an integer in \[0, 18446744073709551615\], got -1"),
+        (dict(out=tmp_path / "file.txt"), r"out .*file\.txt' is a file, not a directory"),
+        (dict(grasp_cache=str(tmp_path / "none.npz")), r"grasp_cache: no such file"),
+        (dict(episode_steps=0), r"episode_steps must be >= 1"),
+    ]:
+        (tmp_path / "file.txt").write_text("x")
+        with pytest.raises(ValueError, match=message):
+            _cfg(tmp_path, **kw)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without a GPU")
+def test_cuda_without_a_gpu_is_an_error_not_a_cpu_run(tmp_path):
+    with pytest.raises(ValueError, match=r"device 'cuda': no CUDA GPU is available to torch here; use --device cpu"):
+        _cfg(tmp_path, device="cuda")

@@ -1,0 +1,126 @@
+"""What an evaluation keeps on disk while it runs, so that an interrupted one loses no finished condition.
+
+Layout under the report directory OUT:
+
+    OUT/progress.json               what the results depend on: the config (less the fields in RESUMABLE_CHANGES)
+                                    and a digest of every policy's weights
+    OUT/conditions/<name>.json      the result rows of one finished condition, written (atomically) as it completes
+
+A later run into the same OUT continues: it checks that progress.json describes the same evaluation (refusing with
+the differences otherwise, so rows of two different evaluations never end up in one report), keeps every finished
+condition and runs the rest. An OUT that holds the report of an evaluation without progress.json (written by an
+earlier version) is refused rather than overwritten.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from rotation.configs import to_jsonable
+from rotation.evaluate.metrics import METRICS
+from rotation.policy.bundle import WEIGHTS_FILE, resolve_bundle
+
+PROGRESS_FILE = "progress.json"
+CONDITIONS_DIR = "conditions"
+RESUMABLE_CHANGES = frozenset({"out", "resume", "progress", "nthread", "video", "video_size"})
+"""Config fields that do not change a single result row (threads of MuJoCo, where and whether videos are drawn):
+they may differ between a run and its continuation. Everything else must match."""
+
+
+def weights_digest(policy: str) -> str:
+    """First 16 hex digits of the SHA-256 of a bundle's weights (a path may hold a retrained policy later)."""
+    return hashlib.sha256((resolve_bundle(policy) / WEIGHTS_FILE).read_bytes()).hexdigest()[:16]
+
+
+def identity(cfg: Any, policies: dict[str, str]) -> dict[str, Any]:
+    """What the rows of an evaluation depend on: its config (without RESUMABLE_CHANGES) and the policies' weights."""
+    config = {k: v for k, v in to_jsonable(cfg).items() if k not in RESUMABLE_CHANGES}
+    return {"config": config, "policy_weights": {name: weights_digest(path) for name, path in policies.items()}}
+
+
+def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    out = []
+    for section in ("config", "policy_weights"):
+        a, b = old.get(section, {}), new.get(section, {})
+        for key in sorted(set(a) | set(b)):
+            if a.get(key) != b.get(key):
+                what = f"the weights of policy {key!r}" if section == "policy_weights" else key
+                out.append(f"{what}: {a.get(key, '(not set)')!r} -> {b.get(key, '(not set)')!r}")
+    return out
+
+
+def check_out(out: Path, ident: dict[str, Any], resume: bool) -> bool:
+    """Whether ``out`` continues an earlier run of this same evaluation (True) or starts a new one (False).
+
+    ValueError when ``out`` holds another evaluation (listing the differences), a report without progress
+    information, or nothing to continue although ``resume`` was asked for. Reads only."""
+    progress = out / PROGRESS_FILE
+    if progress.is_file():
+        try:
+            old = json.loads(progress.read_text())
+            if not isinstance(old, dict):
+                raise TypeError(f"a JSON {type(old).__name__}, not an object")
+        except (json.JSONDecodeError, UnicodeDecodeError, TypeError) as err:
+            raise ValueError(f"{progress} is not readable ({err}); use another --out") from None
+        diff = _differences(old, ident)
+        if diff:
+            raise ValueError(f"{out} holds an evaluation with other settings ({'; '.join(diff)}); use another --out, "
+                             f"or the same settings to continue it (only {sorted(RESUMABLE_CHANGES)} may differ)")
+        return True
+    if (out / "results.json").exists():
+        raise ValueError(f"{out} holds the report of an earlier evaluation (results.json) that cannot be continued; "
+                         "use another --out so it is not overwritten")
+    if resume:
+        raise ValueError(f"--resume: {out} holds no evaluation to continue ({PROGRESS_FILE} is missing)")
+    return False
+
+
+def start(out: Path, ident: dict[str, Any]) -> None:
+    """Write progress.json (before the first condition runs)."""
+    _write_atomically(out / PROGRESS_FILE, ident)
+
+
+def _condition_file(out: Path, name: str) -> Path:
+    return out / CONDITIONS_DIR / f"{name.replace(os.sep, '_')}.json"
+
+
+def rows(out: Path, name: str, policies: list[str]) -> list[dict[str, Any]] | None:
+    """The saved rows of condition ``name``, or None when it must run (never finished, unreadable, another set of
+    policies, or rows from a version that reported other metrics)."""
+    path = _condition_file(out, name)
+    if not path.is_file():
+        return None
+    try:
+        saved = json.loads(path.read_text())
+        rows = saved["rows"]
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError):
+        return None
+    if saved.get("condition") != name or [r.get("policy") for r in rows] != policies:
+        return None
+    if not all(all(k in r for k in METRICS) for r in rows):
+        return None
+    return rows
+
+
+def save_rows(out: Path, name: str, rows: list[dict[str, Any]]) -> None:
+    """Keep the rows of one finished condition (atomic: an interruption leaves the old file or the new one)."""
+    _write_atomically(_condition_file(out, name), {"condition": name, "rows": rows})
+
+
+def _write_atomically(path: Path, data: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(data, indent=2) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

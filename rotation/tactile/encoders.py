@@ -1,0 +1,117 @@
+"""Registry of touch encoders for the jobs that train or probe them (`rotate pretrain --encoder NAME`, probes).
+
+A job sees an encoder only through rotation.tactile.tokens.TouchEncoder (``preprocess``, ``forward(inputs, keep,
+registers)``, ``token_interface``) plus what an :class:`EncoderKind` adds here: the layout of each token group (for
+block masking), saving and loading weights, and a view restricted to some token groups (ablations such as
+image-only). Sparsh-X is registered now; Sparsh-skin joins with its own kind.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from rotation.tactile.sparshx import SIZES, SparshX, SparshXConfig
+from rotation.tactile.sparshx_checkpoint import load_pretrained, save_checkpoint
+from rotation.tactile.sparshx_inputs import MODALITIES, TOKEN_GRIDS
+
+
+@dataclass(frozen=True)
+class EncoderKind:
+    """How the jobs build, save, load and restrict one kind of encoder."""
+
+    build: Callable[[str, tuple[str, ...], str, float], nn.Module]
+    """(size, groups, fusion, drop_path) -> a freshly initialized encoder."""
+    grids: Callable[[nn.Module], dict[str, tuple[int, ...]]]
+    """Token layout per group: (h, w) grids get 2-D block masks, (n,) sequences 1-D segments."""
+    save: Callable[[nn.Module, Path], Path]
+    """Write the weights and structure to one file."""
+    load: Callable[[Path, float | None], nn.Module]
+    """(file, drop_path override) -> the encoder it holds (strict)."""
+    restrict: Callable[[nn.Module, tuple[str, ...]], nn.Module]
+    """An encoder of the same weights that reads only some token groups."""
+    describe: Callable[[nn.Module], str]
+    sizes: tuple[str, ...]
+    groups: tuple[str, ...]
+    """Every token group this kind can have, in canonical order."""
+
+
+def _sparshx_build(size: str, groups: tuple[str, ...], fusion: str, drop_path: float) -> nn.Module:
+    return SparshX(SparshXConfig(size=size, modalities=groups, fusion=fusion, drop_path=drop_path))
+
+
+def _sparshx_restrict(model: nn.Module, groups: tuple[str, ...]) -> nn.Module:
+    """The same Sparsh-X weights for a subset of its modalities (their blocks, tokenizers, registers, statistics;
+    the shared bottleneck). The positional embeddings keep the offsets they were trained with."""
+    assert isinstance(model, SparshX)
+    missing = [g for g in groups if g not in model.modalities]
+    if missing:
+        raise ValueError(f"the encoder has no modality {missing} (it has {', '.join(model.modalities)})")
+    cfg = SparshXConfig(**{**model.cfg.__dict__, "modalities": tuple(groups)})
+    drop = set(model.modalities) - set(cfg.modalities)
+    keep_rows = [model.modalities.index(m) for m in cfg.modalities]
+    state = {}
+    for k, v in model.state_dict().items():
+        parts = k.split(".")
+        if drop & set(parts) or any(parts[0].startswith(f"{m}_") for m in drop):
+            continue
+        state[k] = v[keep_rows] if k == "register_tokens" else v  # (M, 1, D) -> (M', 1, D)
+    sub = SparshX(cfg).to(model.register_tokens.device)
+    sub.load_state_dict(state, strict=True)
+    return sub
+
+
+ENCODERS: dict[str, EncoderKind] = {
+    "sparshx": EncoderKind(
+        build=_sparshx_build,
+        grids=lambda m: {g: TOKEN_GRIDS[g] for g in m.modalities},  # type: ignore[union-attr]
+        save=lambda m, path: save_checkpoint(m, path),  # type: ignore[arg-type]
+        load=lambda path, drop_path: load_pretrained(path, drop_path=drop_path),
+        restrict=_sparshx_restrict,
+        describe=lambda m: m.cfg.describe(),  # type: ignore[union-attr]
+        sizes=tuple(SIZES),
+        groups=MODALITIES,
+    ),
+}
+"""Encoder name -> kind; `rotate pretrain --encoder` chooses among these."""
+
+
+def encoder_kind(name: str) -> EncoderKind:
+    if name not in ENCODERS:
+        raise ValueError(f"unknown encoder {name!r}; encoders: {', '.join(ENCODERS)}")
+    return ENCODERS[name]
+
+
+def kind_of(model: nn.Module) -> str:
+    """The registry name of a built encoder."""
+    if isinstance(model, SparshX):
+        return "sparshx"
+    raise ValueError(f"not a registered touch encoder: {type(model).__name__}")
+
+
+def parse_groups(text: str | Sequence[str], kind: str) -> tuple[str, ...]:
+    """'img,mic' or ('img', 'mic') -> the groups in the kind's canonical order (ValueError on unknown names)."""
+    items = [t.strip() for t in (text.split(",") if isinstance(text, str) else text) if t.strip()]
+    allowed = encoder_kind(kind).groups
+    bad = [t for t in items if t not in allowed]
+    if bad or not items or len(set(items)) != len(items):
+        raise ValueError(f"modalities: need a non-empty subset of {', '.join(allowed)} without repeats, got "
+                         f"{items or text!r}")
+    return tuple(g for g in allowed if g in items)
+
+
+def load_encoder(path: str | Path, drop_path: float | None = None, device: torch.device | str = "cpu") -> nn.Module:
+    """An encoder from a file written by ``EncoderKind.save`` (or a released Sparsh-X checkpoint), or from a
+    `rotate pretrain` run directory (its ``encoder.safetensors``)."""
+    path = Path(path)
+    if path.is_dir():
+        if not (path / "encoder.safetensors").is_file():
+            raise ValueError(f"{path}: no encoder.safetensors (a `rotate pretrain` run writes it at each checkpoint)")
+        path = path / "encoder.safetensors"
+    if not path.is_file():
+        raise ValueError(f"no encoder checkpoint at {path}")
+    return ENCODERS["sparshx"].load(path, drop_path).to(device)

@@ -1,0 +1,56 @@
+"""`rotate demo` exits with the deploy dry run's status: a faulted dry run is not a successful demo.
+
+The evaluation, the video and the deploy run are replaced by stand-ins here (each has its own tests); what is
+tested is how the demo reports their outcome.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from rotation.cli import main
+from rotation.deploy import job as deploy_job
+from rotation.jobs import demo
+
+
+@pytest.fixture
+def stand_ins(monkeypatch):
+    """Fast evaluation and video; the deploy summary is whatever the test puts in ``summary``."""
+    summary: dict = {}
+
+    def evaluate(cfg):
+        (cfg.out / "plots").mkdir(parents=True, exist_ok=True)
+        (cfg.out / "results.md").write_text("# Evaluation\n\n| condition | policy |\n")
+        return [{"condition": "nominal", "policy": p, "rotation_rate": 0.1, "ttf": 1.0} for p in cfg.policies]
+
+    def view(cfg):
+        Path(cfg.out).write_bytes(b"")
+        return Path(cfg.out)
+
+    monkeypatch.setattr(demo.evaluate_job, "run", evaluate)
+    monkeypatch.setattr(demo.view_job, "run", view)
+    monkeypatch.setattr(deploy_job, "run", lambda cfg: dict(summary))
+    return summary
+
+
+def test_demo_fails_when_its_deploy_dry_run_faults(tmp_path, capsys, stand_ins):
+    stand_ins.update(exit_code=1, fault="hand fault: allegro: no complete position cycle", motors_off=True)
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--deploy-seconds", "1"]) == 1
+    report = (tmp_path / "demo" / "README.md").read_text()  # the report is still written, and says it
+    assert "**FAILED** (exit status 1): hand fault: allegro" in report
+    assert "deploy dry run did not complete" in capsys.readouterr().err
+
+
+def test_demo_passes_on_the_deploy_status_of_a_stopped_run(tmp_path, stand_ins):
+    stand_ins.update(exit_code=130, fault="interrupted (Ctrl-C / SIGINT)")
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--deploy-seconds", "1"]) == 130
+
+
+def test_demo_succeeds_when_everything_completed(tmp_path, stand_ins):
+    stand_ins.update(exit_code=0, fault=None, motors_off=True)
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--deploy-seconds", "1"]) == 0
+    assert "Result: completed" in (tmp_path / "demo" / "README.md").read_text()
+    result = demo.run(demo.Config(out=tmp_path / "skip", deploy_seconds=0.0))
+    assert result["exit_code"] == 0 and Path(result["report"]).is_file()
