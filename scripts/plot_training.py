@@ -1,12 +1,18 @@
-"""Plot training curves from a run's TensorBoard logs (PNG + CSV), e.g. for a model card or a report.
+"""Plot training curves from a run's TensorBoard logs or its curves.jsonl (PNG + CSV), e.g. for a model card.
 
     python scripts/plot_training.py --run runs/teacher --out docs/results/teacher_training
     python scripts/plot_training.py --run runs/student --out docs/results/student_training --tags train/latent_mse
+    python scripts/plot_training.py --curves runs/a/curves.jsonl runs/b/curves.jsonl \
+        --out docs/results/teacher_training --tags rotation_rate ttf upright l
+
+With --curves, the files are read in order as one history: each file's steps continue after the previous file's
+last step (a run started with `train-teacher --init-from` counts its steps from zero).
 """
 
 from __future__ import annotations
 
 import csv
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,13 +36,35 @@ class Config:
     """Scalar tags to plot, one panel each."""
     smooth: int = 25
     """Moving-average window (log points) drawn over the raw curve."""
+    curves: tuple[Path, ...] = ()
+    """curves.jsonl files (train-teacher's per-rollout episode means) to plot instead of TensorBoard logs."""
+
+
+TITLES = {"l": "episode length (steps)", "ep_length": "episode length (steps)", "latent_mse": "latent MSE",
+          "r": "episode return", "ttf": "ttf", "upright": "upright (fraction)",
+          "rotation_rate": "rotation rate (rad/s)"}
+"""Panel titles of curves.jsonl keys (training episodes, stochastic actions)."""
+
+
+def read_curves(files: tuple[Path, ...], tags: tuple[str, ...]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """One history from curves.jsonl files in order, each continuing the step count of the one before."""
+    rows, offset = [], 0
+    for path in files:
+        if not Path(path).is_file():
+            raise ValueError(f"no such curves file: {path}")
+        part = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+        # teacher rows count env steps in "steps", student rows in "env_steps"
+        rows += [dict(r, steps=r.get("steps", r.get("env_steps", 0)) + offset) for r in part]
+        offset = rows[-1]["steps"] if rows else offset
+    return {t: (np.array([r["steps"] for r in rows if t in r]), np.array([r[t] for r in rows if t in r]))
+            for t in tags if any(t in r for r in rows)}
 
 
 def run(cfg: Config) -> Path:
-    files = sorted(cfg.run.rglob("events.out.tfevents.*"))
-    if not files:
+    series: dict[str, tuple[np.ndarray, np.ndarray]] = read_curves(cfg.curves, cfg.tags) if cfg.curves else {}
+    files = [] if cfg.curves else sorted(cfg.run.rglob("events.out.tfevents.*"))
+    if not files and not cfg.curves:
         raise ValueError(f"no TensorBoard event files under {cfg.run}")
-    series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for f in files:
         acc = EventAccumulator(str(f), size_guidance={"scalars": 0})
         acc.Reload()
@@ -55,7 +83,7 @@ def run(cfg: Config) -> Path:
         if len(values) >= cfg.smooth > 1:
             kernel = np.ones(cfg.smooth) / cfg.smooth
             ax.plot(steps[cfg.smooth - 1 :] / 1e6, np.convolve(values, kernel, mode="valid"), color="C0", lw=1.6)
-        ax.set_title(tag)
+        ax.set_title(TITLES.get(tag, tag))
         ax.set_xlabel("env steps (M)")
         ax.grid(alpha=0.3)
     fig.tight_layout()

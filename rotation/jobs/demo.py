@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
+from rotation.evaluate import finished
 from rotation.evaluate import job as evaluate_job
 from rotation.evaluate.suites import get_suite
 from rotation.jobs import view as view_job
@@ -71,9 +72,16 @@ def run(cfg: Config) -> dict[str, Any]:
 
     print("[demo] evaluating teacher vs student under perturbations")
     eval_dir = cfg.out / "evaluation"
-    rows = evaluate_job.run(evaluate_job.Config(
+    eval_cfg = evaluate_job.Config(
         policies={"teacher": "teacher", "student": "student"}, suite="perturbations", conditions=cfg.conditions,
-        episodes=cfg.episodes, num_envs=cfg.episodes, seed=cfg.seed, out=eval_dir))
+        episodes=cfg.episodes, num_envs=cfg.episodes, seed=cfg.seed, out=eval_dir)
+    try:
+        finished.check_out(eval_dir, finished.identity(eval_cfg, evaluate_job.policy_paths(eval_cfg)), False)
+    except ValueError:  # an earlier demo's evaluation of other policies or settings: keep it aside, start anew
+        kept = eval_dir.with_name(f"evaluation.{time.strftime('%Y%m%d-%H%M%S')}")
+        eval_dir.rename(kept)
+        print(f"[demo] the earlier demo evaluation (other policies or settings) is kept in {kept}")
+    rows = evaluate_job.run(eval_cfg)
 
     print("[demo] rendering the student rotating the cup")
     video = view_job.run(view_job.Config(out=cfg.out / "student_cup.mp4", object="cup", policy="student",

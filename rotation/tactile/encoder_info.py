@@ -43,7 +43,7 @@ class Config:
         check_types(self)
         self.model_config()  # size, modalities and fusion, checked by the model's own config
         if self.checkpoint is not None:
-            self.checkpoint = Path(self.checkpoint)
+            object.__setattr__(self, "checkpoint", Path(self.checkpoint))
             if not self.checkpoint.is_file():
                 raise ValueError(f"checkpoint: no such file: {self.checkpoint}")
 

@@ -54,3 +54,16 @@ def test_demo_succeeds_when_everything_completed(tmp_path, stand_ins):
     assert "Result: completed" in (tmp_path / "demo" / "README.md").read_text()
     result = demo.run(demo.Config(out=tmp_path / "skip", deploy_seconds=0.0))
     assert result["exit_code"] == 0 and Path(result["report"]).is_file()
+
+
+def test_an_earlier_demo_evaluation_of_other_policies_is_kept_aside(tmp_path, stand_ins, capsys):
+    """Re-running the demo after the shipped policies changed starts a new evaluation and keeps the old one."""
+    stand_ins.update(exit_code=0, fault=None, motors_off=True)
+    old = tmp_path / "demo" / "evaluation"
+    old.mkdir(parents=True)
+    (old / "progress.json").write_text('{"config": {"episodes": 1}, "weights": {"teacher": "0000"}}\n')
+    (old / "results.json").write_text('{"rows": []}\n')
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--deploy-seconds", "0"]) == 0
+    kept = [p for p in (tmp_path / "demo").iterdir() if p.name.startswith("evaluation.")]
+    assert len(kept) == 1 and (kept[0] / "results.json").read_text() == '{"rows": []}\n'
+    assert "kept in" in capsys.readouterr().out

@@ -150,7 +150,8 @@ def test_resume_with_other_ppo_options_is_refused_and_keeps_config(tmp_path):
     ckpt = first.out / "checkpoints" / "last.zip"
     saved = (first.out / "config.json").read_bytes()
     with pytest.raises(ValueError, match=r"options differ from the run's .*config\.json\): gamma: 0\.99 -> 0\.9; "
-                                         r"n_epochs: 4 -> 2\. .* only checkpoint_every, device, out, overwrite"):
+                                         r"n_epochs: 4 -> 2\. .* only checkpoint_every, critic_warmup, device, "
+                                         r"init_from, out, overlap, overwrite"):
         teacher.run(_cfg(tmp_path, total_steps=2048, resume=ckpt, n_epochs=2, gamma=0.9))
     assert (first.out / "config.json").read_bytes() == saved  # a failed resume writes nothing
     # without the run's config.json the checkpoint's own record still catches PPO options
