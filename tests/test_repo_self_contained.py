@@ -15,7 +15,7 @@ SOURCE_DIRS = ("envs", "rotation", "adapters", "scripts", "tests")
 
 CLIMB = re.compile(r"""["']\.\./|/\.\./|["']\.\.["']\s*[/),]|/\s*["']\.\.["']""")
 """A parent-directory step in a path: a literal "../shared" or "a/../b", or ".." joined as a component."""
-MACHINE_PATH = re.compile(r"""["'](/work/|/home/|/Users/|/mnt/|[A-Za-z]:\\\\Users)""")
+MACHINE_PATH = re.compile(r"""["'](/root/|/home/|/Users/|/mnt/|[A-Za-z]:\\\\Users)""")
 """A string literal that starts with a directory of one machine or user."""
 PARENTS_INDEX = re.compile(r"__file__\)\.resolve\(\)\.parents\[(\d+)\]")
 PARENT_CHAIN = re.compile(r"__file__\)\.resolve\(\)((?:\.parent)+)")
@@ -45,7 +45,7 @@ def outside_references(rel: Path, text: str) -> list[str]:
 def test_the_scan_catches_what_it_should():
     """The patterns themselves, on the kind of line that once read a fixture from beside the repository."""
     bad = ['FIXTURE = Path(__file__).resolve().parents[2] / ".." / "shared" / "x.npz"',
-           'data = np.load("../shared/fixtures/x.npz")', 'OUT = Path("/work/main/runs")',
+           'data = np.load("../shared/fixtures/x.npz")', 'OUT = Path("/home/lab/runs")',
            'p = Path(__file__).resolve().parents[3] / "x"', 'p = Path(__file__).resolve().parent.parent.parent.parent']
     good = ['ROOT = Path(__file__).resolve().parents[2]', 'FIXTURE = ROOT / "tests" / "fixtures" / "x.npz"',
             'text = "a range 1..2"  # ../ in a comment is fine', "names = 'cylinder_0'..'8'"]
