@@ -166,15 +166,9 @@ class AllegroHand(FeedbackMixin):
         False, logged at CRITICAL, when no answer said 'off' within ``request_retries`` requests."""
         arb = ap.wire_id(ap.Msg.HAND_INFO, self.cfg.hand_id)
         for attempt in range(1, self.cfg.request_retries + 1):
-            waiter: list = [threading.Event(), b""]
-            with self._lock:
-                self._waiters[arb] = waiter
-            try:
-                self._send(arb, remote=True)
-            except (can.CanError, OSError) as err:
-                log.error("%s: could not ask whether the servo is off (attempt %d): %s", self.name, attempt, err)
+            waiter = self._ask(arb, "the HAND_INFO request (is the servo off?)", attempt)
             # a fault wakes every waiter without data: only a reply with data is an answer
-            if waiter[0].wait(self.cfg.reply_timeout_s) and waiter[1]:
+            if waiter[0].is_set() and waiter[1]:
                 try:
                     status = ap.decode_hand_info(waiter[1]).status
                 except ValueError as err:
@@ -251,20 +245,26 @@ class AllegroHand(FeedbackMixin):
             if self._bus.recv(timeout=0.0) is None:  # type: ignore[union-attr]
                 return
 
+    def _ask(self, arb: int, what: str, attempt: int) -> list:
+        """Send one remote frame on ``arb`` and wait up to reply_timeout_s for the data frame on the same ID.
+        Returns the waiter ``[event, data]``: the event is set by a reply (data) or by a fault (no data)."""
+        waiter: list = [threading.Event(), b""]
+        with self._lock:
+            self._waiters[arb] = waiter
+        try:
+            self._send(arb, remote=True)
+        except (can.CanError, OSError) as err:
+            log.error("%s: could not send %s (attempt %d): %s", self.name, what, attempt, err)
+        waiter[0].wait(self.cfg.reply_timeout_s)
+        return waiter
+
     def _request(self, msg: ap.Msg, finger: int = 0) -> bytes:
         """RTR ``msg`` and wait for the data frame on the same ID; retried, then HandNotResponding."""
         arb = ap.wire_id(msg, self.cfg.hand_id, finger)
         for attempt in range(1, self.cfg.request_retries + 1):
-            waiter: list = [threading.Event(), b""]
-            with self._lock:
-                self._waiters[arb] = waiter
-            try:
-                self._send(arb, remote=True)
-            except (can.CanError, OSError) as err:
-                log.error("%s: could not send %s request (attempt %d): %s", self.name, msg.name, attempt, err)
-            replied = waiter[0].wait(self.cfg.reply_timeout_s)
+            waiter = self._ask(arb, f"{msg.name} request", attempt)
             self._raise_if_fault()
-            if replied:
+            if waiter[0].is_set():
                 return waiter[1]
             log.warning("%s: no reply to %s (finger %d) within %.0f ms, attempt %d/%d", self.name, msg.name,
                         finger, 1e3 * self.cfg.reply_timeout_s, attempt, self.cfg.request_retries)

@@ -7,9 +7,9 @@ updates on rollout k (``mujoco.batch`` and torch both release the GIL in their h
 
 The price is one update of policy lag: rollout k + 1 was sampled by the policy before update k, and PPO trains
 on it starting from the policy after it. PPO's ratio is taken against the stored log-probabilities of the policy
-that acted, so the objective stays correct and the clip bounds the step from that policy; the lag's own KL
-(about the KL target of one update) is measured before each update and reported as ``train/lag_kl``, so the
-adaptive learning rate can judge the update by its own KL rather than lag plus update. Callbacks still see every
+that acted, so the objective stays correct and the clip bounds the step from that policy. The lag's own KL is
+measured before each update and reported as ``train/lag_kl``; the adaptive learning rate judges lag plus update
+together (subtracting the lag let the rate climb until a run collapsed). Callbacks still see every
 step, in order, on the main thread: the background rollout records what they need and replays it.
 """
 
