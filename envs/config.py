@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass, field
+from typing import Literal
 
 from envs import constants as C
 from envs.objects import OBJECTS
@@ -205,12 +206,24 @@ class EnvConfig:
     """Path to a grasp cache (.npz) from `rotate grasps`; empty = the cache shipped with the package."""
     tactile: bool = False
     """Simulate the Digit 360 fingertips and add the `tactile` observation group (slower)."""
+    hand: Literal["digit360", "xela"] = "digit360"
+    """Hand variant: 'digit360' (Digit 360 fingertips) or 'xela' (stock-length fingertips, 18 Xela skin pads on
+    fingertips, phalanges and palm; docs/skin.md). Each has its own grasp caches."""
+    skin: bool = False
+    """Simulate the Xela skin (needs hand='xela') and add the `skin` observation group (docs/skin.md)."""
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     perturb: Perturbation = field(default_factory=Perturbation)
 
     def __post_init__(self) -> None:
         check_types(self)
+        if self.skin and self.hand != "xela":
+            raise ValueError(f"skin: the Xela skin needs hand='xela', got hand={self.hand!r}")
+        if self.tactile and self.hand != "digit360":
+            raise ValueError(f"tactile: the Digit 360 touch needs hand='digit360', got hand={self.hand!r}")
+        if self.skin and self.physics_dt != 0.01:  # one Xela sample per physics step (envs.sensors.xela.SAMPLE_HZ)
+            raise ValueError(f"skin: the Xela skin samples at 100 Hz, one sample per physics step; it needs "
+                             f"physics_dt=0.01, got {self.physics_dt}")
         if self.object not in OBJECTS:
             raise ValueError(f"object: unknown object {self.object!r}; known objects: {', '.join(sorted(OBJECTS))}")
         if not (1e-4 <= self.physics_dt <= 0.02):

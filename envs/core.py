@@ -18,46 +18,38 @@ import mujoco.batch
 import numpy as np
 
 from envs import constants as C
+from envs import task
 from envs.config import EnvConfig
-from envs.geometry import tilt_angle
+from envs.geometry import angular_velocity  # noqa: F401 (re-exported for rotation.deploy)
 from envs.grasps import GraspCache, load_default_cache
-from envs.objects import get_object
+from envs.objects import ObjectSpec, get_object
 from envs.observation import ProprioHistory
 from envs.rng import CounterRNG, env_keys
 from envs.scene import OBJECT_BODY, build_model
 from envs.sensors.digit360 import add_digit360_sensors
+from envs.sensors.skin_obs import SkinState, skin_space
 from envs.sensors.tactile_obs import TouchState, tactile_space
+from envs.sensors.xela_hand import add_xela_sensors
 from envs.validation import check_int, check_seed
 
 # Random streams (see envs.rng): one id per use, so adding a draw never shifts another.
 _STREAM_RESET, _STREAM_NOISE, _STREAM_PUSH_P, _STREAM_PUSH_F = 1, 2, 3, 4
-PUSH_DECAY_PERIOD = 0.08
+PUSH_DECAY_PERIOD = task.PUSH_DECAY_PERIOD
 """Hora decays pushes by `push_decay` every 0.08 s."""
 
 
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of (..., 4) quaternions in MuJoCo's (w, x, y, z) order."""
-    w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
-    w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ],
-        axis=-1,
-    )
-
-
-def angular_velocity(q0: np.ndarray, q1: np.ndarray, dt: float) -> np.ndarray:
-    """World-frame angular velocity (rad/s, (..., 3)) taking orientation q0 to q1 in dt seconds."""
-    rel = quat_mul(q1, q0 * np.array([1.0, -1.0, -1.0, -1.0]))  # (..., 4), q1 * conj(q0)
-    rel = np.where(rel[..., :1] < 0, -rel, rel)  # shortest arc
-    vec = rel[..., 1:]
-    s = np.linalg.norm(vec, axis=-1, keepdims=True)
-    factor = np.where(s > 1e-9, 2.0 * np.arctan2(s, rel[..., :1]) / np.maximum(s, 1e-12), 2.0)
-    return vec * factor / dt
+def task_model(cfg: EnvConfig, edit=None) -> tuple[mujoco.MjModel, ObjectSpec, float]:
+    """The task's compiled model, shared by both physics backends: the hand and ``cfg.object`` at the largest scale
+    the randomization may pick (smaller ones shrink geoms per simulation), the torque limit and the nominal PD gains.
+    Returns (model, object spec, compiled scale)."""
+    obj = get_object(cfg.object)
+    rc = cfg.randomization
+    max_scale = (max(rc.scales) + rc.scale_jitter) if rc.enabled else float(rc.scales[len(rc.scales) // 2])
+    m = build_model(obj, max_scale, cfg.physics_dt, edit=edit, hand=cfg.hand)
+    m.actuator_forcerange[:] = [-cfg.torque_limit, cfg.torque_limit]
+    task.set_gains(m.actuator_gainprm[None], m.actuator_biasprm[None], np.full((1, C.NUM_JOINTS), cfg.kp),
+                   np.full((1, C.NUM_JOINTS), cfg.kd))
+    return m, obj, max_scale
 
 
 class RotateCupVec:
@@ -79,20 +71,18 @@ class RotateCupVec:
             check_int("nthread", nthread, 1, 1024)
         seed = check_seed("seed", seed)
         self.num_envs = n = int(num_envs)
-        self.obj = get_object(cfg.object)
-        rc = cfg.randomization
-        self.max_scale = (max(rc.scales) + rc.scale_jitter) if rc.enabled else self._nominal_scale()
         # touch: the Digit 360 sensors exist only with tactile=True; the plain model is unchanged
         touch_sensors = partial(add_digit360_sensors, history=cfg.substeps) if cfg.tactile else None
-        self.model = build_model(self.obj, self.max_scale, cfg.physics_dt, edit=touch_sensors)
+        # skin: the Xela pad sensors exist only with skin=True (on the Xela hand)
+        sensors = partial(add_xela_sensors, history=cfg.substeps) if cfg.skin else touch_sensors
+        self.model, self.obj, self.max_scale = task_model(cfg, edit=sensors)
         m = self.model
-        m.actuator_forcerange[:] = [-cfg.torque_limit, cfg.torque_limit]
-        self._set_gains(m.actuator_gainprm[None], m.actuator_biasprm[None], np.full((1, C.NUM_JOINTS), cfg.kp),
-                        np.full((1, C.NUM_JOINTS), cfg.kd))
         self.nthread = nthread if nthread is not None else max(1, min(os.cpu_count() or 1, n))
         self.batch = mujoco.batch.Batch(m, n, self.nthread, persistent=True)
         # touch: per-env contact history feeding obs["tactile"]; None keeps the plain path as it was
         self.touch = TouchState(m, n, cfg.physics_dt, cfg.substeps) if cfg.tactile else None
+        # skin: per-env Xela readings feeding obs["skin"] and the pad force labels; None when off
+        self.skin = SkinState(m, n, cfg.physics_dt, cfg.substeps) if cfg.skin else None
 
         # model indices
         self.obj_body = m.body(OBJECT_BODY).id
@@ -119,7 +109,7 @@ class RotateCupVec:
         self._xfrc = b.bind("xfrc_applied")
         self._act_force = b.bind("actuator_force")
 
-        self.grasps = grasps if grasps is not None else load_default_cache(cfg.object, cfg.grasp_cache)
+        self.grasps = grasps if grasps is not None else load_default_cache(cfg.object, cfg.grasp_cache, cfg.hand)
         self.rng = CounterRNG(env_keys(seed, n))
         self.episode = np.full(n, -1, dtype=np.int64)  # the first reset starts episode 0, as reset(seed=seed) does
         self.steps = np.zeros(n, dtype=np.int64)
@@ -139,6 +129,7 @@ class RotateCupVec:
                 "proprio_hist": gym.spaces.Box(-np.inf, np.inf, (C.HISTORY_STEPS, C.PROPRIO_DIM), np.float32),
                 "priv": gym.spaces.Box(-np.inf, np.inf, (C.PRIV_DIM,), np.float32),
                 **({"tactile": tactile_space()} if cfg.tactile else {}),  # touch on
+                **({"skin": skin_space()} if cfg.skin else {}),  # skin on
             }
         )
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (C.NUM_JOINTS,), np.float32)
@@ -148,37 +139,12 @@ class RotateCupVec:
         scales = self.cfg.randomization.scales
         return float(scales[len(scales) // 2])
 
-    @staticmethod
-    def _set_gains(gainprm: np.ndarray, biasprm: np.ndarray, kp: np.ndarray, kd: np.ndarray) -> None:
-        """Position actuator: force = kp * ctrl - kp * q - kd * qdot (MuJoCo's position actuator with kv)."""
-        gainprm[..., 0] = kp
-        biasprm[..., 1] = -kp
-        biasprm[..., 2] = -kd
+    _set_gains = staticmethod(task.set_gains)
 
     def _sample_params(self, ids: np.ndarray) -> dict[str, np.ndarray]:
-        """Per-env physical parameters for envs ``ids`` (vectorized, keyed by env and episode)."""
-        rc, k = self.cfg.randomization, len(ids)
-        u = self.rng.uniform(ids, self.episode[ids], np.zeros(k, np.int64), _STREAM_RESET, 40)  # (k, 40)
-
-        def lerp(lo_hi, x):
-            return lo_hi[0] + (lo_hi[1] - lo_hi[0]) * x
-
-        if rc.enabled:
-            bucket = np.minimum((u[:, 0] * len(rc.scales)).astype(np.int64), len(rc.scales) - 1)
-            scale = np.asarray(rc.scales)[bucket] + (2 * u[:, 1] - 1) * rc.scale_jitter
-            p = dict(scale=scale, bucket=bucket, mass=lerp(rc.mass, u[:, 2]), com=lerp(rc.com, u[:, 3:6]),
-                     friction=lerp(rc.friction, u[:, 6]), kp=lerp(rc.kp, u[:, 7:23]), kd=lerp(rc.kd, u[:, 23:39]))
-        else:
-            bucket = np.full(k, len(rc.scales) // 2)
-            p = dict(scale=np.asarray(rc.scales, dtype=np.float64)[bucket], bucket=bucket,
-                     mass=np.full(k, np.mean(rc.mass)), com=np.zeros((k, 3)), friction=np.full(k, np.mean(rc.friction)),
-                     kp=np.full((k, 16), self.cfg.kp), kd=np.full((k, 16), self.cfg.kd))
-        pert = self.cfg.perturb
-        p["friction"] = p["friction"] * pert.friction_scale
-        p["mass"] = p["mass"] + pert.added_mass
-        p["com"] = p["com"] + np.asarray(pert.com_shift)
-        p["grasp_u"] = u[:, 39]
-        return p
+        """Per-env physical parameters for envs ``ids`` (vectorized, keyed by env and episode; envs.task)."""
+        u = self.rng.uniform(ids, self.episode[ids], np.zeros(len(ids), np.int64), _STREAM_RESET, task.PARAM_DRAWS)
+        return task.sample_params(np, self.cfg, u)
 
     def _write_params(self, ids: np.ndarray, p: dict[str, np.ndarray]) -> None:
         s = p["scale"][:, None, None]
@@ -189,13 +155,8 @@ class RotateCupVec:
         self._geom_friction[ids] = fr
         self._body_mass[ids, self.obj_body] = p["mass"]
         self._body_ipos[ids, self.obj_body] = p["com"]
-        # solid-cylinder inertia about the body frame (cylinder axis: y for Hora's cylinders, z for cups)
-        r, h, mass = self.obj.radius * p["scale"], self.obj.length * p["scale"], p["mass"]
-        i_axis, i_perp = 0.5 * mass * r**2, mass * (3 * r**2 + h**2) / 12.0
-        axis = 1 if self.obj.kind == "cylinder" else 2
-        inertia = np.repeat(i_perp[:, None], 3, axis=1)
-        inertia[:, axis] = i_axis
-        self._body_inertia[ids, self.obj_body] = inertia
+        self._body_inertia[ids, self.obj_body] = task.object_inertia(np, self.obj.kind, self.obj.radius,
+                                                                     self.obj.length, p["scale"], p["mass"])
         gain, bias = self._gainprm[ids], self._biasprm[ids]
         self._set_gains(gain, bias, p["kp"], p["kd"])
         self._gainprm[ids], self._biasprm[ids] = gain, bias
@@ -241,18 +202,19 @@ class RotateCupVec:
         self.history.reset(ids, q)
         if self.touch is not None:  # touch: the reset reading fills the contact history
             self.touch.reset(ids, self.batch.bind("sensordata"), self.rng.keys[ids], self.episode[ids])
+        if self.skin is not None:  # skin: the reset's load fills the window
+            self.skin.reset(ids, self.batch.bind("sensordata"), self.rng.keys[ids], self.episode[ids])
 
     def _priv(self) -> np.ndarray:
         pos = self._qpos[:, self.obj_qpos : self.obj_qpos + 3]
-        pr = self.params
-        return np.concatenate(
-            [pos, pr["scale"][:, None], pr["mass"][:, None], pr["friction"][:, None], pr["com"]], axis=1
-        ).astype(np.float32)
+        return task.priv_vector(np, pos, self.params).astype(np.float32)
 
     def _observe(self) -> dict[str, np.ndarray]:
         obs = {"proprio": self.history.proprio, "proprio_hist": self.history.history, "priv": self._priv()}
         if self.touch is not None:  # touch: windows rendered lazily on access (envs.sensors.tactile_obs)
             obs["tactile"] = self.touch.observe()
+        if self.skin is not None:  # skin: the last WINDOW Xela samples (envs.sensors.skin_obs)
+            obs["skin"] = self.skin.observe()
         return obs
 
     def step(self, actions: np.ndarray):
@@ -266,16 +228,14 @@ class RotateCupVec:
             bad = np.argwhere(~np.isfinite(a))[0]
             raise ValueError(f"actions must be finite; env {bad[0]} joint {bad[1]} is {a[tuple(bad)]}")
         cfg, rc, all_ids = self.cfg, self.cfg.randomization, np.arange(self.num_envs)
-        a = np.clip(a, -1.0, 1.0)
-        self.targets = np.clip(self.targets + a * cfg.action_scale, C.JOINT_LOWER, C.JOINT_UPPER)
+        self.targets = task.step_targets(np, cfg, self.targets, a, C.JOINT_LOWER, C.JOINT_UPPER)
         self._ctrl[:] = self.targets
 
         # random pushes on the object (Hora): new with probability p, otherwise decaying
         if rc.enabled and rc.push_prob > 0:
             new = self.rng.uniform(all_ids, self.episode, self.steps, _STREAM_PUSH_P, 1)[:, 0] < rc.push_prob
-            force = self.rng.normal(all_ids, self.episode, self.steps, _STREAM_PUSH_F, 3)
-            force *= (self.params["mass"] * rc.push_scale)[:, None]
-            self.push = np.where(new[:, None], force, self.push * rc.push_decay ** (cfg.control_dt / PUSH_DECAY_PERIOD))
+            normal = self.rng.normal(all_ids, self.episode, self.steps, _STREAM_PUSH_F, 3)
+            self.push = task.step_push(np, cfg, self.push, new, normal, self.params["mass"])
             xfrc = self._xfrc
             xfrc[:, self.obj_body, :3] = self.push
             self._xfrc[:] = xfrc
@@ -286,50 +246,26 @@ class RotateCupVec:
         self.batch.step(nstep=cfg.substeps)
         if self.touch is not None:  # touch: every substep's sensor sample, from the sensors' history
             self.touch.push(self.batch.bind("history"))
+        if self.skin is not None:  # skin: every substep is one 100 Hz sample
+            self.skin.push(self.batch.bind("history"))
         qpos, qvel = self._qpos, self._qvel
         q, qdot = qpos[:, : C.NUM_JOINTS], qvel[:, : C.NUM_JOINTS]
         pos, quat = qpos[:, o : o + 3], qpos[:, o + 3 : o + 7]
         tau = self._act_force
 
-        dt = cfg.control_dt
-        omega = angular_velocity(quat0, quat, dt)  # (N, 3), measured once per policy step (Hora v0.0.2)
-        spin = omega @ self._axis
-        lin_vel = (pos - pos0) / dt
-        rw = cfg.reward
-        terms = {
-            "rotate": rw.rotate * np.clip(spin, -rw.rotate_clip, rw.rotate_clip),
-            "obj_linvel": rw.obj_linvel * np.abs(lin_vel).sum(-1),
-            "pose_diff": rw.pose_diff * ((q - self.grasp_q) ** 2).sum(-1),
-            "torque": rw.torque * (tau**2).sum(-1),
-            "work": rw.work * (tau * qdot).sum(-1) ** 2,
-        }
-        tilt = tilt_angle(quat)
-        terms["tilt"] = rw.tilt * tilt**2
-        finite = np.all(np.isfinite(qpos), axis=1) & np.all(np.isfinite(qvel), axis=1)
-        # fell: dropped below the grasp, left the hand in any direction (e.g. flicked away), or tipped over
-        away = np.linalg.norm(pos - self.start_pos, axis=1) > cfg.max_distance
-        fell = (pos[:, 2] < self.start_pos[:, 2] - cfg.fall_drop) | away | (tilt > cfg.max_tilt) | ~finite
-        terms["fall"] = rw.fall * fell
-        reward = sum(terms.values())
-        reward = np.where(finite, reward, 0.0)
-
+        out = task.reward_and_termination(np, cfg, q=q, qdot=qdot, tau=tau, qpos=qpos, qvel=qvel, pos0=pos0,
+                                          quat0=quat0, pos=pos, quat=quat, grasp_q=self.grasp_q,
+                                          start_pos=self.start_pos, axis=self._axis)
         self.steps += 1
-        terminated = fell
+        terminated = out["fell"]
         truncated = (self.steps >= cfg.episode_steps) & ~terminated
 
-        noise = (2.0 * self.rng.uniform(all_ids, self.episode, self.steps, _STREAM_NOISE, 16) - 1.0) * rc.joint_noise
-        self.history.push(np.where(finite[:, None], q, self.grasp_q) + (noise if rc.enabled else 0.0), self.targets)
-        info = {f"rew_{k}": v for k, v in terms.items()}
-        info.update(
-            rotation=spin * dt,
-            height=pos[:, 2].copy(),
-            tilt=np.where(finite, tilt, np.pi),
-            lin_vel=np.linalg.norm(lin_vel, axis=1),
-            torque=np.abs(tau).mean(axis=1),
-            fell=fell,
-            elapsed_steps=self.steps.copy(),
-        )
-        return self._observe(), reward.astype(np.float64), terminated, truncated, info
+        u = self.rng.uniform(all_ids, self.episode, self.steps, _STREAM_NOISE, 16)
+        self.history.push(task.observed_joints(np, cfg, q, self.grasp_q, out["finite"], u), self.targets)
+        info = task.step_info(np, cfg, out, pos, tau, self.steps)
+        if self.skin is not None:  # skin: per-pad contact force label [normal, shear x, shear y] (N, pad frame)
+            info["skin_force"] = self.skin.pad_force.copy()
+        return self._observe(), out["reward"].astype(np.float64), terminated, truncated, info
 
     # ------------------------------------------------------------------ tools
     def get_data(self, i: int = 0) -> tuple[mujoco.MjModel, mujoco.MjData]:

@@ -24,7 +24,8 @@ import numpy as np
 from envs import constants as C
 from envs.geometry import tilt_angle
 from envs.objects import OBJECTS, ObjectSpec, get_object
-from envs.scene import OBJECT_BODY, OBJECT_START, build_model
+from envs.scene import HANDS, OBJECT_BODY, OBJECT_START, build_model
+from envs.task import pick_grasps
 
 GRASP_DIM = C.NUM_JOINTS + 7
 CANONICAL_POSE = np.array(
@@ -52,6 +53,8 @@ class GraspCache:
     seed: int = 0
     source: str = ""
     """Where the cache was read from (named in error messages); empty for a cache built in memory."""
+    hand: str = "digit360"
+    """Hand variant the grasps were generated with (envs.scene.HANDS); caches of older versions are 'digit360'."""
 
     def __post_init__(self) -> None:
         where = self.where
@@ -74,17 +77,14 @@ class GraspCache:
 
     def sample(self, bucket: np.ndarray, scale: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows for envs with the given scales; ``u`` in [0, 1) picks the row. Returns q (k, 16), pose (k, 7)."""
-        b = np.abs(self.scales[None, :] - np.asarray(scale)[:, None]).argmin(axis=1)  # nearest cached bucket
-        g = np.minimum((u * self.grasps.shape[1]).astype(np.int64), self.grasps.shape[1] - 1)
-        rows = self.grasps[b, g]  # (k, 23)
-        return rows[:, : C.NUM_JOINTS].copy(), rows[:, C.NUM_JOINTS :].copy()
+        return pick_grasps(np, self.scales, self.grasps, np.asarray(scale), np.asarray(u))  # envs.task
 
     def save(self, path: str | Path) -> None:
         """Write the cache to exactly ``path`` (through a file object: numpy would append '.npz' to a name)."""
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         with open(path, "wb") as f:
             np.savez_compressed(f, object=self.object, scales=self.scales, grasps=self.grasps.astype(np.float32),
-                                seed=self.seed)
+                                seed=self.seed, hand=self.hand)
 
     @classmethod
     def load(cls, path: str | Path) -> GraspCache:
@@ -107,13 +107,16 @@ class GraspCache:
             try:  # members are read (decompressed, CRC-checked) here
                 name, scales, grasps = str(f["object"]), f["scales"], f["grasps"]
                 seed = int(f["seed"]) if "seed" in f.files else 0
+                hand = str(f["hand"]) if "hand" in f.files else "digit360"
             except damaged as err:
                 raise ValueError(f"grasp cache {path} is corrupted ({type(err).__name__}: {err}); "
                                  f"regenerate it with `rotate grasps`") from err
         if name not in OBJECTS:
             raise ValueError(f"grasp cache {path}: unknown object {name!r}; known objects: "
                              f"{', '.join(sorted(OBJECTS))}")
-        return cls(name, scales, grasps, seed, source=str(path))
+        if hand not in HANDS:
+            raise ValueError(f"grasp cache {path}: unknown hand {hand!r}; hands: {', '.join(HANDS)}")
+        return cls(name, scales, grasps, seed, source=str(path), hand=hand)
 
 
 JOINT_TOLERANCE = 0.02
@@ -156,25 +159,43 @@ def _check_rows(grasps: np.ndarray, scales: np.ndarray, where: str) -> None:
                                f"the hand's grasp point {OBJECT_START.tolist()} (at most {MAX_OBJECT_OFFSET} m)")
 
 
-def default_cache_path(object_name: str) -> Path:
-    return Path(__file__).resolve().parent / "assets" / f"grasps_{object_name}.npz"
+def default_cache_path(object_name: str, hand: str = "digit360") -> Path:
+    """The shipped cache of an object: grasps_<object>.npz for the Digit 360 hand, grasps_<object>_<hand>.npz for
+    another hand variant."""
+    suffix = "" if hand == "digit360" else f"_{hand}"
+    return Path(__file__).resolve().parent / "assets" / f"grasps_{object_name}{suffix}.npz"
 
 
-def load_default_cache(object_name: str, path: str = "") -> GraspCache:
-    """The cache at ``path``, or the one shipped for ``object_name``; errors name the object and the fix."""
+def _shipped_objects(folder: Path, hand: str) -> list[str]:
+    """Objects with a shipped cache for ``hand`` (file names as in default_cache_path)."""
+    names = [p.stem.removeprefix("grasps_") for p in folder.glob("grasps_*.npz")]
+    if hand == "digit360":
+        tags = tuple(f"_{h}" for h in HANDS if h != "digit360")
+        return sorted(n for n in names if not n.endswith(tags))
+    return sorted(n.removesuffix(f"_{hand}") for n in names if n.endswith(f"_{hand}"))
+
+
+def load_default_cache(object_name: str, path: str = "", hand: str = "digit360") -> GraspCache:
+    """The cache at ``path``, or the one shipped for ``object_name`` and ``hand``; errors name the object and the
+    fix."""
     if path:
         cache = GraspCache.load(path)
     else:
-        shipped = default_cache_path(object_name)
+        shipped = default_cache_path(object_name, hand)
         if not shipped.is_file():
-            have = sorted(p.stem.removeprefix("grasps_") for p in shipped.parent.glob("grasps_*.npz"))
+            have = _shipped_objects(shipped.parent, hand)
+            flag, on = ("", "") if hand == "digit360" else (f" --hand {hand}", f" on the {hand} hand")
             raise ValueError(
-                f"no grasp cache ships for object {object_name!r} (shipped: {', '.join(have) or 'none'}); "
-                f"generate one with `rotate grasps --objects {object_name} --out FILE` and pass grasp_cache=FILE"
+                f"no grasp cache ships for object {object_name!r}{on} (shipped: {', '.join(have) or 'none'}); "
+                f"generate one with `rotate grasps --objects {object_name}{flag} --out DIR` and pass "
+                f"grasp_cache=DIR/{default_cache_path(object_name, hand).name}"
             )
         cache = GraspCache.load(shipped)
     if cache.object != object_name:
         raise ValueError(f"grasp cache was generated for {cache.object!r}, not for {object_name!r}")
+    if cache.hand != hand:
+        raise ValueError(f"{cache.where} was generated for the {cache.hand} hand, not for the {hand} hand; "
+                         f"generate one with `rotate grasps --hand {hand}`")
     return cache
 
 
@@ -209,12 +230,12 @@ def _penetration(model: mujoco.MjModel, data: mujoco.MjData, q: np.ndarray, pos:
 
 def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int, seed: int = 0,
                     batch_size: int = 128, max_rounds: int = 200, noise: float = 0.25, nthread: int | None = None,
-                    progress=None, max_tilt: float = DEFAULT_MAX_TILT) -> GraspCache:
+                    progress=None, max_tilt: float = DEFAULT_MAX_TILT, hand: str = "digit360") -> GraspCache:
     """Generate ``per_scale`` accepted grasps for each scale (see the module docstring for the rule)."""
     if per_scale < 1:
         raise ValueError(f"per_scale must be >= 1, got {per_scale}")
     obj = get_object(object_name)
-    model = build_model(obj, max(scales))
+    model = build_model(obj, max(scales), hand=hand)
     rng = np.random.default_rng(seed)
     batch = mujoco.batch.Batch(model, batch_size, nthread or 0, persistent=True)
     geom_size, geom_pos = batch.expand("geom_size"), batch.expand("geom_pos")
@@ -286,4 +307,4 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
                 f"{max_rounds} rounds of {batch_size}; the canonical pose may not fit this object"
             )
         out.append(np.stack(accepted[:per_scale]))
-    return GraspCache(object_name, np.asarray(scales), np.stack(out), seed)
+    return GraspCache(object_name, np.asarray(scales), np.stack(out), seed, hand=hand)

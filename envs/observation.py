@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs import constants as C
+from envs.task import proprio_frame
 
 
 class ProprioHistory:
@@ -22,7 +23,7 @@ class ProprioHistory:
     @staticmethod
     def frame(q: np.ndarray, targets: np.ndarray) -> np.ndarray:
         """(N, 16) joint positions and targets (rad) -> (N, 32) frame."""
-        return np.concatenate([C.scale_joints(q), targets], axis=-1).astype(np.float32)
+        return proprio_frame(np, q, targets, C.JOINT_LOWER, C.JOINT_UPPER).astype(np.float32)  # envs.task
 
     def reset(self, ids: np.ndarray, q: np.ndarray) -> None:
         """Fill the history of envs ``ids`` with the pose ``q`` (len(ids), 16)."""

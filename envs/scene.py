@@ -18,19 +18,35 @@ OBJECT_BODY = "object"
 OBJECT_JOINT = "object_free"
 OBJECT_START = np.array([0.05, -0.005, 0.07])
 """Nominal object centre above the fingers (m, world frame), where grasps are generated."""
+HANDS = ("digit360", "xela")
+"""Hand variants: 'digit360' (Digit 360 fingertips, the default) and 'xela' (stock-length fingertips with Xela
+shells, and Xela pads on the phalanges and palm: envs.sensors.xela_hand)."""
 
 
 def hand_xml_path() -> str:
     return str(Path(__file__).resolve().parent / "assets" / "allegro_right_digit360.xml")
 
 
+def hand_spec(hand: str = "digit360") -> mujoco.MjSpec:
+    """The spec of a hand variant (one of HANDS), without an object."""
+    if hand not in HANDS:
+        raise ValueError(f"unknown hand {hand!r}; hands: {', '.join(HANDS)}")
+    spec = mujoco.MjSpec.from_file(hand_xml_path())
+    if hand == "xela":
+        from envs.sensors.xela_hand import make_xela_hand
+
+        make_xela_hand(spec)
+    return spec
+
+
 def build_model(obj: ObjectSpec, scale: float = 1.0, timestep: float = 0.01,
-                edit: Callable[[mujoco.MjSpec], None] | None = None) -> mujoco.MjModel:
+                edit: Callable[[mujoco.MjSpec], None] | None = None, hand: str = "digit360") -> mujoco.MjModel:
     """Compile the hand + object model with the object at ``scale`` (the env's largest).
 
-    ``edit`` may add elements to the finished spec before compiling (e.g. the Digit 360 sensors).
+    ``edit`` may add elements to the finished spec before compiling (e.g. the Digit 360 sensors); ``hand`` picks
+    the hand variant (HANDS).
     """
-    spec = mujoco.MjSpec.from_file(hand_xml_path())
+    spec = hand_spec(hand)
     spec.option.timestep = timestep
     body = spec.worldbody.add_body(name=OBJECT_BODY, pos=OBJECT_START.tolist())
     body.add_freejoint(name=OBJECT_JOINT)

@@ -64,6 +64,10 @@ ALLOWED: dict[str, dict[str, str]] = {
     "pretrain:weight_decay_end": {"zero": "no weight decay at the end of the cosine schedule"},
     "pretrain:warmup_fraction": {"zero": "no learning-rate warm-up"},
     "pretrain:teacher_temp_warmup_fraction": {"zero": "the teacher temperature starts at its final value"},
+    "pretrain:skin.num_local": {"zero": "no local views: the student sees the global views only"},
+    "pretrain:skin.mask_probability": {"zero": "no iBOT masks (the iBOT loss is then 0)"},
+    "pretrain:skin.ibot_weight": {"zero": "turns the iBOT loss off"},
+    "pretrain:skin.koleo_weight": {"zero": "turns the KoLeo regularizer off"},
     "train-student:env.randomization.com": {"zero": "the range (0, 0): no CoM randomization"},
     "train-student:env.randomization.kd": {"zero": "the range (0, 0): no damping"},
     **{f"train-student:env.reward.{term}": {

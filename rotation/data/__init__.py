@@ -3,6 +3,8 @@
 - :mod:`rotation.data.session`: the HDF5 layout (its module docstring is the spec), ``SessionWriter``,
   ``SessionReader``, ``SessionError``.
 - :mod:`rotation.data.dataset`: ``TouchWindows`` (Sparsh-X windows per fingertip + labels) and ``split_sessions``.
+- :mod:`rotation.data.skin`: ``SkinWindows`` (Sparsh-skin windows of the whole hand's Xela skin + labels) and the
+  skin's baselines.
 """
 
 from rotation.data.session import (

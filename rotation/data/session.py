@@ -24,7 +24,10 @@ digit360/<finger>/imu         (3,)                float32/64       400        ac
 digit360/<finger>/pressure    (1,)                float32/64       200        absolute pressure (hPa)
 digit360/<finger>/contact     (20,)               float32          any        simulated contact fields (sim only):
                                                                                envs.sensors.digit360.CONTACT_FIELDS
-skin/xela                     (368, 3)            float32/64       100        Xela taxels (raw counts)
+skin/xela                     (368, 3)            float32/64       100        Xela taxels (raw counts, X Y Z;
+                                                                               taxel order envs.sensors.xela.PADS)
+skin/taxel_pos                (368, 3)            float32/64       100        taxel positions (m, hand frame) at
+                                                                               each skin sample (sim: kinematics)
 labels/force                  (4, 3)              float32/64       any        per fingertip [normal, shear x, shear y]
                                                                                (N, force on the dome, sensor frame)
 labels/slip                   (4,)                float32/64       any        per fingertip slip speed (m/s)
@@ -33,14 +36,21 @@ labels/object_pose            (7,)                float32/64       any        ob
                                                                                world frame
 labels/priv                   (9,)                float32/64       any        privileged vector (envs.constants)
 labels/z                      (8,)                float32/64       any        the teacher's latent
+labels/skin_force             (18, 3)             float32/64       any        per Xela pad [normal, shear x,
+                                                                               shear y] (N, force on the pad, pad
+                                                                               frame; envs.sensors.xela.PADS)
+labels/joystick               (3,)                float32/64       any        joystick [roll, pitch, yaw] (rad,
+                                                                               envs.joystick)
 ============================  ==================  ===============  =========  =================================
 
 ``<finger>`` is one of index, middle, ring, thumb. Fixed rates are the Digit 360's (reference/hardware.md section 4)
 and Xela's (reference/sparsh.md); "any" rates are declared per session in the ``rate_hz`` attribute (e.g. the
 control rate) and checked against the timestamps. A Digit 360 fingertip is stored either as its recorded streams
 (real hand) or as its contact fields (simulation), from which the loader renders the four modalities
-(envs.sensors.digit360_render). The object's properties (``properties``) are the simulated parameters in sim
-(scale, mass kg, friction, com m) and whatever was measured on the real object.
+(envs.sensors.digit360_render). A session with skin streams carries the static taxel facts in ``extra["skin"]``
+(envs.sensors.xela.skin_metadata: pad names, taxels per pad, taxel type ids and names). The object's properties
+(``properties``) are the simulated parameters in sim (scale, mass kg, friction, com m) and whatever was measured on
+the real object.
 
 Crash safety: the writer keeps the file in HDF5's single-writer/multiple-reader mode (SWMR, ``libver="latest"``),
 creates every dataset up front, buffers appends in memory and writes + flushes them every ``flush_interval_s``. In
@@ -73,6 +83,8 @@ LATENT_DIM = 8
 """Size of the teacher's latent z (Hora's env-factor encoder output, reference/hora.md)."""
 XELA_TAXELS = 368
 """Taxels of the Xela skin on the Allegro hand (reference/hardware.md section 5)."""
+XELA_PADS = 18
+"""Pads of the Xela skin on the Allegro hand (envs.sensors.xela.PADS)."""
 RATE_TOLERANCE = 0.1
 """A stream's median timestamp step may differ from 1 / rate_hz by this fraction (jittery USB clocks)."""
 
@@ -104,6 +116,9 @@ def _stream_registry() -> dict[str, StreamSpec]:
         "joints/target": StreamSpec((NUM_JOINTS,), _FLOAT, None, "rad"),
         "joints/torque": StreamSpec((NUM_JOINTS,), _FLOAT, None, "N m"),
         "skin/xela": StreamSpec((XELA_TAXELS, 3), _FLOAT, 100.0, "raw counts"),
+        "skin/taxel_pos": StreamSpec((XELA_TAXELS, 3), _FLOAT, 100.0, "m, hand frame"),
+        "labels/skin_force": StreamSpec((XELA_PADS, 3), _FLOAT, None, "N, pad frame [normal, shear x, shear y]"),
+        "labels/joystick": StreamSpec((3,), _FLOAT, None, "rad [roll, pitch, yaw]"),
         "labels/force": StreamSpec((len(FINGERS), 3), _FLOAT, None, "N"),
         "labels/slip": StreamSpec((len(FINGERS),), _FLOAT, None, "m/s"),
         "labels/contact": StreamSpec((len(FINGERS),), ("uint8", "bool"), None, "flag"),

@@ -4,6 +4,7 @@
     rotate deploy --hand sim-leap --policy student --record runs/leap_rehearsal.h5
     rotate deploy --hand allegro --can socketcan:can0 --policy student --gain-scale 0.3 --duration 5
     rotate deploy --hand leap --port /dev/ttyUSB0 --policy student --record runs/leap.h5
+    rotate deploy --hand allegro --policy student --skin ws://localhost:5000 --record runs/skin.h5   # + Xela skin
 
 --policy takes a bundle directory or a shipped bundle name (student). The loop runs at the bundle's control
 rate, builds observations with the env's own code (envs.observation.ProprioHistory), integrates targets as the
@@ -12,10 +13,11 @@ rate and holds the last target if commands stop. Ctrl-C or SIGTERM end the run: 
 Prints a live status line (stderr), then the summary as one JSON object on the last line of stdout. Exit status:
 0 run completed, 1 fault, 130 Ctrl-C (SIGINT), 143 SIGTERM, 2 bad options (nothing was started).
 
-Nothing is reported as safe or done unless it was: the bundle, the --record file and the --digit360 sensors are
-checked before any motor is switched on; a run whose steps were mostly late or held is a fault; the summary's
-"motors_off" is true only when confirmed (by the emulated hand, or by the real hand's answer), and a motors-off
-that was not confirmed ends with a non-zero status and the instruction to cut the hand's power.
+Nothing is reported as safe or done unless it was: the bundle, the --record file, the --digit360 sensors and the
+--skin server are checked before any motor is switched on; a run whose steps were mostly late or held is a fault;
+the summary's "motors_off" is true only when confirmed (by the emulated hand, or by the real hand's answer), and a
+motors-off that was not confirmed ends with a non-zero status and the instruction to cut the hand's power. With
+--skin the summary's "skin" counts the frames received, the malformed messages skipped and the disconnects.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from typing import Any, Literal
 from envs.validation import check_int, check_number, check_types
 from rotation.configs import add_dataclass_arguments, dataclass_from_args, to_jsonable
 from rotation.deploy.hands import HANDS, HandSetup, OpenedHand, open_hand
-from rotation.deploy.sensors import check_digit360, parse_digit360
+from rotation.deploy.sensors import check_digit360, check_skin, parse_digit360, parse_skin
 
 log = logging.getLogger("rotation.deploy")
 
@@ -61,6 +63,9 @@ class Config:
     digit360: str = ""
     """Digit 360 sensors to record: 4 comma-separated USB serials in finger order (index,middle,ring,thumb),
     FINGER=SERIAL pairs, tty paths, or 'sim' (emulated sensors, emulated hands only)."""
+    skin: str = ""
+    """Xela skin to record (skin/xela, 100 Hz): the vendor xela_server's WebSocket URL (ws://HOST:5000), or 'sim'
+    (a stand-in server, emulated hands only); empty: none. Start with the skin free of contact (baseline)."""
     duration: float = 10.0
     """Run length (s); 0 runs until Ctrl-C / SIGTERM."""
     record: str = ""
@@ -109,6 +114,7 @@ class Config:
             raise ValueError(f"adapter: tactile adapters are not supported by `rotate deploy` yet (a later issue); "
                              f"{self.adapter!r} was not loaded. Run without --adapter to deploy the policy alone.")
         parse_digit360(self.digit360, emulated=self.hand.startswith("sim-"))
+        parse_skin(self.skin, emulated=self.hand.startswith("sim-"))
         if self.grasp < 0:
             raise ValueError(f"grasp must be >= 0, got {self.grasp}")
         if self.sim_transport not in ("virtual", "slcan"):
@@ -231,6 +237,7 @@ def _check_before_start(cfg: Config) -> None:
     if cfg.record:
         _check_record_path(Path(cfg.record), cfg.overwrite)
     check_digit360(parse_digit360(cfg.digit360, emulated=cfg.hand.startswith("sim-")))
+    check_skin(parse_skin(cfg.skin, emulated=cfg.hand.startswith("sim-")))
     if cfg.hand.startswith("sim-"):
         from envs.grasps import load_default_cache
 
@@ -281,7 +288,7 @@ def run(cfg: Config) -> dict[str, Any]:
     from rotation.deploy.loop import ControlLoop, LoopConfig
     from rotation.deploy.policy import check_deployable
     from rotation.deploy.recording import DeployRecorder
-    from rotation.deploy.sensors import open_digit360
+    from rotation.deploy.sensors import open_digit360, open_skin
     from rotation.hardware.realtime import set_realtime_priority
     from rotation.policy.bundle import load_bundle
 
@@ -305,6 +312,7 @@ def run(cfg: Config) -> dict[str, Any]:
     created: list[OpenedHand] = []  # the hand as soon as its driver exists, also when its start-up fails
     loop: ControlLoop | None = None
     recorder: DeployRecorder | None = None
+    skin = None
     fault: str | None = None
     exit_code = EXIT_OK
     t_start = time.monotonic()
@@ -322,6 +330,7 @@ def run(cfg: Config) -> dict[str, Any]:
                 sys.setswitchinterval(5e-4)
             sched = set_realtime_priority(cfg.rt_priority)
             readers = open_digit360(digit_specs, stack)  # before the hand: the hand leaves first on exit
+            skin, skin_baseline = open_skin(parse_skin(cfg.skin, setup.emulated), stack)
             # motors on, holding the current pose; the stack switches them off
             opened = open_hand(setup, stack, created=created.append)
             hand = opened.hand
@@ -332,9 +341,9 @@ def run(cfg: Config) -> dict[str, Any]:
                      info.firmware, info.hardware, info.serial,
                      "n/a" if math.isnan(temp0) else f"{temp0:.0f} C", sched)
             if cfg.record:
-                recorder = _open_recorder(cfg, bundle, opened, info, tuple(readers), hz)
+                recorder = _open_recorder(cfg, bundle, opened, info, tuple(readers), hz, skin_baseline)
             loop = ControlLoop(opened, bundle, loop_cfg, recorder=recorder, readers=readers, status_out=sys.stderr,
-                               temperature_c=temp0)
+                               temperature_c=temp0, skin=skin)
             loop.run()
         # the motors are off; a run that was mostly late or held did not run the policy as it was trained
         shortfall = loop.stats.shortfall(loop_cfg.max_degraded_fraction)
@@ -358,12 +367,14 @@ def run(cfg: Config) -> dict[str, Any]:
                 exit_code = exit_code or EXIT_FAULT
     try:
         opened = created[0] if created else None
-        return _finish(cfg, hz, opened, loop, recorder, critical, fault, exit_code, time.monotonic() - t_start)
+        return _finish(cfg, hz, opened, loop, recorder, critical, fault, exit_code, time.monotonic() - t_start,
+                       skin)
     finally:
         signals.restore()
 
 
-def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple[str, ...], hz: float):
+def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple[str, ...], hz: float,
+                   skin_baseline=None):
     from rotation.data.session import SessionError, SessionMeta
     from rotation.deploy.recording import DeployRecorder
 
@@ -381,11 +392,15 @@ def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple
         "target": "targets commanded by the policy (before the driver's rate limit)",
         "deploy_config": to_jsonable(cfg),
     }
+    if skin_baseline is not None:
+        from rotation.data.skin import BASELINE_KEY
+
+        extra[BASELINE_KEY] = skin_baseline.tolist()  # (368, 3) counts before the hand started
     meta = SessionMeta(source=opened.source, object=cfg.object, control_hz=hz, hand=opened.kind,
                        properties=properties, extra=json.loads(json.dumps(extra, default=str)))
     try:
         recorder = DeployRecorder(cfg.record, meta, fingers=fingers, object_pose=physics is not None,
-                                  overwrite=cfg.overwrite)
+                                  overwrite=cfg.overwrite, skin=skin_baseline is not None)
     except OSError as err:  # checked before the start, but the disk may have changed since
         raise SessionError(f"could not create {cfg.record}: {err}") from err
     log.info("recording to %s", recorder.path)
@@ -410,7 +425,7 @@ def _motors_off_state(opened: OpenedHand | None) -> tuple[bool, bool | None, str
 
 
 def _finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, critical: _CriticalRecords,
-            fault: str | None, exit_code: int, wall_s: float) -> dict[str, Any]:
+            fault: str | None, exit_code: int, wall_s: float, skin=None) -> dict[str, Any]:
     """Summary dict, final log lines, and the JSON line on stdout."""
     motors_off, confirmed, witness = _motors_off_state(opened)
     stats = loop.stats.summary(1.0 / hz) if loop is not None else {
@@ -422,6 +437,7 @@ def _finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, c
         "control_hz": hz, **stats, "wall_s": wall_s, "fault": fault, "motors_off": motors_off,
         "motors_off_confirmed": confirmed, "motors_off_witness": witness,
         "record": str(recorder.path) if recorder is not None else None, "exit_code": exit_code,
+        "skin": None if skin is None else {k: skin.counters[k] for k in ("frames", "skipped", "disconnects")},
     }
     rot = "" if summary["rotation_rad"] is None else f" (object rotation {summary['rotation_rad']:+.2f} rad)"
     rate = "n/a" if summary["loop_hz"] is None else f"{summary['loop_hz']:.1f} Hz"

@@ -35,7 +35,7 @@ from envs.core import angular_velocity
 from rotation.deploy.hands import OpenedHand
 from rotation.deploy.policy import PolicyFault, PolicyState, PolicyWorker, action_problem
 from rotation.deploy.recording import DeployRecorder
-from rotation.deploy.sensors import DigitDrain
+from rotation.deploy.sensors import DigitDrain, SkinDrain
 from rotation.hardware.hand import HandFault
 from rotation.policy.bundle import PolicyBundle
 
@@ -69,7 +69,7 @@ class LoopConfig:
     temperature_every_s: float = 5.0
     """Joint temperature poll period (s), on its own thread (a LEAP poll is 48 register reads)."""
     drain_every_s: float = 0.25
-    """Period (s) of moving Digit 360 samples into the recording."""
+    """Period (s) of moving Digit 360 and skin samples into the recording."""
     max_degraded_fraction: float = 0.5
     """A run in which more than this fraction of the control slots were late, held or skipped did not run the
     policy at its rate: ``rotate deploy`` reports it as a fault (exit status 1), not as done."""
@@ -196,19 +196,32 @@ class StatusLine:
             self.out.flush()
 
 
+class _Drains:
+    """Several sensor drains (Digit 360, skin) behind one ``drain(append)``."""
+
+    def __init__(self, drains: list) -> None:
+        self.drains = drains
+
+    def drain(self, append) -> None:
+        for d in self.drains:
+            d.drain(append)
+
+
 class ControlLoop:
     """Runs one policy on one started hand (see the module docstring). ``stats`` stays valid after a fault."""
 
     def __init__(self, opened: OpenedHand, bundle: PolicyBundle, cfg: LoopConfig,
                  recorder: DeployRecorder | None = None, readers: dict | None = None,
-                 status_out: TextIO | None = None, temperature_c: float = float("nan")) -> None:
-        """``readers``: Digit 360 readers by finger (recorded only); ``temperature_c``: hottest joint at start (C)."""
+                 status_out: TextIO | None = None, temperature_c: float = float("nan"), skin=None) -> None:
+        """``readers``: Digit 360 readers by finger (recorded only); ``temperature_c``: hottest joint at start (C);
+        ``skin``: the Xela skin reader (recorded only)."""
         self.opened = opened
         self.hand = opened.hand
         self.bundle = bundle
         self.cfg = cfg
         self.recorder = recorder
         self.readers = readers or {}
+        self.skin = skin
         self.status = StatusLine(status_out)
         self.stats = LoopStats(max_temperature_c=temperature_c)
         self.period = 1.0 / cfg.control_hz
@@ -226,7 +239,9 @@ class ControlLoop:
                              bundle_cfg.action_scale)
         pose0 = self.opened.object_pose()
         meter = RotationMeter(pose0) if pose0 is not None else None
-        drain = DigitDrain(self.readers, t0) if self.readers else None
+        drains = ([DigitDrain(self.readers, t0)] if self.readers else []) + (
+            [SkinDrain(self.skin, t0)] if self.skin is not None else [])
+        drain = _Drains(drains) if drains else None
         worker = PolicyWorker(self.bundle.act)
         try:  # before the clock starts; the hand holds its start pose meanwhile
             log.info("policy warm-up: first inference took %.0f ms", 1e3 * worker.warm_up(policy.observation()))

@@ -7,7 +7,8 @@ Streams, all in session time (s since the first joint measurement of the run):
 - ``joints/torque`` (16,): the driver's effort at that step, in the driver's unit (metadata ``extra.torque_unit``:
   normalized torque = PWM / 1200 on an Allegro V4, = N m in simulation; measured current in A on LEAP);
 - ``labels/object_pose`` (7,): object position (m) + quaternion wxyz, world frame, where known (emulation);
-- ``digit360/<finger>/{imu,pressure}``: the Digit 360 serial streams when ``--digit360`` is given.
+- ``digit360/<finger>/{imu,pressure}``: the Digit 360 serial streams when ``--digit360`` is given;
+- ``skin/xela`` (368, 3) raw counts at 100 Hz when ``--skin`` is given (baseline in ``extra["xela_baseline"]``).
 
 Joint streams share the control step's timestamp (the state read then was measured at most one driver cycle
 earlier: 3 ms Allegro, 10 ms LEAP). The writer flushes every ``flush_interval_s``, so a crash or a fault loses at
@@ -32,12 +33,15 @@ class DeployRecorder:
     """Session writer for one deploy run (see the module docstring)."""
 
     def __init__(self, path: str | Path, meta: SessionMeta, fingers: tuple[str, ...] = (),
-                 object_pose: bool = False, flush_interval_s: float = 1.0, overwrite: bool = False) -> None:
+                 object_pose: bool = False, flush_interval_s: float = 1.0, overwrite: bool = False,
+                 skin: bool = False) -> None:
         rate = meta.control_hz
         streams: list[StreamSetup | str] = [StreamSetup(name, rate_hz=rate) for name in JOINT_STREAMS]
         if object_pose:
             streams.append(StreamSetup("labels/object_pose", rate_hz=rate))
         streams += [f"digit360/{f}/{s}" for f in fingers for s in DIGIT_STREAMS]
+        if skin:
+            streams.append("skin/xela")
         self.writer = SessionWriter(path, meta, streams, flush_interval_s=flush_interval_s, overwrite=overwrite)
         self.path = self.writer.path
         self.object_pose = object_pose
@@ -55,7 +59,7 @@ class DeployRecorder:
         self.steps += 1
 
     def append(self, name: str, data: np.ndarray, timestamps: np.ndarray) -> None:
-        """Samples of any other declared stream (Digit 360)."""
+        """Samples of any other declared stream (Digit 360, skin)."""
         self.writer.append(name, data, timestamps)
 
     def __enter__(self) -> DeployRecorder:

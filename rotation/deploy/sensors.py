@@ -1,4 +1,5 @@
-"""Digit 360 fingertips during deploy: parse ``--digit360``, open the readers, move their samples into the recording.
+"""Touch sensors during deploy: parse ``--digit360`` / ``--skin``, open the readers, move their samples into the
+recording.
 
 ``--digit360`` names one sensor per finger, either positionally in the bus order of the fingers
 (``index,middle,ring,thumb``: exactly four entries) or by name for any subset (``thumb=D360-A,index=D360-B``).
@@ -8,6 +9,12 @@ pseudo-terminal). ``sim`` (emulated hands only) starts one emulated sensor per f
 No policy reads touch yet (the tactile adapter comes in a later issue), so the sensors are recorded only:
 their serial streams (accelerometer 400 Hz, pressure 200 Hz) go to ``digit360/<finger>/{imu,pressure}``. A sensor
 that stops streaming leaves a gap in its streams and a log line; it does not stop the hand.
+
+``--skin`` names the Xela skin's ``xela_server`` (a ws:// URL; ``sim`` starts the local stand-in server,
+rotation.sim_hardware.xela_emulator, emulated hands only). Its frames (raw counts, our taxel order,
+rotation.hardware.xela) are recorded to ``skin/xela``; the median of the frames received before the hand starts
+is stored as the session's ``extra["xela_baseline"]`` (the no-contact reading, rotation.data.skin), so start with
+the skin free of contact. A skin that stops streaming leaves a gap and a log line, like a Digit 360.
 """
 
 from __future__ import annotations
@@ -115,6 +122,89 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack) -> dict[st
     return readers
 
 
+def parse_skin(spec: str, emulated: bool) -> str:
+    """``--skin`` -> '' (none), 'sim' (emulated hands only) or a checked ws:// URL; ValueError naming ``skin``."""
+    spec = spec.strip()
+    if spec in ("", "sim"):
+        if spec == "sim" and not emulated:
+            raise ValueError("skin: 'sim' (the stand-in xela_server) needs an emulated hand "
+                             "(--hand sim-allegro/sim-leap)")
+        return spec
+    from rotation.hardware.xela import parse_url
+
+    return parse_url(spec, "skin")
+
+
+def check_skin(spec: str) -> None:
+    """ValueError (naming ``--skin``) unless the xela_server at the URL answers now (before anything starts)."""
+    if spec in ("", "sim"):
+        return
+    from rotation.hardware.xela import probe_server
+
+    problem = probe_server(spec)
+    if problem:
+        raise ValueError(f"--skin {spec}: xela_server does not answer ({problem}); start it, or drop --skin")
+
+
+SKIN_BASELINE_S = 0.5
+"""Frames (s) before the hand starts whose median is the session's skin baseline."""
+
+
+def open_skin(spec: str, stack: contextlib.ExitStack) -> tuple[Any, Any]:
+    """Start the skin reader (and for 'sim' the stand-in server) inside ``stack``; (reader, baseline (368, 3) or
+    None). Waits up to 2 s for ``SKIN_BASELINE_S`` of frames; :class:`SensorError` if none arrives."""
+    if not spec:
+        return None, None
+    from rotation.hardware.xela import SAMPLE_HZ, XelaConfig, XelaReader
+
+    url = spec
+    if spec == "sim":
+        from rotation.sim_hardware.xela_emulator import XelaServerEmulator
+
+        url = stack.enter_context(XelaServerEmulator()).url
+    reader = stack.enter_context(XelaReader(XelaConfig(url=url)))
+    if not reader.wait_frames(int(SKIN_BASELINE_S * SAMPLE_HZ), timeout_s=2.0) and reader.counters["frames"] == 0:
+        raise SensorError(f"skin ({url}): no frame within 2 s ({reader.last_error or 'nothing received'})")
+    from rotation.data.skin import estimate_baseline
+
+    baseline = estimate_baseline(reader.recent(SKIN_BASELINE_S)[1])
+    log.info("skin: %s, %d frames before the start (baseline from the last %.1f s)", url,
+             reader.counters["frames"], SKIN_BASELINE_S)
+    return reader, baseline
+
+
+def fresh_samples(buf: Any, last: float) -> tuple[np.ndarray, np.ndarray]:
+    """Samples of a ring buffer newer than ``last`` (host s), keeping the series strictly increasing (a clock
+    re-anchoring may map a sample before an earlier one): (t (n,), v (n, ...))."""
+    t, v = buf.snapshot()
+    keep = t > np.maximum.accumulate(np.concatenate([[last], t]))[:-1]
+    return t[keep], v[keep]
+
+
+class SkinDrain:
+    """Moves new skin frames into ``skin/xela`` (session time ``t - t0``), logging stalls like :class:`DigitDrain`."""
+
+    def __init__(self, reader: Any, t0: float) -> None:
+        self.reader, self.t0 = reader, t0
+        self._last = t0
+        self._stalled = False
+
+    def drain(self, append) -> None:
+        t, v = fresh_samples(self.reader.frames, self._last)
+        if len(t):
+            append("skin/xela", v, t - self.t0)
+            self._last = float(t[-1])
+        age = time.monotonic() - self.reader.frames.newest_time()
+        stalled = age > STALL_S
+        if stalled != self._stalled:
+            if stalled:
+                log.warning("skin: no frames for %.1f s (a gap in its recording; the hand goes on): %s",
+                            age if np.isfinite(age) else float("inf"), self.reader.last_error or "no error reported")
+            else:
+                log.info("skin: streaming again")
+            self._stalled = stalled
+
+
 class DigitDrain:
     """Moves new samples from the readers' ring buffers to the recording (host ``time.monotonic()`` s -> session
     time ``t - t0``); keeps each stream's timestamps strictly increasing, as the session format requires."""
@@ -131,11 +221,8 @@ class DigitDrain:
         for finger, reader in self.readers.items():
             newest = -np.inf
             for stream in STREAMS:
-                t, v = getattr(reader, stream).snapshot()
                 key = (finger, stream)
-                # a clock re-anchoring may map a sample before an earlier one: keep a strictly increasing series
-                keep = t > np.maximum.accumulate(np.concatenate([[self._last[key]], t]))[:-1]
-                t, v = t[keep], v[keep]
+                t, v = fresh_samples(getattr(reader, stream), self._last[key])
                 if len(t):
                     append(f"digit360/{finger}/{stream}", v, t - self.t0)
                     self._last[key] = float(t[-1])

@@ -25,12 +25,12 @@ import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import torch
 from tqdm import tqdm
 
 from envs.config import EnvConfig, Perturbation, RandomizationConfig
-from envs.core import RotateCupVec
 from envs.validation import check_int, check_optional_file, check_output_dir, check_seed, check_types
 from rotation.configs import save_config
 from rotation.evaluate import finished
@@ -39,6 +39,7 @@ from rotation.evaluate.rollout import run_episodes
 from rotation.evaluate.suites import SUITES, Condition, get_suite, make_condition
 from rotation.interrupt import SIGNAL_NAMES, Interrupted
 from rotation.policy.bundle import PolicyBundle, load_bundle, shipped_bundles
+from rotation.sim_warp.host import BACKEND_HELP, BACKENDS, make_vec
 
 
 @dataclass
@@ -88,6 +89,11 @@ class Config:
     resume: bool = False
     """Continue the evaluation in `out` (an interrupted one): keep its finished conditions, run the rest. Running
     the same command into the same `out` does this too; --resume also insists that there is something to continue."""
+    backend: Literal["cpu", "warp"] = "cpu"
+    """Physics backend: 'cpu' (MuJoCo on mujoco.batch threads) or 'warp' (MuJoCo Warp on `warp_device`, the [warp]
+    extra). The simulated Digit 360 touch and --video run on the cpu backend only."""
+    warp_device: str = "cuda"
+    """Device of the warp backend's worlds: 'cuda', 'cuda:<index>' or 'cpu' (Warp's CPU device, slow)."""
 
     def __post_init__(self) -> None:
         check_types(self, skip=("com_shift",))  # Perturbation checks com_shift with its own message
@@ -105,6 +111,11 @@ class Config:
         check_int("torch_threads", self.torch_threads, 1, 1024)
         if self.com_shift is not None and (not isinstance(self.com_shift, tuple | list) or len(self.com_shift) != 3):
             raise ValueError(f"com_shift needs 3 values (X Y Z, m), got {self.com_shift!r}")
+        if self.backend == "warp" and self.video:
+            raise ValueError("video: the videos render the cpu backend's simulations; drop --video or use "
+                             "--backend cpu")
+        if not (self.warp_device == "cpu" or self.warp_device == "cuda" or self.warp_device.startswith("cuda:")):
+            raise ValueError(f"warp_device must be 'cuda', 'cuda:<index>' or 'cpu', got {self.warp_device!r}")
         rand = RandomizationConfig() if self.randomize else RandomizationConfig(enabled=False)
         try:
             conditions = resolve_conditions(self)
@@ -156,6 +167,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--torch-threads", type=int, default=d.torch_threads, help="torch CPU threads (default 1)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=d.progress,
                         help="show a progress bar")
+    parser.add_argument("--backend", choices=list(BACKENDS), default=d.backend, help=BACKEND_HELP)
+    parser.add_argument("--warp-device", default=d.warp_device,
+                        help=f"device of the warp backend: cuda, cuda:N or cpu (default {d.warp_device})")
     parser.add_argument("--resume", action="store_true",
                         help="continue the interrupted evaluation in --out (its finished conditions are kept; the "
                         "same command without --resume continues it too)")
@@ -174,7 +188,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
         seed=args.seed, out=args.out, num_envs=args.num_envs, object=args.object, grasp_cache=args.grasp_cache,
         episode_steps=args.episode_steps, randomize=args.randomize, video=args.video,
         video_size=tuple(args.video_size), nthread=args.nthread, torch_threads=args.torch_threads,
-        progress=args.progress, resume=args.resume,
+        progress=args.progress, resume=args.resume, backend=args.backend, warp_device=args.warp_device,
     )
 
 
@@ -265,8 +279,8 @@ def run(cfg: Config) -> list[dict]:
 def _run_condition(cfg: Config, cond: Condition, bundles: dict[str, PolicyBundle], first: PolicyBundle, out: Path,
                    bar: tqdm) -> list[dict]:
     """Every policy under one condition (same env, same seeds): one row per policy; the video if asked for."""
-    env = RotateCupVec(env_config(cfg, first, cond.perturb), num_envs=min(cfg.num_envs, cfg.episodes),
-                       seed=cfg.seed, nthread=cfg.nthread or None)
+    env = make_vec(cfg.backend, env_config(cfg, first, cond.perturb), num_envs=min(cfg.num_envs, cfg.episodes),
+                   seed=cfg.seed, nthread=cfg.nthread or None, device=cfg.warp_device)
     recorder = None
     try:
         if cfg.video:

@@ -1,15 +1,19 @@
-"""Collect simulated touch sessions: the batched env with Digit 360 touch on, one session file per episode.
+"""Collect simulated touch sessions: the batched env with Digit 360 touch (or the Xela skin) on, one file per episode.
 
     rotate collect --policy random --episodes 64 --out data/touch --num-envs 8
     rotate collect --policy runs/teacher/bundle --episodes 200 --out data/touch_lowfric --friction-scale 0.5
     rotate collect --policy student --episodes 20 --out data/heavy --added-mass 0.1 --com-shift 0 0 0.01
+    rotate collect --skin --policy play --episodes 64 --out data/skin_cup        # Xela skin, scripted cup play
+    rotate collect --skin --task joystick --policy play --episodes 64 --out data/skin_joystick
 
 Files: OUT/shard_<e // 100>/episode_<e>.h5 in the session format (rotation.data.session) with joint streams,
 per-substep contact fields of every fingertip (the loader renders images, audio, IMU and pressure from them) and
 per-step labels (force, slip, contact, object pose, privileged vector; the teacher's latent z when the policy is a
-privileged bundle). OUT/collect.json records the settings. Episode e runs in env slot e % num_envs as that slot's
-(e // num_envs)-th episode, so a run is deterministic under its settings and an interrupted run resumes where it
-stopped: complete files are kept, partial ones (a killed writer) are recorded again, identically.
+privileged bundle). With --skin the hand is the Xela variant and sessions hold the skin streams and labels instead
+of the Digit 360 ones (rotation.jobs.collect_skin, docs/skin.md); --task joystick records the hand playing with the
+joystick fixture (envs.joystick). OUT/collect.json records the settings. Episode e runs in env slot e % num_envs
+as that slot's (e // num_envs)-th episode, so a run is deterministic under its settings and an interrupted run
+resumes where it stopped: complete files are kept, partial ones (a killed writer) are recorded again, identically.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from tqdm import tqdm
@@ -27,9 +31,11 @@ from envs import constants as C
 from envs.config import EnvConfig, Perturbation
 from envs.core import RotateCupVec
 from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, FINGERS
+from envs.sensors.xela import skin_metadata
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import to_jsonable
 from rotation.data.session import LATENT_DIM, SessionMeta, SessionReader, SessionWriter, StreamSetup
+from rotation.jobs.collect_skin import PlayPolicy, record_skin, run_joystick, skin_streams
 
 SHARD_SIZE = 100
 """Episodes per shard directory."""
@@ -40,12 +46,15 @@ _SETTINGS = ("policy", "object", "seed", "num_envs", "friction_scale", "added_ma
 _LATER_SETTINGS = ("control_hz", "action_scale", "policy_weights_sha256")
 """Also compared on resume, when the earlier manifest recorded them (manifests of older versions lack them): the
 env's timing (a bundle's own) and the digest of a bundle's weights (the same path may hold a retrained policy)."""
+_SKIN_SETTINGS = {"skin": False, "task": "cup"}
+"""Settings added with the skin; a manifest without them recorded these defaults."""
 
 
 @dataclass(frozen=True)
 class Config:
     policy: str = "random"
-    """'random' (smoothed uniform actions), or a policy bundle: a shipped name or a directory (load_bundle)."""
+    """'random' (smoothed uniform actions), 'play' (scripted grip cycles and finger sweeps, for skin pretraining),
+    or a policy bundle: a shipped name or a directory (load_bundle)."""
     episodes: int = 8
     """Number of episodes (= session files) to have in OUT when done."""
     out: Path = Path("touch_sessions")
@@ -70,6 +79,13 @@ class Config:
     """Session writers flush at least this often (s): the most a crash can lose."""
     progress: bool = True
     """Show a progress bar."""
+    skin: bool = False
+    """Record the simulated Xela skin on the Xela hand (stock fingertips, 18 pads; docs/skin.md) instead of the
+    Digit 360 fingertips: streams skin/xela, skin/taxel_pos, labels/skin_force at 100 Hz."""
+    task: Literal["cup", "joystick"] = "cup"
+    """'cup': the RotateCup env with the object; 'joystick': the Xela hand presses and pushes the spring-returned
+    joystick fixture (needs --skin and policy 'play' or 'random'; adds labels/joystick; the object and
+    perturbation options do not apply)."""
 
     def __post_init__(self) -> None:
         check_types(self, skip=("com_shift",))  # Perturbation below checks com_shift with its own message
@@ -88,9 +104,19 @@ class Config:
             raise ValueError(f"com_shift needs 3 values (X Y Z, m), got {self.com_shift!r}")
         check_number("flush_interval_s", self.flush_interval_s, 0.0, 3600.0, low_open=True, unit="s")
         check_output_dir("out", self.out)
+        if self.task == "joystick" and not self.skin:
+            raise ValueError("task: the joystick task records the Xela skin; add --skin")
+        if self.task == "joystick" and self.policy not in ("play", "random"):
+            raise ValueError(f"policy: the joystick task moves the hand by script: 'play' or 'random', got "
+                             f"{self.policy!r}")
         # the object, the episode length and the perturbation as the env will see them (physical limits included)
-        EnvConfig(object=self.object, tactile=True, episode_steps=self.episode_steps,
+        EnvConfig(object=self.object, episode_steps=self.episode_steps, **_sensors(self.skin),
                   perturb=Perturbation(self.friction_scale, self.added_mass, tuple(self.com_shift)))
+
+
+def _sensors(skin: bool) -> dict[str, Any]:
+    """The env's touch settings: Digit 360 fingertips, or the Xela hand with its skin."""
+    return dict(hand="xela", skin=True, tactile=False) if skin else dict(tactile=True)
 
 
 def episode_path(out: Path, episode: int) -> Path:
@@ -158,12 +184,14 @@ class _BundlePolicy:
         return np.asarray(self.bundle.latent(self._obs(obs)), dtype=np.float32) if self.privileged else None
 
 
-def _streams(control_hz: float, physics_hz: float, with_z: bool) -> list[StreamSetup]:
-    s = [StreamSetup(n, rate_hz=control_hz) for n in ("joints/position", "joints/target", "joints/torque",
-                                                        "labels/force", "labels/slip", "labels/contact",
+def _streams(control_hz: float, physics_hz: float, with_z: bool, skin: bool = False) -> list[StreamSetup]:
+    touch = () if skin else ("labels/force", "labels/slip", "labels/contact")
+    s = [StreamSetup(n, rate_hz=control_hz) for n in ("joints/position", "joints/target", "joints/torque", *touch,
                                                         "labels/object_pose", "labels/priv")]
     if with_z:
         s.append(StreamSetup("labels/z", rate_hz=control_hz))
+    if skin:
+        return s + skin_streams()
     s += [StreamSetup(f"digit360/{f}/contact", rate_hz=physics_hz) for f in FINGERS]
     return s
 
@@ -190,11 +218,12 @@ class _Recorder:
             source="sim", object=cfg.object, control_hz=env.cfg.control_hz, seed=cfg.seed,
             properties={"scale": float(p["scale"][slot]), "mass": float(p["mass"][slot]),
                         "friction": float(p["friction"][slot]), "com": p["com"][slot].tolist()},
-            extra={"episode": episode, "slot": slot, "touch_key": int(env.touch.episode_keys[slot]),
-                   "physics_dt": env.cfg.physics_dt, "collect": to_jsonable(cfg)},
+            extra={"episode": episode, "slot": slot, "physics_dt": env.cfg.physics_dt, "collect": to_jsonable(cfg),
+                   **({"hand": "xela", "skin_key": int(env.skin.skin.keys[slot]), "skin": skin_metadata()}
+                      if env.skin is not None else {"touch_key": int(env.touch.episode_keys[slot])})},
         )
-        self.writer = SessionWriter(self.path, meta, _streams(env.cfg.control_hz, 1.0 / env.cfg.physics_dt, with_z),
-                                    flush_interval_s=cfg.flush_interval_s, overwrite=True)
+        streams = _streams(env.cfg.control_hz, 1.0 / env.cfg.physics_dt, with_z, env.skin is not None)
+        self.writer = SessionWriter(self.path, meta, streams, flush_interval_s=cfg.flush_interval_s, overwrite=True)
 
     def record_step(self, obs: dict, z: np.ndarray | None, labels: dict[str, np.ndarray], substeps: bool) -> None:
         env, i, w = self.env, self.slot, self.writer
@@ -209,7 +238,9 @@ class _Recorder:
             w.append(f"labels/{name}", value[i : i + 1], t)
         if z is not None:
             w.append("labels/z", z[i : i + 1], t)
-        if substeps:
+        if substeps and env.skin is not None:
+            record_skin(w, env.skin, i)
+        elif substeps:
             for f, finger in enumerate(FINGERS):
                 w.append(f"digit360/{finger}/contact", env.touch.last_rows[i, f], env.touch.last_times[i])
 
@@ -222,12 +253,12 @@ def _env_config(cfg: Config, policy: _RandomPolicy | _BundlePolicy) -> EnvConfig
     timing = {}
     if isinstance(policy, _BundlePolicy):
         timing = dict(control_hz=policy.bundle.config.control_hz, action_scale=policy.bundle.config.action_scale)
-    return EnvConfig(object=cfg.object, tactile=True, episode_steps=cfg.episode_steps,
+    return EnvConfig(object=cfg.object, episode_steps=cfg.episode_steps, **_sensors(cfg.skin),
                      perturb=Perturbation(cfg.friction_scale, cfg.added_mass, tuple(cfg.com_shift)), **timing)
 
 
-def _settings(cfg: Config, env_cfg: EnvConfig, policy: _RandomPolicy | _BundlePolicy) -> dict[str, Any]:
-    settings = {k: to_jsonable(getattr(cfg, k)) for k in _SETTINGS}
+def _settings(cfg: Config, env_cfg: EnvConfig, policy: Any) -> dict[str, Any]:
+    settings = {k: to_jsonable(getattr(cfg, k)) for k in (*_SETTINGS, *_SKIN_SETTINGS)}
     settings.update(control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale)
     if isinstance(policy, _BundlePolicy):
         settings["policy_weights_sha256"] = policy.digest
@@ -248,6 +279,7 @@ def _check_manifest(cfg: Config, settings: dict[str, Any]) -> None:
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as err:
         raise ValueError(f"{path} is not a readable collect manifest ({type(err).__name__}: {err}); use another "
                          "--out, or remove the file if the sessions beside it are yours to replace") from None
+    old = {**_SKIN_SETTINGS, **old}
     diff = {k: (old.get(k), v) for k, v in settings.items()
             if old.get(k) != v and (k not in _LATER_SETTINGS or k in old)}
     if not diff:
@@ -273,7 +305,8 @@ def run(cfg: Config) -> dict[str, float]:
     sessions) is checked before the manifest is written, so a refused run leaves nothing that refuses the corrected
     one."""
     m = cfg.num_envs
-    policy = _RandomPolicy(m, cfg.seed, cfg.random_scale) if cfg.policy == "random" else _BundlePolicy(cfg.policy)
+    scripted = {"random": lambda: _RandomPolicy(m, cfg.seed, cfg.random_scale), "play": lambda: PlayPolicy(m, cfg.seed)}
+    policy = scripted[cfg.policy]() if cfg.policy in scripted else _BundlePolicy(cfg.policy)
     env_cfg = _env_config(cfg, policy)
     settings = _settings(cfg, env_cfg, policy)
     _check_manifest(cfg, settings)
@@ -281,8 +314,13 @@ def run(cfg: Config) -> dict[str, float]:
     if not todo:
         print(f"collect: {cfg.out} already holds {cfg.episodes} complete sessions")
         return {"episodes": 0, "steps": 0, "steps_per_s": 0.0, "samples_per_s": 0.0}
+    if cfg.task == "joystick":
+        _write_manifest(cfg, settings)
+        return run_joystick(cfg, todo, episode_path)
     env = RotateCupVec(env_cfg, num_envs=m, seed=cfg.seed)  # loads the grasp cache: may still refuse
     _write_manifest(cfg, settings)
+    if isinstance(policy, PlayPolicy):
+        policy.bind(env)
     with_z = isinstance(policy, _BundlePolicy) and policy.privileged
     queues = [[e for e in todo if e % m == i] for i in range(m)]  # slot i runs episodes i, i + m, ...
     obs = env.reset(seed=cfg.seed)
@@ -295,7 +333,7 @@ def run(cfg: Config) -> dict[str, float]:
         new_obs = env.reset(ids=np.array([slot]))
         policy.start(slot, e)
         recorders[slot] = _Recorder(env, cfg, slot, e, with_z)
-        labels = _labels(env.touch.last_rows[:, :, -1])
+        labels = _labels(env.touch.last_rows[:, :, -1]) if env.touch is not None else {}
         z = policy.latent(new_obs) if with_z else None
         recorders[slot].record_step(new_obs, z, labels, substeps=False)  # the state at t = 0
         return new_obs
@@ -311,7 +349,7 @@ def run(cfg: Config) -> dict[str, float]:
                 actions = policy(obs, active)
                 obs, _, terminated, truncated, _ = env.step(actions * active[:, None])
                 steps += int(active.sum())
-                labels = _labels(env.touch.last_rows[:, :, -1])
+                labels = _labels(env.touch.last_rows[:, :, -1]) if env.touch is not None else {}
                 z = policy.latent(obs) if with_z else None
                 for i in np.flatnonzero(active):
                     recorders[i].record_step(obs, z, labels, substeps=True)
@@ -327,7 +365,7 @@ def run(cfg: Config) -> dict[str, float]:
             if r is not None:
                 r.writer.abort()
     elapsed = time.perf_counter() - t0
-    # one sample = one fingertip window the loader can cut: 30 per simulated second and fingertip
-    samples = steps * env_cfg.control_dt * 30.0 * len(FINGERS)
+    # one sample = one fingertip window the loader can cut: 30 per simulated second and fingertip (skin: one frame)
+    samples = steps * (env_cfg.substeps if cfg.skin else env_cfg.control_dt * 30.0 * len(FINGERS))
     print(f"collect: {len(todo)} sessions, {steps} steps in {elapsed:.1f} s -> {cfg.out}")
     return {"episodes": len(todo), "steps": steps, "steps_per_s": steps / elapsed, "samples_per_s": samples / elapsed}

@@ -6,9 +6,11 @@ four fingertips are within 10 cm of the object, at least two touch it, it did no
 (its up axis within --max-tilt of vertical).
 
     rotate grasps --objects cup cylinder --per-scale 100 --out grasps/
+    rotate grasps --objects cup --hand xela --out grasps/      # the Xela skin hand (docs/skin.md)
     rotate view --object cup --grasp-cache grasps/grasps_cup.npz --out cup.png
 
-The files are `OUT/grasps_<object>.npz`; pass one to the env as `grasp_cache=...` (or `--grasp-cache`).
+The files are `OUT/grasps_<object>.npz` (`OUT/grasps_<object>_xela.npz` for the Xela hand); pass one to the env as
+`grasp_cache=...` (or `--grasp-cache`).
 """
 
 from __future__ import annotations
@@ -17,11 +19,12 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from tqdm import tqdm
 
 from envs.config import RandomizationConfig
-from envs.grasps import DEFAULT_MAX_TILT, generate_grasps
+from envs.grasps import DEFAULT_MAX_TILT, default_cache_path, generate_grasps
 from envs.objects import OBJECTS, get_object
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 
@@ -44,6 +47,8 @@ class Config:
     """Keep only grasps holding the object's up axis within this angle (rad) of vertical after settling."""
     out: Path = Path("grasps")
     """Output directory."""
+    hand: Literal["digit360", "xela"] = "digit360"
+    """Hand variant (envs.scene.HANDS): 'digit360' fingertips or the Xela skin hand; grasps are hand-specific."""
 
     def __post_init__(self) -> None:
         check_types(self)
@@ -83,9 +88,9 @@ def run(cfg: Config) -> list[Path]:
             bar.refresh()
 
         cache = generate_grasps(name, tuple(cfg.scales), cfg.per_scale, seed=cfg.seed, batch_size=cfg.batch_size,
-                                noise=cfg.noise, progress=progress, max_tilt=cfg.max_tilt)
+                                noise=cfg.noise, progress=progress, max_tilt=cfg.max_tilt, hand=cfg.hand)
         bar.close()
-        path = cfg.out / f"grasps_{name}.npz"
+        path = cfg.out / default_cache_path(name, cfg.hand).name
         cache.save(path)
         written.append(path)
         print(f"{name}: {cache.grasps.shape[0]} scales x {cache.grasps.shape[1]} grasps -> {path} "

@@ -9,6 +9,8 @@ Attention runs through ``F.scaled_dot_product_attention`` (fused kernels on CPU 
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -47,13 +49,15 @@ class DropPath(nn.Module):
 
 
 class Attention(nn.Module):
-    """Multi-head self-attention over all tokens (no mask), fused qkv projection with bias."""
+    """Multi-head self-attention over all tokens (no mask; with ``causal`` each token attends to itself and the
+    tokens before it), fused qkv projection with bias."""
 
-    def __init__(self, dim: int, num_heads: int):
+    def __init__(self, dim: int, num_heads: int, causal: bool = False):
         super().__init__()
         if dim % num_heads:
             raise ValueError(f"Attention: dim {dim} is not divisible by num_heads {num_heads}")
         self.num_heads = num_heads
+        self.causal = causal
         self.qkv = nn.Linear(dim, 3 * dim, bias=True)
         self.proj = nn.Linear(dim, dim)
 
@@ -61,7 +65,7 @@ class Attention(nn.Module):
         b, n, d = x.shape
         qkv = self.qkv(x).reshape(b, n, 3, self.num_heads, d // self.num_heads)  # (B, N, 3, H, hd)
         q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)  # 3 x (B, H, N, hd)
-        out = F.scaled_dot_product_attention(q, k, v)  # (B, H, N, hd), scale hd^-0.5
+        out = F.scaled_dot_product_attention(q, k, v, is_causal=self.causal)  # (B, H, N, hd), scale hd^-0.5
         return self.proj(out.transpose(1, 2).reshape(b, n, d))  # (B, N, D)
 
 
@@ -82,10 +86,10 @@ class Block(nn.Module):
     """``x + drop(ls1(attn(norm1(x))))`` then ``x + drop(ls2(mlp(norm2(x))))``; (B, N, D) -> (B, N, D)."""
 
     def __init__(self, dim: int, num_heads: int, mlp_ratio: float = 4.0, drop_path: float = 0.0,
-                 layer_scale: float = 1.0):
+                 layer_scale: float = 1.0, causal: bool = False):
         super().__init__()
         self.norm1 = nn.LayerNorm(dim, eps=LN_EPS)
-        self.attn = Attention(dim, num_heads)
+        self.attn = Attention(dim, num_heads, causal)
         self.ls1 = LayerScale(dim, layer_scale)
         self.norm2 = nn.LayerNorm(dim, eps=LN_EPS)
         self.mlp = Mlp(dim, int(dim * mlp_ratio))
@@ -99,3 +103,19 @@ class Block(nn.Module):
         # the same without stochastic depth, scale and residual in one op (fewer passes over the tokens)
         x = torch.addcmul(x, self.attn(self.norm1(x)), self.ls1.gamma)
         return torch.addcmul(x, self.mlp(self.norm2(x)), self.ls2.gamma)
+
+
+class Float32Buffers(nn.Module):
+    """A module whose floating-point buffers stay float32 when it is cast: ``.to(dtype)`` / ``.half()`` cast the
+    weights only, while the buffers still move with the model. Input statistics and frequency bands are buffers,
+    and 8 significant bits (bfloat16) lose the token positions and the normalization of absolute signals."""
+
+    def _apply(self, fn: Any, recurse: bool = True) -> Float32Buffers:
+        before = dict(self.named_buffers())
+        super()._apply(fn, recurse)
+        for name, buf in list(self.named_buffers()):
+            old = before.get(name)
+            if old is not None and old.is_floating_point() and buf.dtype != old.dtype:
+                owner, _, attr = name.rpartition(".")
+                self.get_submodule(owner)._buffers[attr] = old.to(device=buf.device)
+        return self

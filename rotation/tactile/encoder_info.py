@@ -1,8 +1,10 @@
-"""Describe a Sparsh-X encoder: parameter count, tokens, every state-dict name, or whether a checkpoint loads.
+"""Describe a touch encoder (Sparsh-X or Sparsh-skin): parameter count, tokens, every state-dict name, or whether a
+checkpoint loads.
 
     rotate encoder-info --size base --modalities img,mic,imu,pressure
     rotate encoder-info --size base --keys > keys.txt        # 'name shape' per line (shape 768x6x16x16, scalar)
     rotate encoder-info --size base --checkpoint d360_sparshx_img_mic_imu_pressure_base.pth
+    rotate encoder-info --encoder skin --size tiny --checkpoint runs/pretrain_skin/encoder.safetensors
 
 The model is built on the meta device (no memory for weights, instant at any size). With ``--keys`` standard
 output holds only the names, in state-dict (file) order, and the summary goes to standard error. With
@@ -20,16 +22,19 @@ from typing import Literal
 import torch
 
 from envs.validation import check_types
+from rotation.tactile.sparsh_skin import SparshSkin, SparshSkinConfig, load_skin
 from rotation.tactile.sparshx import SparshX, SparshXConfig
 from rotation.tactile.sparshx_checkpoint import check_checkpoint, shape_str
 
 
 @dataclass(frozen=True)
 class Config:
+    encoder: Literal["sparshx", "skin"] = "sparshx"
+    """Encoder kind: sparshx (a Digit 360 fingertip) or skin (Sparsh-skin, the Xela skin of the hand)."""
     size: Literal["tinier", "tiny", "small", "base"] = "base"
-    """Model size (base is the released all-modality encoder)."""
+    """Model size (base is the released all-modality Sparsh-X; tiny the released Sparsh-skin)."""
     modalities: str = "img,mic,imu,pressure"
-    """Comma-separated subset of img, mic, imu, pressure."""
+    """Sparsh-X: comma-separated subset of img, mic, imu, pressure."""
     fusion: Literal["bottleneck", "vanilla"] = "bottleneck"
     """Fusion layers: bottleneck tokens between per-modality blocks, or shared blocks over all tokens."""
     patch_layer_norm: bool = False
@@ -52,15 +57,15 @@ class Config:
                              patch_layer_norm=self.patch_layer_norm)
 
 
-def key_lines(model: SparshX) -> list[str]:
+def key_lines(model: torch.nn.Module) -> list[str]:
     """'name shape' for every state-dict entry, in order (the released key list's format)."""
     return [f"{name} {shape_str(t.shape)}" for name, t in model.state_dict().items()]
 
 
 def run(cfg: Config) -> dict:
-    model_cfg = cfg.model_config()
+    model_cfg = cfg.model_config() if cfg.encoder == "sparshx" else SparshSkinConfig(size=cfg.size)
     with torch.device("meta"):
-        model = SparshX(model_cfg)
+        model = SparshX(model_cfg) if cfg.encoder == "sparshx" else SparshSkin(model_cfg)
     interface = model.token_interface
     tokens = ", ".join(f"{name} {count}" for name, count in interface.groups)
     summary = [
@@ -76,9 +81,19 @@ def run(cfg: Config) -> dict:
         print("\n".join(key_lines(model)))
     result = {"parameters": model.num_parameters(), "tokens": dict(interface.groups), "width": interface.width,
               "entries": len(model.state_dict())}
-    if cfg.checkpoint is not None:
-        used, n = check_checkpoint(cfg.checkpoint, model_cfg)  # CheckpointMismatch is a ValueError: exit 2
-        ln = " (with the IMU/pressure tokenizer LayerNorm)" if used.patch_layer_norm else ""
-        print(f"checkpoint {cfg.checkpoint}: loads strictly, {n} tensors{ln}", file=info)
+    if cfg.checkpoint is not None:  # CheckpointMismatch is a ValueError: exit 2
+        print(f"checkpoint {cfg.checkpoint}: {_check_file(cfg.checkpoint, model_cfg)}", file=info)
         result["checkpoint"] = str(cfg.checkpoint)
     return result
+
+
+def _check_file(path: Path, model_cfg: SparshXConfig | SparshSkinConfig) -> str:
+    """Load ``path`` strictly into the structure of ``model_cfg``; what loaded (raises on a mismatch)."""
+    if isinstance(model_cfg, SparshSkinConfig):
+        loaded = load_skin(path)
+        if loaded.cfg.size != model_cfg.size:
+            raise ValueError(f"checkpoint {path} holds {loaded.cfg.describe()}, not size {model_cfg.size}")
+        return f"loads strictly, {len(loaded.state_dict())} tensors"
+    used, n = check_checkpoint(path, model_cfg)
+    ln = " (with the IMU/pressure tokenizer LayerNorm)" if used.patch_layer_norm else ""
+    return f"loads strictly, {n} tensors{ln}"

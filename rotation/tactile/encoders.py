@@ -2,8 +2,9 @@
 
 A job sees an encoder only through rotation.tactile.tokens.TouchEncoder (``preprocess``, ``forward(inputs, keep,
 registers)``, ``token_interface``) plus what an :class:`EncoderKind` adds here: the layout of each token group (for
-block masking), saving and loading weights, and a view restricted to some token groups (ablations such as
-image-only). Sparsh-X is registered now; Sparsh-skin joins with its own kind.
+block masking), saving and loading weights, a fresh copy of an encoder's structure (end-to-end baselines) and a
+view restricted to some token groups (ablations such as image-only). Two kinds: ``sparshx`` (one Digit 360
+fingertip) and ``skin`` (Sparsh-skin: the Xela skin of the whole hand).
 """
 
 from __future__ import annotations
@@ -15,8 +16,13 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from envs.sensors.xela import NUM_TAXELS
+from rotation.tactile.sparsh_skin import FILE_FORMAT as SKIN_FORMAT
+from rotation.tactile.sparsh_skin import GROUP as SKIN_GROUP
+from rotation.tactile.sparsh_skin import SIZES as SKIN_SIZES
+from rotation.tactile.sparsh_skin import SparshSkin, SparshSkinConfig, load_skin, save_skin
 from rotation.tactile.sparshx import SIZES, SparshX, SparshXConfig
-from rotation.tactile.sparshx_checkpoint import load_pretrained, save_checkpoint
+from rotation.tactile.sparshx_checkpoint import load_pretrained, read_safetensors, save_checkpoint
 from rotation.tactile.sparshx_inputs import MODALITIES, TOKEN_GRIDS
 
 
@@ -38,6 +44,10 @@ class EncoderKind:
     sizes: tuple[str, ...]
     groups: tuple[str, ...]
     """Every token group this kind can have, in canonical order."""
+    rebuild: Callable[[nn.Module], nn.Module]
+    """A freshly initialized encoder of the same structure (weights random; buffers as built)."""
+    file_format: str
+    """``format`` metadata of the kind's saved files (how load_encoder tells the kinds apart)."""
 
 
 def _sparshx_build(size: str, groups: tuple[str, ...], fusion: str, drop_path: float) -> nn.Module:
@@ -65,6 +75,13 @@ def _sparshx_restrict(model: nn.Module, groups: tuple[str, ...]) -> nn.Module:
     return sub
 
 
+def _skin_restrict(model: nn.Module, groups: tuple[str, ...]) -> nn.Module:
+    """Sparsh-skin has one token group: restricting to it is the encoder itself."""
+    if tuple(groups) != (SKIN_GROUP,):
+        raise ValueError(f"the encoder has no modality {[g for g in groups if g != SKIN_GROUP]} (it has {SKIN_GROUP})")
+    return model
+
+
 ENCODERS: dict[str, EncoderKind] = {
     "sparshx": EncoderKind(
         build=_sparshx_build,
@@ -75,6 +92,21 @@ ENCODERS: dict[str, EncoderKind] = {
         describe=lambda m: m.cfg.describe(),  # type: ignore[union-attr]
         sizes=tuple(SIZES),
         groups=MODALITIES,
+        rebuild=lambda m: _sparshx_build(m.cfg.size, tuple(m.cfg.modalities), m.cfg.fusion,  # type: ignore[union-attr]
+                                         m.cfg.drop_path),  # type: ignore[union-attr]
+        file_format="sparshx",
+    ),
+    "skin": EncoderKind(
+        build=lambda size, groups, fusion, drop_path: SparshSkin(SparshSkinConfig(size=size, drop_path=drop_path)),
+        grids=lambda m: {SKIN_GROUP: (NUM_TAXELS,)},  # blocks over the taxel order
+        save=lambda m, path: save_skin(m, path),  # type: ignore[arg-type]
+        load=lambda path, drop_path: load_skin(path, drop_path=drop_path),
+        restrict=_skin_restrict,
+        describe=lambda m: m.cfg.describe(),  # type: ignore[union-attr]
+        sizes=tuple(SKIN_SIZES),
+        groups=(SKIN_GROUP,),
+        rebuild=lambda m: SparshSkin(m.cfg),  # type: ignore[arg-type]
+        file_format=SKIN_FORMAT,
     ),
 }
 """Encoder name -> kind; `rotate pretrain --encoder` chooses among these."""
@@ -90,13 +122,18 @@ def kind_of(model: nn.Module) -> str:
     """The registry name of a built encoder."""
     if isinstance(model, SparshX):
         return "sparshx"
+    if isinstance(model, SparshSkin):
+        return "skin"
     raise ValueError(f"not a registered touch encoder: {type(model).__name__}")
 
 
 def parse_groups(text: str | Sequence[str], kind: str) -> tuple[str, ...]:
-    """'img,mic' or ('img', 'mic') -> the groups in the kind's canonical order (ValueError on unknown names)."""
+    """'img,mic' or ('img', 'mic') -> the groups in the kind's canonical order (ValueError on unknown names); an
+    empty string: every group of the kind."""
     items = [t.strip() for t in (text.split(",") if isinstance(text, str) else text) if t.strip()]
     allowed = encoder_kind(kind).groups
+    if isinstance(text, str) and not text.strip():
+        return allowed
     bad = [t for t in items if t not in allowed]
     if bad or not items or len(set(items)) != len(items):
         raise ValueError(f"modalities: need a non-empty subset of {', '.join(allowed)} without repeats, got "
@@ -114,4 +151,13 @@ def load_encoder(path: str | Path, drop_path: float | None = None, device: torch
         path = path / "encoder.safetensors"
     if not path.is_file():
         raise ValueError(f"no encoder checkpoint at {path}")
-    return ENCODERS["sparshx"].load(path, drop_path).to(device)
+    return ENCODERS[file_kind(path)].load(path, drop_path).to(device)
+
+
+def file_kind(path: Path) -> str:
+    """The encoder kind of a checkpoint file: from its safetensors ``format`` metadata; a torch file (.pth, .pt)
+    or our safetensors without a known format is a Sparsh-X checkpoint (released weights)."""
+    if path.suffix != ".safetensors":
+        return "sparshx"
+    fmt = read_safetensors(path, tensors=False)[1].get("format")
+    return next((name for name, kind in ENCODERS.items() if kind.file_format == fmt), "sparshx")

@@ -1,4 +1,5 @@
-"""Touch windows for the encoder jobs: sessions or a pre-rendered cache, and the per-step batch order.
+"""Touch windows for the encoder jobs: sessions or a pre-rendered cache (Sparsh-X), skin windows (Sparsh-skin), and
+the per-step batch order.
 
 The order of batches is a pure function of (seed, step): epoch e = step // steps_per_epoch reads
 ``DistributedSampler``'s permutation for epoch e (each process its own share of it), so a resumed run (or a run
@@ -15,6 +16,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
 from envs.constants import FINGERS
 from rotation.data.dataset import TouchWindows, find_sessions
+from rotation.data.skin import SkinWindows
 from rotation.data.window_cache import CachedWindows, build_cache
 from rotation.tactile.runtime import Processes
 
@@ -49,6 +51,21 @@ def open_windows(paths: Sequence[Path], cache: Path | None, fingers: Sequence[st
         raise ValueError(f"cache {cache} holds fingers {list(ds.fingers)} at stride {ds.stride}; this run asks for "
                          f"{list(fingers)} at stride {stride}")
     return ds
+
+
+def open_encoder_windows(encoder: str, paths: Sequence[Path], cache: Path | None, fingers: Sequence[str],
+                         stride: int, labels: Sequence[str] | None = (), build: bool = True, progress: bool = True,
+                         workers: int = 0, sequence: int | None = None) -> Dataset:
+    """The windows an encoder kind reads: Sparsh-X fingertip windows (:func:`open_windows`), or whole-hand skin
+    windows (rotation.data.skin.SkinWindows; ``sequence`` consecutive windows per sample when given) read from
+    the sessions directly (``cache`` must be None; ``fingers`` does not apply)."""
+    if encoder == "skin":
+        if cache is not None:
+            raise ValueError("cache: the skin encoder reads its windows from the sessions (no cache); drop --cache")
+        return SkinWindows(paths, labels=labels, stride=stride, sequence=sequence)
+    if sequence is not None:
+        raise ValueError(f"sequences of windows are read for the skin encoder only, not {encoder!r}")
+    return open_windows(paths, cache, fingers, stride, labels=labels, build=build, progress=progress, workers=workers)
 
 
 class StepBatches(Sampler[list[int]]):

@@ -1,23 +1,28 @@
-"""Pretrain a touch encoder by self-distillation (DINO on block-masked token views, EMA teacher).
+"""Pretrain a touch encoder by self-distillation (block-masked token views, EMA teacher): Sparsh-X or Sparsh-skin.
 
     rotate cache-touch --sessions data/touch --out data/touch_cache --workers 8       # render windows once
     rotate pretrain --sessions data/touch --cache data/touch_cache --size tiny --steps 20000 --out runs/pretrain
     rotate pretrain --sessions data/touch --cache data/touch_cache --out runs/pretrain --resume
     rotate pretrain ... --nproc-per-node 4                   # 4 GPUs of this machine (DDP through torchrun)
     rotate pretrain ... --nnodes 2 --node-rank 0 --master-addr 10.0.0.1 --nproc-per-node 8   # on each node
+    rotate pretrain --encoder skin --sessions data/skin --size tiny --weight-decay 0.04 --weight-decay-end 0.4 \
+        --out runs/pretrain_skin                             # Sparsh-skin on sessions with skin/xela
 
-Per step and token set (modality): one global and four local block-masked views (rotation.tactile.ssl.masking);
-the teacher (EMA of the student) sees the global view, the student every view; the DINO loss compares their
-register tokens through a shared projection head, one center per set (reference/sparsh.md "Sparsh-X
-self-supervised pretraining"). AdamW with a warm-up + cosine learning rate, no weight decay on 1-D parameters,
-gradient clipping; bfloat16 autocast on a GPU. Every schedule is a function of the step and every random draw
-(masks, drop path, batch order) is seeded by it, so ``--resume`` continues bit-identically (on the same device).
+What a step computes is the encoder's objective (rotation.tactile.pretrain_objectives): for Sparsh-X, per token
+set (modality) one global and four local block-masked views, the teacher (EMA of the student) on the global view,
+the student on every view, the DINO loss on their register tokens through a shared projection head, one center
+per set (reference/sparsh.md "Sparsh-X self-supervised pretraining"); for Sparsh-skin, two global and eight local
+blocks over the taxel order, DINO + iBOT (masked taxels) + KoLeo (reference/sparsh.md "Sparsh-skin"). The loop is
+shared: AdamW with a warm-up + cosine learning rate, no weight decay on 1-D parameters, gradient clipping;
+bfloat16 autocast on a GPU. Every schedule is a function of the step and every random draw (masks, drop path,
+batch order) is seeded by it, so ``--resume`` continues bit-identically (on the same device).
 
 OUT holds config.json, ckpt_<step>.safetensors (the newest few: student, teacher, head, optimizer state, centers,
 step), encoder.safetensors (the teacher's encoder at the last checkpoint: what `rotate probe` and the tactile
 adapter load), tb/ (TensorBoard) and, after a distributed run, ranks.json (a digest of every rank's weights).
 With ``--cache`` windows come from pre-rendered shards (rotation.data.window_cache; missing sessions are rendered
-first), else they are rendered on the fly (about 160 windows/s per loader worker).
+first), else they are rendered on the fly (about 160 windows/s per loader worker). Skin windows are read from the
+sessions directly (rotation.data.skin.SkinWindows; no cache).
 """
 
 from __future__ import annotations
@@ -30,32 +35,25 @@ import os
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-from envs.constants import FINGERS
-from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import from_jsonable, save_config, to_jsonable
 from rotation.interrupt import Interrupted, StopSignals
-from rotation.tactile.encoders import ENCODERS, encoder_kind, parse_groups
-from rotation.tactile.loading import check_fingers, open_windows, session_paths, step_loader, to_device
+from rotation.tactile.encoders import encoder_kind
+from rotation.tactile.loading import open_encoder_windows, session_paths, step_loader, to_device
+from rotation.tactile.pretrain_config import RESUMABLE_CHANGES, Config, load_config
 from rotation.tactile.pretrain_log import StepLog, log_point
-from rotation.tactile.pretrain_state import (
-    SelfDistillation,
-    latest_checkpoint,
-    load_checkpoint,
-    save_checkpoint,
-)
+from rotation.tactile.pretrain_objectives import OBJECTIVES, Objective, SkinObjectiveConfig
+from rotation.tactile.pretrain_state import latest_checkpoint, load_checkpoint, save_checkpoint
 from rotation.tactile.runtime import (
     Processes,
     any_true,
     autocast,
-    check_device,
     init_processes,
     resolve_device,
     step_seed,
@@ -64,13 +62,10 @@ from rotation.tactile.runtime import (
 )
 from rotation.tactile.ssl import (
     DINOHead,
-    DINOLoss,
-    MaskConfig,
     cosine,
     ema_momentum,
     ema_update,
     param_groups,
-    sample_views,
     set_hyperparameters,
     step_rng,
     teacher_entropy,
@@ -78,178 +73,9 @@ from rotation.tactile.ssl import (
     warmup_cosine,
 )
 
-HEAD_SIZES = {"tinier": (256, 1024), "tiny": (1024, 8192), "small": (2048, 16384), "base": (2048, 65536)}
-"""Encoder size -> (head hidden width, prototypes) when not given: DINO's 2048 / 65,536 for base (reference/
-sparsh.md), smaller for the small models so the head does not dwarf the encoder."""
+__all__ = ["Config", "SkinObjectiveConfig", "build", "load_config", "objective", "run", "train"]
 WORKER_ENV = "ROTATE_PRETRAIN_WORKER"
 """Set in the processes torchrun starts, so they train instead of launching again."""
-
-
-@dataclass(frozen=True)
-class Config:
-    """Self-supervised pretraining of a touch encoder (`rotate pretrain`)."""
-
-    sessions: tuple[Path, ...] = (Path("touch_sessions"),)
-    """Session files or directories (every *.h5 below them), simulated or recorded."""
-    cache: Path | None = None
-    """Pre-rendered window cache (rotate cache-touch); sessions missing from it are rendered into it first. None:
-    render windows on the fly (slow: use for small runs)."""
-    out: Path = Path("runs/pretrain")
-    """Run directory: config.json, checkpoints, encoder.safetensors, tb/."""
-    encoder: str = "sparshx"
-    """Encoder to pretrain (rotation.tactile.encoders.ENCODERS)."""
-    size: str = "tiny"
-    """Encoder size: tinier, tiny, small or base."""
-    modalities: str = "img,mic,imu,pressure"
-    """Token groups (Sparsh-X modalities), comma-separated."""
-    fusion: str = "bottleneck"
-    """Sparsh-X fusion layers: bottleneck or vanilla."""
-    drop_path: float = 0.1
-    """Stochastic depth of the student's last layer (Sparsh-X: 0.1; 0 = none)."""
-    fingers: tuple[str, ...] = FINGERS
-    """Fingertips whose windows are used."""
-    stride: int = 5
-    """Use every stride-th image frame as a window end (30 fps / 5 = 6 windows per second and fingertip)."""
-    steps: int = 20_000
-    """Optimizer steps."""
-    batch_size: int = 64
-    """Windows per step and process (the global batch is batch_size x processes)."""
-    lr: float = 1e-4
-    """Peak learning rate (Sparsh-X: 1e-4)."""
-    lr_start: float = 1e-5
-    """Learning rate at step 0, warmed up linearly to lr."""
-    lr_end: float = 1e-6
-    """Learning rate at the last step (cosine from lr)."""
-    warmup_fraction: float = 0.15
-    """Fraction of the steps spent warming the learning rate up (Sparsh-X: 30 of 200 epochs)."""
-    weight_decay: float = 0.05
-    """AdamW weight decay at step 0 (parameters with >= 2 dims only)."""
-    weight_decay_end: float = 0.05
-    """Weight decay at the last step (cosine; equal to weight_decay = constant)."""
-    clip_grad: float | None = 10.0
-    """Clip the gradients' global norm to this (Sparsh-X: 10); None = no clipping."""
-    ema_start: float = 0.994
-    """Teacher EMA momentum at step 0, cosine ramp to ema_end."""
-    ema_end: float = 1.0
-    """Teacher EMA momentum at the last step."""
-    student_temp: float = 0.1
-    """Temperature of the student's softmax."""
-    teacher_temp_start: float = 0.04
-    """Teacher temperature at step 0."""
-    teacher_temp: float = 0.07
-    """Teacher temperature after its warm-up."""
-    teacher_temp_warmup_fraction: float = 0.05
-    """Fraction of the steps over which the teacher temperature warms up (Sparsh-X: 10 of 200 epochs)."""
-    center_momentum: float = 0.9
-    """EMA momentum of the per-set centers."""
-    head_hidden: int | None = None
-    """Hidden width of the projection head (None = by size: 256 tinier, 1024 tiny, 2048 small and base)."""
-    head_bottleneck: int = 256
-    """Bottleneck width of the projection head (L2-normalized)."""
-    prototypes: int | None = None
-    """Prototypes K (None = by size: 1024 tinier, 8192 tiny, 16384 small, 65536 base)."""
-    mask: MaskConfig = field(default_factory=MaskConfig)
-    """Views: block scales, local views, fewest kept tokens."""
-    stats_windows: int = 2048
-    """Windows (a seeded random subset) from which the encoder's input normalization (audio per mel bin, pressure,
-    image) is fitted before the first step."""
-    num_workers: int = 4
-    """DataLoader worker processes per training process."""
-    device: str = "auto"
-    """torch device: auto (this process's GPU if there is one), cpu, cuda, cuda:1, ..."""
-    precision: Literal["auto", "bf16", "fp32"] = "auto"
-    """auto (bfloat16 autocast on a GPU, float32 on the CPU), bf16 or fp32."""
-    checkpoint_every: int = 1000
-    """Steps between checkpoints (and exports of encoder.safetensors)."""
-    keep_checkpoints: int = 3
-    """Newest checkpoints kept."""
-    log_every: int = 20
-    """Steps between TensorBoard points."""
-    seed: int = 0
-    """Seed of the initialization, batch order, masks and drop path."""
-    resume: bool = False
-    """Continue from the newest checkpoint in out (the saved config must match, except run-time options)."""
-    progress: bool = True
-    """Show a progress bar."""
-    torch_threads: int | None = None
-    """torch CPU threads per process (None = torch's default; with several processes, the cores divided among
-    them)."""
-    nproc_per_node: int = 1
-    """Training processes on this machine (> 1: relaunch through torchrun with DistributedDataParallel)."""
-    nnodes: int = 1
-    """Machines of a multi-node run (torchrun --nnodes)."""
-    node_rank: int = 0
-    """This machine's rank in a multi-node run (torchrun --node-rank)."""
-    master_addr: str = ""
-    """Address of the rank-0 machine of a multi-node run (torchrun --master-addr); empty on one machine."""
-    master_port: int = 29500
-    """Port of the rank-0 machine (torchrun --master-port)."""
-
-    def __post_init__(self) -> None:
-        check_types(self)
-        if not self.sessions:
-            raise ValueError("sessions: give at least one session file or directory")
-        object.__setattr__(self, "sessions", tuple(Path(p) for p in self.sessions))  # JSON gives strings back
-        check_output_dir("out", self.out)
-        if self.cache is not None:
-            check_output_dir("cache", self.cache)
-        if self.encoder not in ENCODERS:
-            raise ValueError(f"encoder: unknown encoder {self.encoder!r}; encoders: {', '.join(ENCODERS)}")
-        kind = encoder_kind(self.encoder)
-        if self.size not in kind.sizes:
-            raise ValueError(f"size: unknown size {self.size!r}; sizes: {', '.join(kind.sizes)}")
-        parse_groups(self.modalities, self.encoder)
-        if self.fusion not in ("bottleneck", "vanilla"):
-            raise ValueError(f"fusion: must be bottleneck or vanilla, got {self.fusion!r}")
-        check_fingers(self.fingers)
-        check_number("drop_path", self.drop_path, 0.0, 1.0, high_open=True)
-        for name, high in (("stride", 1000), ("steps", 10**9), ("batch_size", 65536), ("checkpoint_every", 10**9),
-                           ("keep_checkpoints", 1000), ("log_every", 10**9), ("head_bottleneck", 65536),
-                           ("stats_windows", 10**7), ("nproc_per_node", 1024), ("nnodes", 100_000)):
-            check_int(name, getattr(self, name), 1, high)
-        for name, high in (("head_hidden", 65536), ("prototypes", 2**20), ("torch_threads", 4096)):
-            if getattr(self, name) is not None:
-                check_int(name, getattr(self, name), 1, high)
-        check_int("num_workers", self.num_workers, 0, 1024)
-        check_int("node_rank", self.node_rank, 0, self.nnodes - 1)
-        check_seed("seed", self.seed)
-        for name in ("lr", "lr_start", "lr_end"):
-            check_number(name, getattr(self, name), 0.0, 1.0, low_open=True)
-        for name in ("student_temp", "teacher_temp_start", "teacher_temp"):
-            check_number(name, getattr(self, name), 0.0, 10.0, low_open=True)
-        for name in ("weight_decay", "weight_decay_end"):
-            check_number(name, getattr(self, name), 0.0, 10.0)
-        if self.clip_grad is not None:
-            check_number("clip_grad", self.clip_grad, 0.0, 1e6, low_open=True)
-        for name in ("warmup_fraction", "teacher_temp_warmup_fraction"):
-            check_number(name, getattr(self, name), 0.0, 1.0, high_open=True)
-        for name in ("ema_start", "ema_end"):
-            check_number(name, getattr(self, name), 0.0, 1.0, low_open=True)
-        check_number("center_momentum", self.center_momentum, 0.0, 1.0, low_open=True, high_open=True)
-        check_device(self.device, "device")
-        if self.nnodes > 1 and not self.master_addr:
-            raise ValueError("master_addr: a multi-node run (nnodes > 1) needs the rank-0 machine's address")
-        check_int("master_port", self.master_port, 1, 65535)
-
-    @property
-    def groups(self) -> tuple[str, ...]:
-        return parse_groups(self.modalities, self.encoder)
-
-    def head_sizes(self) -> tuple[int, int]:
-        hidden, k = HEAD_SIZES.get(self.size, (2048, 65536))
-        return self.head_hidden or hidden, self.prototypes or k  # None: by size
-
-
-RESUMABLE_CHANGES = {"out", "cache", "resume", "progress", "num_workers", "device", "precision", "torch_threads",
-                     "checkpoint_every", "keep_checkpoints", "log_every", "nproc_per_node", "nnodes", "node_rank",
-                     "master_addr", "master_port"}
-"""Config fields that may differ between a run and its resumption (run-time options, not the training math;
-a different device, precision or number of processes continues correctly but not bit-identically)."""
-
-
-def load_config(path: str | Path) -> Config:
-    """The Config a run saved (``<out>/config.json``)."""
-    return from_jsonable(Config, json.loads(Path(path).read_text()))
 
 
 def run(cfg: Config) -> dict[str, Any]:
@@ -264,8 +90,8 @@ def launch(cfg: Config) -> dict[str, Any]:
     """Run this job in ``nproc_per_node`` processes per machine through torchrun (``python -m
     torch.distributed.run``), each training with DistributedDataParallel; returns when they finish."""
     if cfg.cache is not None:  # render missing windows once, here, rather than racing in every process
-        open_windows(session_paths(cfg.sessions), cfg.cache, cfg.fingers, cfg.stride, progress=cfg.progress,
-                     workers=cfg.num_workers)
+        open_encoder_windows(cfg.encoder, session_paths(cfg.sessions), cfg.cache, cfg.fingers, cfg.stride,
+                             progress=cfg.progress, workers=cfg.num_workers)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     spec = out / f"launch_node{cfg.node_rank}.json"
@@ -308,8 +134,11 @@ def _worker_main(argv: list[str]) -> int:
 
 # ----------------------------------------------------------------------------------------------- training
 def _check_resumable(cfg: Config, out: Path) -> None:
-    saved = json.loads((out / "config.json").read_text())
-    now = to_jsonable(cfg)
+    # the saved config read back as a Config: fields added since it was written take their defaults, and the token
+    # groups are compared as groups ('' = all of them)
+    saved_cfg = load_config(out / "config.json")
+    saved, now = to_jsonable(saved_cfg), to_jsonable(cfg)
+    saved["modalities"], now["modalities"] = list(saved_cfg.groups), list(cfg.groups)
     diff = sorted(k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k])
     if diff:
         raise ValueError(f"--resume: the config differs from the one saved in {out / 'config.json'} in {diff}; "
@@ -324,7 +153,12 @@ def _state_digest(module: torch.nn.Module) -> str:
     return h.hexdigest()
 
 
-def build(cfg: Config) -> tuple[SelfDistillation, DINOLoss]:
+def objective(cfg: Config) -> Objective:
+    """The encoder's self-distillation objective (rotation.tactile.pretrain_objectives)."""
+    return OBJECTIVES[cfg.encoder](cfg)
+
+
+def build(cfg: Config) -> tuple[torch.nn.Module, torch.nn.Module]:
     """The freshly initialized student (encoder + head, seeded by ``cfg.seed``) and the loss of a run."""
     kind = encoder_kind(cfg.encoder)
     torch.manual_seed(cfg.seed)
@@ -332,8 +166,7 @@ def build(cfg: Config) -> tuple[SelfDistillation, DINOLoss]:
     interface = encoder.token_interface
     hidden, prototypes = cfg.head_sizes()
     head = DINOHead(interface.width, hidden, cfg.head_bottleneck, prototypes)
-    return SelfDistillation(encoder, head), DINOLoss(interface.names, prototypes, cfg.student_temp,
-                                                      cfg.center_momentum)
+    return objective(cfg).build(encoder, head, prototypes)
 
 
 def train(cfg: Config) -> dict[str, Any]:
@@ -367,10 +200,12 @@ def _train(cfg: Config, procs: Processes) -> dict[str, Any]:
 
     paths = session_paths(cfg.sessions)
     if cfg.cache is not None and procs.main:
-        open_windows(paths, cfg.cache, cfg.fingers, cfg.stride, progress=cfg.progress, workers=cfg.num_workers)
+        open_encoder_windows(cfg.encoder, paths, cfg.cache, cfg.fingers, cfg.stride, progress=cfg.progress,
+                             workers=cfg.num_workers)
     procs.barrier()
-    windows = open_windows(paths, cfg.cache, cfg.fingers, cfg.stride, labels=(), build=False)
+    windows = open_encoder_windows(cfg.encoder, paths, cfg.cache, cfg.fingers, cfg.stride, labels=(), build=False)
 
+    goal = objective(cfg)
     student, loss_fn = build(cfg)
     encoder = student.encoder
     hidden, prototypes = cfg.head_sizes()
@@ -433,26 +268,24 @@ def _train(cfg: Config, procs: Processes) -> dict[str, Any]:
                 temp = teacher_temperature(step, temp_warmup, cfg.teacher_temp_start, cfg.teacher_temp)
                 set_hyperparameters(optimizer, lr, wd)
                 torch.manual_seed(step_seed(cfg.seed, step, procs.rank))  # drop path
-                views = sample_views(grids, len(batch["time"]), cfg.mask, step_rng(cfg.seed, step, procs.rank),
-                                     device)
+                n_batch = len(batch["session"])
+                views = goal.views(grids, n_batch, step_rng(cfg.seed, step, procs.rank), device)
                 inputs = encoder.preprocess(to_device(batch, device))
                 with autocast(device, bf16), _naming_files(batch, windows):
-                    with torch.no_grad():
-                        t_logits = {n: x[0] for n, x in teacher(inputs, views[:1]).items()}  # (B, K)
-                    s_logits = model(inputs, views)  # (V, B, K)
-                loss, per_set = loss_fn(s_logits, t_logits, temp)
+                    fwd = goal.forward(model, teacher, inputs, views)  # teacher without gradient, then student
+                loss, terms = goal.loss(loss_fn, fwd, temp)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 norm = torch.nn.utils.clip_grad_norm_(student.parameters(), cfg.clip_grad or float("inf"))
                 optimizer.step()
                 ema_update(teacher, student, momentum)
-                loss_fn.update_center(t_logits)
-                acc.add(loss, per_set, norm, len(batch["time"]) * procs.world)
+                goal.update_centers(loss_fn, fwd)
+                acc.add(loss, terms, norm, n_batch * procs.world)
                 bar.update(1)
                 done = step + 1
                 if done % cfg.log_every == 0 or done == total:
                     point = acc.point(done, lr=lr, weight_decay=wd, ema_momentum=momentum, teacher_temp=temp,
-                                      entropy=teacher_entropy(loss_fn.teacher_probs(t_logits, temp)))
+                                      entropy=teacher_entropy(goal.monitor(loss_fn, fwd, temp)))
                     history.append(point)
                     if writer is not None:
                         log_point(writer, point)

@@ -2,7 +2,8 @@
 and checkpoints in safetensors that hold everything needed to continue bit-identically.
 
 A checkpoint ``ckpt_<step>.safetensors`` holds the tensors ``student.*`` (encoder and head), ``teacher.*``,
-``center`` (DINO's per-set centers) and ``optim.<param index>.<name>`` (AdamW's moments and step counts), and
+the loss's state (its centers: ``center`` for Sparsh-X's DINO, ``dino.center`` and ``ibot.center`` for
+Sparsh-skin) and ``optim.<param index>.<name>`` (AdamW's moments and step counts), and
 as metadata (JSON strings) the step, the optimizer's groups, the encoder's structure and the run's config. The
 learning-rate, weight-decay, EMA and temperature schedules are functions of the step and the masks and drop-path
 draws are seeded by it, so nothing else is needed to continue.
@@ -19,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from rotation.tactile.sparshx_checkpoint import SHOW, mismatch_report
-from rotation.tactile.ssl import DINOHead, DINOLoss
+from rotation.tactile.ssl import DINOHead
 
 FORMAT = "rotation.pretrain/1"
 CHECKPOINT_GLOB = "ckpt_*.safetensors"
@@ -60,7 +61,7 @@ def latest_checkpoint(out: Path) -> Path | None:
     return ckpts[-1] if ckpts else None
 
 
-def save_checkpoint(out: Path, step: int, student: nn.Module, teacher: nn.Module, loss: DINOLoss,
+def save_checkpoint(out: Path, step: int, student: nn.Module, teacher: nn.Module, loss: nn.Module,
                     optimizer: torch.optim.Optimizer, meta: Mapping[str, Any], keep: int) -> Path:
     """Write the checkpoint of ``step`` atomically, then delete all but the ``keep`` newest."""
     from safetensors.torch import save_file
@@ -68,7 +69,8 @@ def save_checkpoint(out: Path, step: int, student: nn.Module, teacher: nn.Module
     tensors: dict[str, Tensor] = {}
     for prefix, module in (("student", student), ("teacher", teacher)):
         tensors.update({f"{prefix}.{k}": v.detach().cpu().contiguous().clone() for k, v in module.state_dict().items()})
-    tensors["center"] = loss.center.detach().cpu().clone()
+    for k, v in loss.state_dict().items():  # the centers: DINO's ``center``; Sparsh-skin's dino.center, ibot.center
+        tensors[k] = v.detach().cpu().clone()
     state = optimizer.state_dict()
     for idx, entries in state["state"].items():
         for name, value in entries.items():
@@ -112,7 +114,7 @@ def _load_module(module: nn.Module, tensors: Mapping[str, Tensor], prefix: str, 
     module.load_state_dict(state, strict=True)
 
 
-def load_checkpoint(path: Path, student: nn.Module, teacher: nn.Module, loss: DINOLoss,
+def load_checkpoint(path: Path, student: nn.Module, teacher: nn.Module, loss: nn.Module,
                     optimizer: torch.optim.Optimizer, encoder_meta: Mapping[str, Any], what: str) -> int:
     """Restore a run from ``path``; returns its step. The checkpoint's encoder must be the one this run builds
     (``encoder_meta``, described by ``what``), else a ValueError says what each side holds."""
@@ -121,10 +123,13 @@ def load_checkpoint(path: Path, student: nn.Module, teacher: nn.Module, loss: DI
         raise ValueError(f"{path} holds an encoder {meta.get('encoder')}; this run builds {encoder_meta} ({what})")
     _load_module(student, tensors, "student", path, what)
     _load_module(teacher, tensors, "teacher", path, what)
-    if tensors["center"].shape != loss.center.shape:
-        raise ValueError(f"{path}: centers of shape {tuple(tensors['center'].shape)}, this run has "
-                         f"{tuple(loss.center.shape)} (another head size or token sets)")
-    loss.center.copy_(tensors["center"])
+    for key, center in loss.state_dict().items():
+        if key not in tensors:
+            raise ValueError(f"{path}: no {key} (a checkpoint of another objective)")
+        if tensors[key].shape != center.shape:
+            raise ValueError(f"{path}: {key} of shape {tuple(tensors[key].shape)}, this run has "
+                             f"{tuple(center.shape)} (another head size or token sets)")
+    loss.load_state_dict({key: tensors[key] for key in loss.state_dict()}, strict=True)
     state: dict[int, dict[str, Tensor]] = {}
     for key, value in tensors.items():
         if key.startswith("optim."):

@@ -2,6 +2,7 @@
 
     rotate probe --checkpoint runs/pretrain --sessions data/touch --cache data/touch_cache --out runs/probe
     rotate probe --checkpoint d360_sparshx_img_mic_imu_pressure_base.pth --sessions data/real --tasks force slip
+    rotate probe --encoder skin --checkpoint runs/pretrain_skin --sessions data/skin --out runs/probe_skin
 
 For every variant and label budget, one attentive probe per task (rotation.tactile.pooling: a learned query
 cross-attends over the encoder's layer-normed tokens, then an MLP head) is trained with Adam on the budget's
@@ -10,22 +11,25 @@ share of the training sessions and scored on held-out sessions (reference/sparsh
 - ``pretrained``: the checkpoint's encoder, frozen (its tokens are computed once per batch for every task);
 - ``e2e``: the same architecture from a random initialization (the checkpoint's input statistics), trained with
   each task's probe end to end, one encoder per task;
-- ``image_only``: the checkpoint's encoder reading only its image tokens, frozen (or ``--image-checkpoint``).
+- ``image_only`` (Sparsh-X): the checkpoint's encoder reading only its image tokens, frozen (or
+  ``--image-checkpoint``).
 
-Tasks, from the labels simulated sessions store (rotation.data.session): ``force`` per-fingertip contact force,
-normal and shear (N, sensor frame; RMSE of each); ``slip`` whether the fingertip slides faster than
+Sparsh-X tasks, from the labels simulated sessions store (rotation.data.session): ``force`` per-fingertip contact
+force, normal and shear (N, sensor frame; RMSE of each); ``slip`` whether the fingertip slides faster than
 ``slip_threshold`` (balanced accuracy); ``mass`` and ``friction`` of the object (RMSE; from ``labels/priv``).
-Sessions are split into train and test by file; a budget b trains on the first max(1, round(b n)) of the n
-training sessions in a seeded order (nested: 10% within 33% within 100%).
+Sparsh-skin tasks (``--encoder skin``, rotation.tactile.probe_skin): ``force`` per pad (instantaneous), ``pose``
+and ``joystick`` (temporal: sequences of ``sequence_windows`` windows, a causal transformer block over the pooled
+windows). Sessions are split into train and test by file; a budget b trains on the first max(1, round(b n)) of
+the n training sessions in a seeded order (nested: 10% within 33% within 100%).
 
 OUT: results.json ``{"rows": [{"task", "variant", "budget", "metric", "value"}, ...], ...}``, results.md (table),
-probe.png (metric vs label budget per variant), config.json, tb/.
+probe.png (metric vs label budget per variant), <task>_over_time.png for temporal tasks (predicted vs true on a
+test session, largest budget), config.json, tb/.
 """
 
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -42,11 +46,26 @@ from envs.validation import check_int, check_number, check_output_dir, check_see
 from rotation.configs import save_config, to_jsonable
 from rotation.data.dataset import split_sessions
 from rotation.data.session import SessionReader
-from rotation.data.window_cache import CachedWindows
 from rotation.tactile.encoders import encoder_kind, kind_of, load_encoder
-from rotation.tactile.loading import check_fingers, open_windows, session_paths, step_loader, to_device
+from rotation.tactile.loading import check_fingers, open_encoder_windows, session_paths, step_loader, to_device
 from rotation.tactile.pooling import ProbeHead
-from rotation.tactile.probe_report import write_report
+from rotation.tactile.probe_data import (
+    ProbeData,
+    Task,
+    baselines,
+    budget_rows,
+    open_probe_data,
+    target_stats,
+    window_labels,
+)
+from rotation.tactile.probe_report import write_report, write_traces
+from rotation.tactile.probe_skin import (
+    TemporalProbeHead,
+    force_metrics,
+    joystick_metrics,
+    pose_metrics,
+    relative_pose,
+)
 from rotation.tactile.runtime import (
     Processes,
     autocast,
@@ -57,22 +76,8 @@ from rotation.tactile.runtime import (
 )
 
 VARIANTS = ("pretrained", "e2e", "image_only")
-_TIME_EPS = 1e-6
-
-
-@dataclass(frozen=True)
-class Task:
-    """One probe task: which label, how many outputs, its loss and its metrics."""
-
-    label: str
-    """Dataset label the target comes from."""
-    outputs: int
-    classify: bool
-    """Binary classification (BCE, balanced accuracy) instead of regression (MSE on standardized targets)."""
-    target: Callable[[Tensor, float], Tensor]
-    """(label batch, slip threshold) -> (B, outputs) float targets."""
-    metrics: Callable[[np.ndarray, np.ndarray], dict[str, float]]
-    """(predictions, targets) (N, outputs), in physical units / {0, 1} -> {metric: value}."""
+"""Sparsh-X's variants (Sparsh-skin has no image tokens: pretrained and e2e)."""
+__all__ = ["TASKS", "SKIN_TASKS", "VARIANTS", "Config", "Task", "run", "window_labels"]
 
 
 def _rmse(pred: np.ndarray, target: np.ndarray) -> float:
@@ -96,7 +101,15 @@ TASKS: dict[str, Task] = {
     "friction": Task("priv", 1, False, lambda y, _: y[:, _FRICTION : _FRICTION + 1],
                      lambda p, t: {"rmse": _rmse(p, t)}),
 }
-"""Task name -> definition (see the module docstring)."""
+"""Sparsh-X task name -> definition (see the module docstring)."""
+SKIN_TASKS: dict[str, Task] = {
+    "force": Task("skin_force", 54, False, lambda y, _: y.reshape(y.shape[0], -1), force_metrics, loss="smooth_l1"),
+    "pose": Task("object_pose", 6, False, lambda y, _: relative_pose(y), pose_metrics, temporal=True),
+    "joystick": Task("joystick", 3, False, lambda y, _: y, joystick_metrics, temporal=True),
+}
+"""Sparsh-skin task name -> definition (rotation.tactile.probe_skin)."""
+ENCODER_TASKS = {"sparshx": TASKS, "skin": SKIN_TASKS}
+ENCODER_VARIANTS = {"sparshx": VARIANTS, "skin": ("pretrained", "e2e")}
 
 
 @dataclass(frozen=True)
@@ -105,16 +118,22 @@ class Config:
 
     checkpoint: Path = Path("runs/pretrain")
     """Encoder: a `rotate pretrain` run directory, its encoder.safetensors, or a released Sparsh-X .pth."""
+    encoder: str = "sparshx"
+    """Encoder kind the checkpoint holds: sparshx (fingertip windows) or skin (whole-hand skin windows); it decides
+    the tasks, variants and windows."""
     sessions: tuple[Path, ...] = (Path("touch_sessions"),)
-    """Labeled session files or directories (simulated sessions carry force, slip and priv labels)."""
+    """Labeled session files or directories (simulated sessions carry force, slip and priv labels; skin sessions
+    skin_force, object_pose, joystick)."""
     cache: Path | None = None
-    """Pre-rendered window cache (rotate cache-touch); None renders windows on the fly."""
+    """Pre-rendered window cache (rotate cache-touch; Sparsh-X only); None renders windows on the fly."""
     out: Path = Path("runs/probe")
     """Report directory: results.json, results.md, probe.png, config.json, tb/."""
-    tasks: tuple[str, ...] = tuple(TASKS)
-    """Tasks among force, slip, mass, friction."""
-    variants: tuple[str, ...] = VARIANTS
-    """Variants among pretrained (frozen), e2e (trained end to end from scratch), image_only (frozen, image tokens)."""
+    tasks: tuple[str, ...] | None = None
+    """Tasks: Sparsh-X force, slip, mass, friction; skin force, pose, joystick. None: every task of the encoder
+    whose label all the sessions hold (skin cup sessions: force, pose; joystick sessions: force, joystick)."""
+    variants: tuple[str, ...] | None = None
+    """Variants among pretrained (frozen), e2e (trained end to end from scratch), image_only (Sparsh-X: frozen,
+    image tokens). None: all of the encoder's."""
     budgets: tuple[float, ...] = (0.1, 0.33, 1.0)
     """Label budgets: fractions of the training sessions, each in (0, 1]."""
     image_checkpoint: Path | None = None
@@ -125,7 +144,9 @@ class Config:
     fingers: tuple[str, ...] = FINGERS
     """Fingertips whose windows are used."""
     stride: int = 5
-    """Use every stride-th image frame as a window end."""
+    """Use every stride-th frame as a window end (Sparsh-X: 30 fps image frames; skin: 100 Hz frames)."""
+    sequence_windows: int = 10
+    """Temporal skin tasks (pose, joystick): consecutive 0.1 s windows per sample (10 = 1 s of history)."""
     steps: int = 2000
     """Optimizer steps per probe (the same for every budget)."""
     batch_size: int = 32
@@ -157,10 +178,17 @@ class Config:
             raise ValueError("sessions: give at least one session file or directory")
         object.__setattr__(self, "sessions", tuple(Path(p) for p in self.sessions))  # JSON gives strings back
         check_output_dir("out", self.out)
+        if self.encoder not in ENCODER_TASKS:
+            raise ValueError(f"encoder: unknown encoder {self.encoder!r}; encoders: {', '.join(ENCODER_TASKS)}")
         if self.cache is not None:
             check_output_dir("cache", self.cache)
-        for name, allowed in (("tasks", tuple(TASKS)), ("variants", VARIANTS)):
+            if self.encoder == "skin":
+                raise ValueError("cache: the skin encoder reads its windows from the sessions (no cache); drop --cache")
+        for name, allowed in (("tasks", tuple(ENCODER_TASKS[self.encoder])),
+                              ("variants", ENCODER_VARIANTS[self.encoder])):
             values = getattr(self, name)
+            if values is None:
+                continue
             bad = [v for v in values if v not in allowed]
             if bad or not values or len(set(values)) != len(values):
                 raise ValueError(f"{name}: need distinct names among {', '.join(allowed)}, got {list(values)}")
@@ -171,7 +199,7 @@ class Config:
         check_number("test_fraction", self.test_fraction, 0.0, 1.0, low_open=True, high_open=True)
         check_fingers(self.fingers)
         for name, high in (("stride", 1000), ("steps", 10**9), ("batch_size", 65536), ("pooler_heads", 256),
-                           ("head_hidden", 65536)):
+                           ("head_hidden", 65536), ("sequence_windows", 1000)):
             check_int(name, getattr(self, name), 1, high)
         check_int("num_workers", self.num_workers, 0, 1024)
         if self.torch_threads is not None:
@@ -181,42 +209,35 @@ class Config:
         check_number("slip_threshold", self.slip_threshold, 0.0, 10.0, low_open=True, unit="m/s")
         check_device(self.device, "device")
 
+    @property
+    def task_defs(self) -> dict[str, Task]:
+        """The tasks of this run, by name, in the order given (default: all of the encoder's)."""
+        tasks = ENCODER_TASKS[self.encoder]
+        return {t: tasks[t] for t in (self.tasks if self.tasks is not None else tuple(tasks))}
 
-# ------------------------------------------------------------------------------------------------- labels
-def window_labels(ds: Dataset, name: str) -> np.ndarray:
-    """Label ``name`` of every window of a TouchWindows or CachedWindows, read without rendering (N, ...)."""
-    if isinstance(ds, CachedWindows):
-        parts = [np.load(s / f"label_{name}.npy") for s in ds.shards]
-        return np.concatenate([p for p in parts if len(p)]).astype(np.float32)  # empty shards: no windows
-    out = []
-    for s, path in enumerate(ds.paths):  # type: ignore[attr-defined]
-        rows = np.flatnonzero(ds.index[:, 0] == s)  # type: ignore[attr-defined]
-        if not len(rows):
-            continue
-        with SessionReader(path) as r:
-            st = r.stream(f"labels/{name}")
-            j = np.searchsorted(st.timestamps, ds.end_times[rows] + _TIME_EPS, side="right") - 1  # type: ignore[attr-defined]
-            value = np.asarray(st.data)[j]
-        if name in ("force", "slip", "contact"):  # per fingertip
-            value = value[np.arange(len(rows)), ds.index[rows, 1]]  # type: ignore[attr-defined]
-        out.append(value.astype(np.float32))
-    return np.concatenate(out)
+    @property
+    def variant_names(self) -> tuple[str, ...]:
+        return self.variants if self.variants is not None else ENCODER_VARIANTS[self.encoder]
 
 
 # ------------------------------------------------------------------------------------------------- models
 class _Probes(nn.Module):
-    """One probe head per task over a frozen shared encoder, or each over its own trained encoder (e2e)."""
+    """One probe head per task over a frozen shared encoder, or each over its own trained encoder (e2e).
 
-    def __init__(self, encoder: nn.Module, frozen: bool, tasks: tuple[str, ...], cfg: Config):
+    Temporal tasks read (B, S, ...) sequences: the encoder sees the B S windows, each head gets their tokens."""
+
+    def __init__(self, encoder: nn.Module, frozen: bool, tasks: dict[str, Task], cfg: Config):
         super().__init__()
-        self.frozen, self.tasks = frozen, tasks
+        self.frozen, self.tasks = frozen, tuple(tasks)
+        self.temporal = any(t.temporal for t in tasks.values())
         width = encoder.token_interface.width
-        self.heads = nn.ModuleDict({t: ProbeHead(width, TASKS[t].outputs, cfg.pooler_heads, cfg.head_hidden)
-                                    for t in tasks})
+        head = TemporalProbeHead if self.temporal else ProbeHead
+        self.heads = nn.ModuleDict({name: head(width, t.outputs, cfg.pooler_heads, cfg.head_hidden)
+                                    for name, t in tasks.items()})
         if frozen:
             self.encoder = encoder.eval().requires_grad_(False)
         else:
-            self.encoders = nn.ModuleDict({t: copy.deepcopy(encoder).train() for t in tasks})
+            self.encoders = nn.ModuleDict({name: copy.deepcopy(encoder).train() for name in tasks})
         self.__dict__["reference"] = encoder  # preprocess and token interface (not a submodule: no training)
 
     def train(self, mode: bool = True) -> _Probes:
@@ -227,11 +248,19 @@ class _Probes(nn.Module):
 
     def forward(self, inputs: dict[str, Tensor]) -> dict[str, Tensor]:
         interface = self.reference.token_interface
+        seq = None
+        if self.temporal:  # (B, S, ...) -> (B S, ...): every window through the encoder
+            seq = next(iter(inputs.values())).shape[1]
+            inputs = {k: v.flatten(0, 1) for k, v in inputs.items()}
+
+        def head(name: str, flat: Tensor) -> Tensor:
+            return self.heads[name](flat, seq) if seq is not None else self.heads[name](flat)
+
         if self.frozen:
             with torch.no_grad():
-                flat = interface.concat(self.encoder(inputs))  # (B, N, D)
-            return {t: self.heads[t](flat) for t in self.tasks}
-        return {t: self.heads[t](interface.concat(self.encoders[t](inputs))) for t in self.tasks}
+                flat = interface.concat(self.encoder(inputs))  # (B [S], N, D)
+            return {t: head(t, flat) for t in self.tasks}
+        return {t: head(t, interface.concat(self.encoders[t](inputs))) for t in self.tasks}
 
     def trainable(self) -> list[nn.Parameter]:
         return [p for p in self.parameters() if p.requires_grad]
@@ -254,8 +283,7 @@ def _variant_encoder(variant: str, pretrained: nn.Module, cfg: Config, device: t
         return kind.restrict(pretrained, ("img",))
     # e2e: the same structure from scratch, with the checkpoint's input statistics (data facts, not learned)
     torch.manual_seed(cfg.seed)
-    c = pretrained.cfg  # type: ignore[attr-defined]
-    fresh = kind.build(c.size, tuple(c.modalities), c.fusion, c.drop_path).to(device)
+    fresh = kind.rebuild(pretrained).to(device)
     theirs = dict(pretrained.named_buffers())
     with torch.no_grad():
         for name, buf in fresh.named_buffers():
@@ -264,22 +292,13 @@ def _variant_encoder(variant: str, pretrained: nn.Module, cfg: Config, device: t
 
 
 # ------------------------------------------------------------------------------------------------ training
-@dataclass
-class _Data:
-    train: Dataset
-    test: Dataset
-    train_sessions: list[Path]
-    test_sessions: list[Path]
-    train_labels: dict[str, np.ndarray]
-    """Label name -> (N_train, ...) labels of every training window (read without rendering)."""
+def _targets(batch: dict[str, Tensor], task: Task, cfg: Config) -> Tensor:
+    return task.target(batch[task.label].float(), cfg.slip_threshold)
 
 
-def _targets(batch: dict[str, Tensor], task: str, cfg: Config) -> Tensor:
-    return TASKS[task].target(batch[TASKS[task].label].float(), cfg.slip_threshold)
-
-
-def _train_probes(probes: _Probes, data: Dataset, cfg: Config, stats: dict[str, tuple[Tensor, Tensor]],
-                  pos_weight: float, device: torch.device, bf16: bool, bar: tqdm, writer: Any, tag: str) -> None:
+def _train_probes(probes: _Probes, data: Dataset, tasks: dict[str, Task], cfg: Config,
+                  stats: dict[str, tuple[Tensor, Tensor]], pos_weight: float, device: torch.device, bf16: bool,
+                  bar: tqdm, writer: Any, tag: str) -> None:
     opt = torch.optim.Adam(probes.trainable(), lr=cfg.lr)
     loader = step_loader(data, cfg.batch_size, Processes(), cfg.seed, 0, cfg.steps, cfg.num_workers,
                          device.type == "cuda")
@@ -291,14 +310,15 @@ def _train_probes(probes: _Probes, data: Dataset, cfg: Config, stats: dict[str, 
         with autocast(device, bf16):
             preds = probes(inputs)
         losses = {}
-        for t in probes.tasks:
-            y = _targets(batch, t, cfg)
-            p = preds[t].float()
-            if TASKS[t].classify:
-                losses[t] = F.binary_cross_entropy_with_logits(p, y, pos_weight=pw)
+        for name, task in tasks.items():
+            y = _targets(batch, task, cfg)
+            p = preds[name].float()
+            if task.classify:
+                losses[name] = F.binary_cross_entropy_with_logits(p, y, pos_weight=pw)
             else:
-                mean, std = stats[t]
-                losses[t] = F.mse_loss(p, (y - mean) / std)
+                mean, std = stats[name]
+                fn = F.smooth_l1_loss if task.loss == "smooth_l1" else F.mse_loss
+                losses[name] = fn(p, (y - mean) / std)
         loss = torch.stack(list(losses.values())).sum()  # independent parameters: each probe sees its own gradient
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -310,82 +330,79 @@ def _train_probes(probes: _Probes, data: Dataset, cfg: Config, stats: dict[str, 
 
 
 @torch.no_grad()
-def _evaluate(probes: _Probes, data: Dataset, cfg: Config, stats: dict[str, tuple[Tensor, Tensor]],
-              device: torch.device, bf16: bool) -> dict[str, dict[str, float]]:
+def _evaluate(probes: _Probes, data: Dataset, tasks: dict[str, Task], cfg: Config,
+              stats: dict[str, tuple[Tensor, Tensor]], device: torch.device, bf16: bool
+              ) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, np.ndarray]]]:
+    """Metrics per task on ``data``, and for temporal tasks the traces of the last window of every sequence
+    (``pred``, ``true`` (N, outputs), ``time`` (N,) s, ``session`` (N,)) for the plots over time."""
     probes.eval()
     loader = DataLoader(data, batch_size=cfg.batch_size, shuffle=False, num_workers=cfg.num_workers)
-    preds: dict[str, list[np.ndarray]] = {t: [] for t in probes.tasks}
-    targets: dict[str, list[np.ndarray]] = {t: [] for t in probes.tasks}
+    preds: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
+    targets: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
+    times, sessions = [], []
     for batch in loader:
         batch = to_device(batch, device)
         with autocast(device, bf16):
             out = probes(probes.reference.preprocess(batch))
-        for t in probes.tasks:
-            p = out[t].float()
-            if TASKS[t].classify:
+        for name, task in tasks.items():
+            p = out[name].float()
+            if task.classify:
                 p = (p > 0).float()
             else:
-                mean, std = stats[t]
+                mean, std = stats[name]
                 p = p * std + mean
-            preds[t].append(p.cpu().numpy())
-            targets[t].append(_targets(batch, t, cfg).cpu().numpy())
-    return {t: TASKS[t].metrics(np.concatenate(preds[t]), np.concatenate(targets[t])) for t in probes.tasks}
+            preds[name].append(p.cpu().numpy())
+            targets[name].append(_targets(batch, task, cfg).cpu().numpy())
+        times.append(batch["time"].cpu().numpy())
+        sessions.append(batch["session"].cpu().numpy())
+    scores, traces = {}, {}
+    for name, task in tasks.items():
+        p, t = np.concatenate(preds[name]), np.concatenate(targets[name])
+        scores[name] = task.metrics(p.reshape(-1, p.shape[-1]), t.reshape(-1, t.shape[-1]))
+        if task.temporal:  # (N, S, out): the last window of each sequence has the whole history
+            traces[name] = {"pred": p[:, -1], "true": t[:, -1], "time": np.concatenate(times)[:, -1],
+                            "session": np.concatenate(sessions)}
+    return scores, traces
 
 
-def _prepare(cfg: Config, device: torch.device) -> _Data:
+def _available_tasks(cfg: Config, paths: list[Path]) -> dict[str, Task]:
+    """The tasks of a run: those asked for, or (``tasks`` None) every task of the encoder whose label every session
+    holds (skin cup sessions: force and pose; joystick sessions: force and joystick)."""
+    if cfg.tasks is not None:
+        return cfg.task_defs
+    have: set[str] | None = None
+    for path in paths:
+        with SessionReader(path) as r:
+            names = {n.split("/", 1)[1] for n in r.names if n.startswith("labels/")}
+        have = names if have is None else have & names
+    tasks = {n: t for n, t in cfg.task_defs.items() if t.label in (have or set())}
+    if not tasks:
+        raise ValueError(f"probe: no {cfg.encoder} task has its labels in every session of "
+                         f"{', '.join(map(str, cfg.sessions))} (labels in all of them: {sorted(have or ())}; tasks: "
+                         + ", ".join(f"{n} <- labels/{t.label}" for n, t in cfg.task_defs.items()) + ")")
+    return tasks
+
+
+def _prepare(cfg: Config) -> tuple[dict[str, Task], dict[bool, ProbeData]]:
+    """The run's tasks, and samples for each kind of task: {False: single windows, True: sequences} (those needed)."""
     paths = session_paths(cfg.sessions)
     if len(paths) < 2:
         raise ValueError(f"probe: need at least 2 session files to split into train and test, found {len(paths)} "
                          f"in {', '.join(map(str, cfg.sessions))}")
-    labels = tuple(sorted({TASKS[t].label for t in cfg.tasks}))
+    all_tasks = _available_tasks(cfg, paths)
     train_paths, test_paths = split_sessions(paths, cfg.test_fraction, cfg.seed)
-    if cfg.cache is not None:
-        open_windows(paths, cfg.cache, cfg.fingers, cfg.stride, labels=labels, progress=cfg.progress,
-                     workers=cfg.num_workers)
-    train = open_windows(train_paths, cfg.cache, cfg.fingers, cfg.stride, labels=labels, build=False)
-    test = open_windows(test_paths, cfg.cache, cfg.fingers, cfg.stride, labels=labels, build=False)
-    if len(test) == 0 or len(train) == 0:
-        raise ValueError(f"probe: no windows in the {'test' if len(test) == 0 else 'training'} sessions (each needs "
-                         "at least 1.12 s of touch)")
-    return _Data(train, test, train_paths, test_paths, {name: window_labels(train, name) for name in labels})
-
-
-def _target_stats(data: _Data, rows: np.ndarray, cfg: Config, device: torch.device
-                  ) -> tuple[dict[str, tuple[Tensor, Tensor]], float]:
-    """Standardization of the regression targets and the positive-class weight of slip, from the labels of the
-    budget's training windows ``rows`` only (a budget limits every use of labels)."""
-    stats, pos_weight = {}, 1.0
-    for t in cfg.tasks:
-        y = TASKS[t].target(torch.from_numpy(data.train_labels[TASKS[t].label][rows]), cfg.slip_threshold).numpy()
-        if TASKS[t].classify:
-            pos = float(y.mean())
-            pos_weight = float(np.clip((1.0 - pos) / max(pos, 1e-6), 1.0, 100.0))  # balance rare slip
-        else:
-            mean, std = y.mean(axis=0), np.maximum(y.std(axis=0), 1e-6)
-            stats[t] = (torch.as_tensor(mean, device=device), torch.as_tensor(std, device=device))
-    return stats, pos_weight
-
-
-def _budget_rows(data: _Data, budget: float, seed: int) -> tuple[np.ndarray, int]:
-    """Training windows of the first max(1, round(budget n)) training sessions in a seeded order (nested budgets),
-    and that number of sessions."""
-    order = np.random.default_rng([seed, 0x627564]).permutation(len(data.train_sessions))
-    n = max(1, round(budget * len(order)))
-    rows = np.flatnonzero(np.isin(data.train.index[:, 0], order[:n]))  # type: ignore[attr-defined]
-    return rows, n
-
-
-def _baselines(data: _Data, cfg: Config) -> list[dict[str, Any]]:
-    """What predicting the training mean (regression) or the majority class (slip) scores on the test split."""
-    rows = []
-    for t in cfg.tasks:
-        task = TASKS[t]
-        tr = task.target(torch.from_numpy(data.train_labels[task.label]), cfg.slip_threshold).numpy()
-        te = task.target(torch.from_numpy(window_labels(data.test, task.label)), cfg.slip_threshold).numpy()
-        guess = np.broadcast_to((tr.mean(axis=0) > 0.5).astype(np.float32) if task.classify else tr.mean(axis=0),
-                                te.shape)
-        rows += [{"task": t, "metric": m, "value": v} for m, v in task.metrics(guess, te).items()]
-    return rows
+    groups: dict[bool, ProbeData] = {}
+    for temporal in (False, True):
+        tasks = {n: t for n, t in all_tasks.items() if t.temporal == temporal}
+        if not tasks:
+            continue
+        labels = tuple(sorted({t.label for t in tasks.values()}))
+        if cfg.cache is not None:
+            open_encoder_windows(cfg.encoder, paths, cfg.cache, cfg.fingers, cfg.stride, labels=labels,
+                                 progress=cfg.progress, workers=cfg.num_workers)
+        groups[temporal] = open_probe_data(cfg.encoder, train_paths, test_paths, cfg.cache, cfg.fingers, cfg.stride,
+                                           labels, cfg.sequence_windows if temporal else None)
+    return all_tasks, groups
 
 
 def run(cfg: Config) -> dict[str, Any]:
@@ -403,40 +420,55 @@ def _run(cfg: Config) -> dict[str, Any]:
     device = resolve_device(cfg.device)
     bf16 = use_bf16(cfg.precision, device)
     pretrained = load_encoder(cfg.checkpoint, device=device)
-    data = _prepare(cfg, device)
+    if kind_of(pretrained) != cfg.encoder:
+        raise ValueError(f"encoder: {cfg.checkpoint} holds a {kind_of(pretrained)} encoder, not {cfg.encoder}; pass "
+                         f"--encoder {kind_of(pretrained)}")
+    all_tasks, groups = _prepare(cfg)
     out = Path(cfg.out)
     save_config(cfg, out / "config.json")
     writer = summary_writer(out / "tb", 0)
     rows: list[dict[str, Any]] = []
-    runs = len(cfg.variants) * len(cfg.budgets)
+    variants = cfg.variant_names
+    runs = len(variants) * len(cfg.budgets) * len(groups)
     bar = tqdm(total=runs * cfg.steps, unit="step", desc="probe", disable=not cfg.progress, dynamic_ncols=True)
     sessions_used: dict[str, int] = {}
+    traces: dict[str, dict[str, dict[str, np.ndarray]]] = {}  # task -> variant -> trace (largest budget)
     try:
-        for variant in cfg.variants:
+        for variant in variants:
             encoder = _variant_encoder(variant, pretrained, cfg, device)
             for budget in sorted(cfg.budgets):
-                rows_b, n_sessions = _budget_rows(data, budget, cfg.seed)
-                sessions_used[str(budget)] = n_sessions
-                stats, pos_weight = _target_stats(data, rows_b, cfg, device)
-                torch.manual_seed(cfg.seed)
-                probes = _Probes(encoder, variant != "e2e", cfg.tasks, cfg).to(device)
-                bar.set_postfix(variant=variant, budget=budget)
-                _train_probes(probes, Subset(data.train, rows_b.tolist()), cfg, stats, pos_weight, device, bf16, bar,
-                              writer, f"{variant}/budget_{budget}")
-                scores = _evaluate(probes, data.test, cfg, stats, device, bf16)
-                for task, metrics in scores.items():
-                    rows += [{"task": task, "variant": variant, "budget": float(budget), "metric": m, "value": v}
-                             for m, v in metrics.items()]
-                del probes
+                for temporal, data in groups.items():
+                    tasks = {n: t for n, t in all_tasks.items() if t.temporal == temporal}
+                    rows_b, n_sessions = budget_rows(data, budget, cfg.seed)
+                    sessions_used[str(budget)] = n_sessions
+                    stats, pos_weight = target_stats(data, rows_b, tasks, cfg.slip_threshold, device)
+                    torch.manual_seed(cfg.seed)
+                    probes = _Probes(encoder, variant != "e2e", tasks, cfg).to(device)
+                    bar.set_postfix(variant=variant, budget=budget)
+                    _train_probes(probes, Subset(data.train, rows_b.tolist()), tasks, cfg, stats, pos_weight, device,
+                                  bf16, bar, writer, f"{variant}/budget_{budget}")
+                    scores, task_traces = _evaluate(probes, data.test, tasks, cfg, stats, device, bf16)
+                    for task, metrics in scores.items():
+                        rows += [{"task": task, "variant": variant, "budget": float(budget), "metric": m, "value": v}
+                                 for m, v in metrics.items()]
+                    if budget == max(cfg.budgets):
+                        for task, trace in task_traces.items():
+                            traces.setdefault(task, {})[variant] = trace
+                    del probes
     finally:
         bar.close()
         writer.close()
-    report = {"rows": rows, "baselines": _baselines(data, cfg),
+    first = next(iter(groups.values()))
+    report = {"rows": rows,
+              "baselines": [b for temporal, data in groups.items() for b in baselines(
+                  data, {n: t for n, t in all_tasks.items() if t.temporal == temporal}, cfg.slip_threshold)],
               "encoder": encoder_kind(kind_of(pretrained)).describe(pretrained), "checkpoint": str(cfg.checkpoint),
-              "train_sessions": len(data.train_sessions), "test_sessions": len(data.test_sessions),
-              "train_windows": len(data.train), "test_windows": len(data.test),
+              "train_sessions": len(first.train_sessions), "test_sessions": len(first.test_sessions),
+              "train_windows": len(first.train), "test_windows": len(first.test),
               "sessions_per_budget": sessions_used, "config": to_jsonable(cfg)}
+    if traces:
+        report["trace_plots"] = write_traces(traces, out, budget=max(cfg.budgets))
     write_report(report, out)
-    print(f"probe: {len(rows)} results for {len(cfg.variants)} variant(s) x {len(cfg.budgets)} budget(s) -> "
+    print(f"probe: {len(rows)} results for {len(variants)} variant(s) x {len(cfg.budgets)} budget(s) -> "
           f"{out / 'results.md'}")
     return report

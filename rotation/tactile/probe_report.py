@@ -1,4 +1,5 @@
-"""The report of `rotate probe`: results.json, a markdown table and a plot of each metric against the label budget."""
+"""The report of `rotate probe`: results.json, a markdown table, a plot of each metric against the label budget, and
+for temporal tasks plots of predicted vs true over time."""
 
 from __future__ import annotations
 
@@ -35,7 +36,10 @@ def write_report(report: dict[str, Any], out: Path) -> None:
             ref = base.get((task, metric))
             lines.append(f"| {task} | {metric} | {b:g} | " + " | ".join(cells) +
                          f" | {'' if ref is None else f'{ref:.4g}'} |")
-    (out / "results.md").write_text("\n".join(lines) + "\n\n![metric vs label budget](probe.png)\n")
+    figures = ["![metric vs label budget](probe.png)"]
+    figures += [f"![{name.split('_over_time')[0]}: predicted vs true over time]({name})"
+                for name in report.get("trace_plots", [])]
+    (out / "results.md").write_text("\n".join(lines) + "\n\n" + "\n\n".join(figures) + "\n")
     _plot(keys, budgets, variants, value, base, out / "probe.png")
 
 
@@ -67,3 +71,45 @@ def _plot(keys, budgets, variants, value, base, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def write_traces(traces: dict[str, dict[str, dict[str, Any]]], out: Path, budget: float) -> list[str]:
+    """``<task>_over_time.png`` per temporal task: on the first test session, every output over time, true and
+    each variant's prediction (the last window of each sequence, trained at ``budget``). Returns the file names.
+
+    ``traces``: task -> variant -> {"pred", "true": (N, outputs), "time": (N,) s, "session": (N,)}.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from rotation.tactile.probe_skin import TRACE_NAMES
+
+    out.mkdir(parents=True, exist_ok=True)
+    names = []
+    for task, by_variant in traces.items():
+        first = next(iter(by_variant.values()))
+        session = int(np.min(first["session"]))
+        outputs = first["true"].shape[1]
+        labels = TRACE_NAMES.get(task, tuple(f"output {i}" for i in range(outputs)))
+        fig, axes = plt.subplots(outputs, 1, figsize=(8, 1.8 * outputs + 0.6), sharex=True, squeeze=False)
+        for i, ax in enumerate(axes[:, 0]):
+            for k, (variant, tr) in enumerate(by_variant.items()):
+                rows = np.flatnonzero(tr["session"] == session)
+                order = rows[np.argsort(tr["time"][rows], kind="stable")]
+                if k == 0:
+                    ax.plot(tr["time"][order], tr["true"][order, i], color="black", linewidth=1.5, label="true")
+                ax.plot(tr["time"][order], tr["pred"][order, i], linewidth=1, label=variant)
+            ax.set_ylabel(labels[i] if i < len(labels) else f"output {i}", fontsize=8)
+            ax.grid(alpha=0.3)
+        axes[0, 0].set_title(f"{task}: predicted vs true on test session {session} (budget {budget:g})", fontsize=9)
+        axes[0, 0].legend(fontsize=7, loc="upper right")
+        axes[-1, 0].set_xlabel("time (s)", fontsize=8)
+        fig.tight_layout()
+        name = f"{task}_over_time.png"
+        fig.savefig(out / name, dpi=100)
+        plt.close(fig)
+        names.append(name)
+    return names

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import Dataset
 
-from rotation.tactile.blocks import LN_EPS, Block
+from rotation.tactile.blocks import LN_EPS, Block, Float32Buffers
 from rotation.tactile.posembed import SinCosPosEmbed
 from rotation.tactile.sparshx_inputs import (
     INPUT_SHAPES,
@@ -146,8 +146,9 @@ class SparshXConfig:
                 f"{self.num_fusion} {self.fusion} fusion layers), modalities {','.join(self.modalities)}")
 
 
-class SparshX(nn.Module):
-    """The Sparsh-X encoder (see the module docstring); implements rotation.tactile.tokens.TouchEncoder.
+class SparshX(Float32Buffers):
+    """The Sparsh-X encoder (see the module docstring); implements rotation.tactile.tokens.TouchEncoder. Casting it
+    (``.to(dtype)``) casts the weights only; buffers stay float32 (:class:`~rotation.tactile.blocks.Float32Buffers`).
 
     Parameters and buffers, in the released file order: ``bottleneck`` (1, 4, D) (bottleneck fusion with fusion
     layers only), ``register_tokens`` (M, 1, D), normalization buffers (rotation.tactile.sparshx_inputs),
@@ -195,18 +196,6 @@ class SparshX(nn.Module):
         if hasattr(self, "bottleneck"):
             nn.init.trunc_normal_(self.bottleneck, std=0.02)
         nn.init.normal_(self.register_tokens, std=1e-6)
-
-    def _apply(self, fn: Any, recurse: bool = True) -> SparshX:
-        """``.to(dtype)`` / ``.half()`` cast the weights only: buffers keep float32 (a bfloat16 frequency band or
-        audio mean loses the token positions and the features: 8 significant bits), while moving with the model."""
-        before = dict(self.named_buffers())
-        super()._apply(fn, recurse)
-        for name, buf in list(self.named_buffers()):
-            old = before.get(name)
-            if old is not None and old.is_floating_point() and buf.dtype != old.dtype:
-                owner, _, attr = name.rpartition(".")
-                self.get_submodule(owner)._buffers[attr] = old.to(device=buf.device)
-        return self
 
     # ------------------------------------------------------------------------------------------ interface
     @property

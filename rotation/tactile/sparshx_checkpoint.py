@@ -48,21 +48,28 @@ def shape_str(shape: torch.Size | tuple[int, ...]) -> str:
 
 
 # ------------------------------------------------------------------------------------------------- reading
+def read_safetensors(path: str | Path, tensors: bool = True) -> tuple[dict[str, Tensor], dict[str, str]]:
+    """Tensors (none with ``tensors=False``) and metadata of a safetensors file; ValueError naming the file if it is
+    not one (every encoder file of this project is read through here)."""
+    from safetensors import SafetensorError, safe_open
+    from safetensors.torch import load_file
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+        state = load_file(str(path)) if tensors else {}
+    except (SafetensorError, OSError, ValueError) as err:
+        raise ValueError(f"{path} is not a readable safetensors file: {err}") from err
+    return dict(state), meta
+
+
 def read_state_dict(path: str | Path) -> tuple[dict[str, Tensor], SparshXConfig | None]:
     """The encoder's tensors in a checkpoint file (prefixes removed) and the config it declares (ours only)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"no checkpoint file at {path}")
     if path.suffix == ".safetensors":
-        from safetensors import SafetensorError, safe_open
-        from safetensors.torch import load_file
-
-        try:
-            with safe_open(str(path), framework="pt") as f:
-                meta = f.metadata() or {}
-            state = load_file(str(path))
-        except (SafetensorError, OSError, ValueError) as err:
-            raise ValueError(f"{path} is not a readable safetensors file: {err}") from err
+        state, meta = read_safetensors(path)
         cfg = None
         if meta.get("format") == _META_FORMAT and "config" in meta:
             cfg = from_jsonable(SparshXConfig, json.loads(meta["config"]))

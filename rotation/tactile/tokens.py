@@ -108,12 +108,12 @@ class TokenInterface:
 
 @runtime_checkable
 class TouchEncoder(Protocol):
-    """What probes, SSL and the tactile adapter need from a touch encoder (Sparsh-X; Sparsh-skin later).
+    """What probes, SSL and the tactile adapter need from a touch encoder (Sparsh-X, Sparsh-skin).
 
     - ``token_interface``: the declared groups and width (constant for a built encoder).
-    - ``forward(inputs, keep=None, registers=False)``: model inputs (one tensor per group, already preprocessed)
-      -> {group: (B, N_g, D)}; ``keep[g]`` (B, K_g) int64 indices of the patch tokens to keep (masked views);
-      with ``registers=True`` a tuple (tokens, {group: (B, D) register token}).
+    - ``forward(inputs, keep=None, registers=False)``: model inputs (already preprocessed) -> {group: (B, N_g, D)};
+      ``keep[g]`` (B, K_g) int64 indices of the patch tokens to keep (masked views); with ``registers=True`` a
+      tuple (tokens, {group: (B, D) register token}). Sparsh-skin also takes ``token_mask`` (iBOT).
     - ``preprocess(batch)``: dataset windows (and raw sensor data, e.g. audio waveforms) -> model inputs on the
       encoder's device; other keys of the batch (labels, finger, time) are ignored.
     - ``encode(batch)``: ``forward(preprocess(batch))``, the one call a consumer of dataset batches needs.

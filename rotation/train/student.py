@@ -30,7 +30,7 @@ import time
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -38,7 +38,6 @@ from tqdm import tqdm
 
 from envs.config import EnvConfig
 from envs.constants import HISTORY_STEPS, PROPRIO_DIM
-from envs.core import RotateCupVec
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import check_device, from_jsonable, save_config, to_jsonable
 from rotation.evaluate.metrics import EpisodeTracker, summarize
@@ -47,6 +46,7 @@ from rotation.policy.bundle import PolicyBundle, load_bundle, resolve_bundle
 from rotation.policy.bundle_checks import timing_problems
 from rotation.policy.features import StudentExtractor
 from rotation.policy.networks import AdaptationConfig
+from rotation.sim_warp.host import make_vec
 from rotation.train.runs import (
     CurveLog,
     DamagedCheckpoint,
@@ -98,6 +98,10 @@ class Config:
     overwrite: bool = False
     """Delete the outputs of an earlier run in `out` (checkpoints, bundle, curves, config, logs) and start over;
     without it a folder holding a run is refused unless --resume continues it."""
+    backend: Literal["cpu", "warp"] = "cpu"
+    """Physics backend: 'cpu' (MuJoCo on mujoco.batch threads) or 'warp' (MuJoCo Warp worlds on --device, the
+    [warp] extra; observations pass through the host each step). The simulated Digit 360 touch runs on the cpu
+    backend only."""
 
     def __post_init__(self) -> None:
         check_types(self)
@@ -222,7 +226,8 @@ def run(cfg: Config) -> Result:
             raise ValueError(f"--resume: {ckpt_path} does not fit this student ({type(err).__name__}: "
                              f"{str(err).splitlines()[0]})") from None
         start_iter = int(ckpt["iteration"])
-    env = RotateCupVec(cfg.env, num_envs=n, seed=cfg.seed, nthread=cfg.nthread or None)  # checks the grasp cache
+    env = make_vec(cfg.backend, cfg.env, num_envs=n, seed=cfg.seed, nthread=cfg.nthread or None,
+                   device=cfg.device)  # checks the grasp cache
     # every check passed: only now is anything in `out` written or deleted
     if cfg.overwrite:
         removed = clear_outputs(out, (*RUN_OUTPUTS, *checkpoints))

@@ -1,4 +1,5 @@
-"""DINO self-distillation over token sets: the projection head and the loss with one center per set.
+"""DINO self-distillation over token sets: the projection head and the loss with one center per set, and the
+additions of DINOv2 that Sparsh-skin uses: the iBOT masked-token loss and the KoLeo regularizer.
 
 Sparsh-X (reference/sparshx_state_dict.md "Pretraining details of the original"): one projection head shared by
 the token sets (Linear D->h, GELU, h->h, GELU, h->bottleneck, L2-normalize, weight-normed Linear bottleneck->K
@@ -94,21 +95,117 @@ class DINOLoss(nn.Module):
             per_set[n] = -(probs[n][None] * log_p).sum(dim=-1).mean(dim=-1).sum()  # mean over batch, sum over views
         return torch.stack(list(per_set.values())).sum(), per_set
 
+    def views_loss(self, student: Mapping[str, Tensor], teacher: Mapping[str, Tensor], teacher_temp: float
+                   ) -> tuple[Tensor, dict[str, Tensor]]:
+        """DINOv2's cross-view loss with several teacher views: total and per token set.
+
+        Args:
+            student: {set: (V, B, K)} logits of the student's V views; its first T views are the teacher's views
+                in the same order (the global views), the others local views.
+            teacher: {set: (T, B, K)} logits of the teacher's T views.
+            teacher_temp: the teacher's temperature at this step.
+
+        Cross-entropy (mean over the batch) of every (student view s, teacher view t) pair with s != t (a view is
+        not its own target), averaged over those pairs and summed over the sets.
+        """
+        probs = self.teacher_probs(teacher, teacher_temp)  # {set: (T, B, K)}
+        per_set: dict[str, Tensor] = {}
+        for n in self.names:
+            log_p = F.log_softmax(student[n].float() / self.student_temp, dim=-1)  # (V, B, K)
+            v, t = log_p.shape[0], probs[n].shape[0]
+            if v < t:
+                raise ValueError(f"DINOLoss.views_loss: {v} student views for {t} teacher views (the student's first "
+                                 "views must be the teacher's)")
+            ce = -torch.einsum("tbk,vbk->tv", probs[n], log_p) / log_p.shape[1]  # (T, V) mean over the batch
+            keep = ~torch.eye(t, v, dtype=torch.bool, device=ce.device)  # drop the same-view pairs
+            per_set[n] = ce[keep].mean()
+        return torch.stack(list(per_set.values())).sum(), per_set
+
     @torch.no_grad()
     def update_center(self, teacher: Mapping[str, Tensor]) -> None:
-        """center = m center + (1 - m) mean of the teacher's logits over the batch (over every process)."""
-        batch_center = torch.stack([teacher[n].detach().float().mean(dim=0) for n in self.names])  # (S, K)
+        """center = m center + (1 - m) mean of the teacher's logits over the batch (and views: (..., K)), over
+        every process."""
+        batch_center = torch.stack([_rows(teacher[n]).mean(dim=0) for n in self.names])  # (S, K)
         if dist.is_available() and dist.is_initialized():
             dist.all_reduce(batch_center)
             batch_center /= dist.get_world_size()
         self.center.mul_(self.center_momentum).add_(batch_center, alpha=1.0 - self.center_momentum)
 
 
+def _rows(x: Tensor) -> Tensor:
+    """(..., K) -> (N, K) float32 rows, detached (a batch, or views x batch)."""
+    return x.detach().float().reshape(-1, x.shape[-1])
+
+
+class IBOTLoss(DINOLoss):
+    """iBOT's masked-token loss (Zhou et al. 2022; DINOv2): at every token the student saw as the mask token, the
+    cross-entropy between the teacher's centered, sharpened distribution of the visible token and the student's
+    distribution; one center per token set (apart from DINO's, as in DINOv2), an EMA of the teacher's outputs at
+    the masked tokens.
+
+    Same arguments as :class:`DINOLoss`.
+    """
+
+    def forward(self, student: Mapping[str, Tensor], teacher: Mapping[str, Tensor], teacher_temp: float
+                ) -> tuple[Tensor, dict[str, Tensor]]:
+        """Total loss and the loss per token set.
+
+        Args:
+            student: {set: (M, K)} logits at the masked tokens (all samples and views together).
+            teacher: {set: (M, K)} the teacher's logits at the same tokens.
+            teacher_temp: the teacher's temperature at this step.
+
+        Mean over the M masked tokens, summed over the sets; a set without masked tokens adds 0.
+        """
+        probs = self.teacher_probs(teacher, teacher_temp)
+        per_set: dict[str, Tensor] = {}
+        for n in self.names:
+            s = student[n].float()
+            if s.shape[0] == 0:
+                per_set[n] = s.sum() * 0.0  # keeps the graph (and DDP's gradient hooks) intact
+                continue
+            log_p = F.log_softmax(s / self.student_temp, dim=-1)  # (M, K)
+            per_set[n] = -(probs[n] * log_p).sum(dim=-1).mean()
+        return torch.stack(list(per_set.values())).sum(), per_set
+
+    @torch.no_grad()
+    def update_center(self, teacher: Mapping[str, Tensor]) -> None:
+        """center = m center + (1 - m) mean of the teacher's logits at the masked tokens of every process; a set
+        with no masked token anywhere keeps its center."""
+        sums = torch.stack([_rows(teacher[n]).sum(dim=0) for n in self.names])  # (S, K)
+        counts = torch.tensor([float(_rows(teacher[n]).shape[0]) for n in self.names], device=sums.device)  # (S,)
+        if dist.is_available() and dist.is_initialized():
+            dist.all_reduce(sums)
+            dist.all_reduce(counts)
+        seen = counts > 0
+        mean = sums / counts.clamp_min(1.0)[:, None]
+        updated = self.center * self.center_momentum + mean * (1.0 - self.center_momentum)
+        self.center.copy_(torch.where(seen[:, None], updated, self.center))
+
+
+def koleo_loss(x: Tensor, eps: float = 1e-8) -> Tensor:
+    """KoLeo regularizer (DINOv2, from the Kozachenko-Leonenko entropy estimator; Sablayrolles et al. 2019):
+    ``-mean_i log(|x_i - x_nn(i)|)`` over the L2-normalized rows of ``x`` (B, D), nn(i) the nearest other row.
+    Spreads a batch's features over the sphere. The neighbour is found without gradient; the distance is
+    ``|x_i - x_j + eps|`` (as torch's pairwise distance), finite for identical rows. Fewer than 2 rows: 0."""
+    if x.shape[0] < 2:
+        return x.sum() * 0.0
+    z = F.normalize(x.float(), dim=-1, eps=eps)  # (B, D)
+    with torch.no_grad():
+        sim = z @ z.T  # (B, B)
+        sim.fill_diagonal_(-2.0)  # never oneself (cosines are >= -1)
+        nearest = sim.argmax(dim=1)  # (B,)
+    d = (z - z[nearest] + eps).norm(dim=-1)  # (B,)
+    return -torch.log(d + eps).mean()
+
+
 def teacher_entropy(probs: Mapping[str, Tensor]) -> tuple[float, float]:
     """Collapse monitors: mean entropy of the teacher's per-sample distributions (-> 0 when they become one-hot)
-    and entropy of their batch mean (-> 0 when every sample picks the same prototype), averaged over sets (nats)."""
+    and entropy of their batch mean (-> 0 when every sample picks the same prototype), averaged over sets (nats).
+    Distributions (..., K) of several views count as more samples."""
     per, mean = [], []
     for p in probs.values():
+        p = p.reshape(-1, p.shape[-1])
         per.append(-(p * torch.log(p.clamp_min(1e-12))).sum(-1).mean())
         m = p.mean(0)
         mean.append(-(m * torch.log(m.clamp_min(1e-12))).sum())

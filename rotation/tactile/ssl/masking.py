@@ -18,6 +18,12 @@ view is cheaper than the full input). Per token set and step:
 
 Indices are row-major over the grid (the order in which the encoder flattens its patches), sorted, in [0, h w).
 Everything is a pure function of the numpy generator passed in, so a step's masks are reproducible from a seed.
+
+:func:`sample_multi_views` draws DINOv2-style views instead (Sparsh-skin, reference/sparsh.md): several global
+blocks (40-100 %) and local blocks (10-40 %) placed independently, one size per kind, step and set, and inside each
+global view an iBOT mask (a contiguous run of 10-50 % of its tokens, on half of the samples) that the student sees
+as the mask token. Over Sparsh-skin's 1-D taxel order a block is a run of consecutive taxels, each token all 10
+frames of its taxel: a view keeps the same taxels across time.
 """
 
 from __future__ import annotations
@@ -156,3 +162,101 @@ def sample_views(grids: Mapping[str, tuple[int, ...]], batch: int, cfg: MaskConf
 def step_rng(seed: int, step: int, rank: int = 0) -> np.random.Generator:
     """The generator of one training step (masks): a pure function of (seed, step, rank), so resume is exact."""
     return np.random.default_rng([int(seed), int(step), int(rank), 0x6D61736B])  # "mask"
+
+
+# ------------------------------------------------------------------------ DINOv2-style views (Sparsh-skin)
+@dataclass(frozen=True)
+class ViewMaskConfig:
+    """DINOv2-style views of a step (defaults: Sparsh-skin, reference/sparsh.md): ``num_global`` global and
+    ``num_local`` local blocks placed independently (no avoidance), and iBOT masks inside the global views. Errors
+    name the fields ``skin.<field>``: the config is `rotate pretrain`'s ``skin`` group."""
+
+    global_scale: tuple[float, float] = (0.4, 1.0)
+    """Range of a global block's size, as a fraction of the token set (Sparsh-skin: 40-100 %)."""
+    local_scale: tuple[float, float] = (0.1, 0.4)
+    """Range of a local block's size (Sparsh-skin: 10-40 %)."""
+    num_global: int = 2
+    """Global views (the teacher sees these, the student all views)."""
+    num_local: int = 8
+    """Local views."""
+    min_keep: int = 4
+    """Fewest tokens a view keeps."""
+    mask_ratio: tuple[float, float] = (0.1, 0.5)
+    """Range of the fraction of a student's global-view tokens replaced by the mask token (iBOT; reference/
+    sparsh.md: 10-50 %)."""
+    mask_probability: float = 0.5
+    """Probability that a sample's global view gets an iBOT mask at all (DINOv2: half of them)."""
+
+    def __post_init__(self) -> None:
+        check_types(self, prefix="skin.")
+        for name in ("global_scale", "local_scale", "mask_ratio"):
+            lo_hi = tuple(getattr(self, name))
+            if not all(math.isfinite(v) for v in lo_hi) or not 0.0 < lo_hi[0] <= lo_hi[1] <= 1.0:
+                raise ValueError(f"skin.{name} must be (low, high) with 0 < low <= high <= 1, got {lo_hi}")
+        check_int("skin.num_global", self.num_global, 1, 16)
+        check_int("skin.num_local", self.num_local, 0, 64)
+        check_int("skin.min_keep", self.min_keep, 1, 4096)
+        if not (math.isfinite(self.mask_probability) and 0.0 <= self.mask_probability <= 1.0):
+            raise ValueError(f"skin.mask_probability must be in [0, 1], got {self.mask_probability}")
+
+
+@dataclass
+class Views:
+    """The views of one step: kept-token indices per view and set, and the iBOT masks of the global views."""
+
+    globals: list[dict[str, torch.Tensor]]
+    """num_global x {set: (B, K_g) int64}, one K_g per step and set (so the global views batch together)."""
+    locals: list[dict[str, torch.Tensor]]
+    """num_local x {set: (B, K_l) int64}."""
+    masks: list[dict[str, torch.Tensor]]
+    """num_global x {set: (B, K_g) bool}: True = the student sees the mask token there."""
+
+
+def _place(grid: tuple[int, ...], bh: int, bw: int, count: int, batch: int, rng: np.random.Generator
+           ) -> list[np.ndarray]:
+    """``count`` blocks of (bh, bw) at independent random positions per sample: count x (B, bh bw) indices."""
+    h, w = _hw(grid)
+    top = rng.integers(0, h - bh + 1, size=(batch, count))
+    left = rng.integers(0, w - bw + 1, size=(batch, count))
+    return [_block_indices(w, top[:, j], left[:, j], bh, bw).astype(np.int64) for j in range(count)]
+
+
+def _ibot_masks(k: int, count: int, batch: int, cfg: ViewMaskConfig, rng: np.random.Generator) -> list[np.ndarray]:
+    """count x (B, k) bool: per sample (with probability ``mask_probability``) one contiguous run of about
+    ratio x k of the kept tokens (a block over the set's order), ratio drawn from ``mask_ratio``, at least 1."""
+    out = []
+    pos = np.arange(k)[None]
+    for _ in range(count):
+        apply = rng.random(batch) < cfg.mask_probability
+        m = np.clip(np.round(rng.uniform(*cfg.mask_ratio, size=batch) * k), 1, k).astype(np.int64)  # (B,)
+        start = (rng.random(batch) * (k - m + 1)).astype(np.int64)  # (B,) in [0, k - m]
+        out.append(apply[:, None] & (pos >= start[:, None]) & (pos < (start + m)[:, None]))
+    return out
+
+
+def sample_multi_views(grids: Mapping[str, tuple[int, ...]], batch: int, cfg: ViewMaskConfig,
+                       rng: np.random.Generator, device: torch.device | str | None = None) -> Views:
+    """The views of one step for every token set (grids as in :func:`sample_views`; a 1-D set (n,) gets
+    contiguous segments of its order, e.g. the taxel order). Per set, one global and one local block size per
+    step, positions per sample; the global views keep 40-100 %, the local ones 10-40 % by default. Everything is
+    a pure function of ``rng``."""
+    if batch < 1:
+        raise ValueError(f"sample_multi_views: batch must be >= 1, got {batch}")
+    per: dict[str, tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]] = {}
+    for name, grid in grids.items():
+        grid = tuple(grid)
+        h, w = _hw(grid)
+        if h * w < cfg.min_keep:
+            raise ValueError(f"a token set of {h * w} tokens cannot keep min_keep={cfg.min_keep} tokens per view")
+        gh, gw = block_shape(grid, rng.uniform(*cfg.global_scale), cfg.min_keep)
+        lh, lw = block_shape(grid, rng.uniform(*cfg.local_scale), cfg.min_keep)
+        g = _place(grid, gh, gw, cfg.num_global, batch, rng)
+        loc = _place(grid, lh, lw, cfg.num_local, batch, rng)
+        per[name] = (g, loc, _ibot_masks(gh * gw, cfg.num_global, batch, cfg, rng))
+
+    def views(i: int, j: int) -> dict[str, torch.Tensor]:
+        return {name: torch.from_numpy(v[i][j]).to(device) for name, v in per.items()}
+
+    return Views(globals=[views(0, j) for j in range(cfg.num_global)],
+                 locals=[views(1, j) for j in range(cfg.num_local)],
+                 masks=[views(2, j) for j in range(cfg.num_global)])

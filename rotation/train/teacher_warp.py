@@ -1,0 +1,399 @@
+"""The teacher on the MuJoCo Warp backend: PPO with rollouts, advantages and minibatches resident on the device
+(`rotate train-teacher --backend warp`).
+
+The learner is rsl_rl's PPO (`rsl-rl-lib`, the [warp] extra): its rollout storage, GAE, clipped surrogate,
+clipped value loss and adaptive-KL learning rate, on tensors that never leave the GPU. The networks are this
+project's: the actor is rotation.policy.bundle.ActorNet (normalized proprio + EnvFactorEncoder(priv) -> 512-256-128
+ELU -> action mean) with a state-independent log std, as in the CPU teacher; the critic is the same extractor and
+MLP with a value head. So the run ends in the same policy bundle (`bundle/`), which `rotate evaluate` and deploy
+load exactly like one trained by stable-baselines3, with the same TensorBoard tags (`episode/*`, `train/*`) and
+`curves.jsonl` rows. docs/warp.md says why rsl_rl and what differs from the CPU learner.
+
+    rotate train-teacher --backend warp --out runs/teacher_gpu          # the GPU recipe (GPU_RECIPE) by default
+    rotate train-teacher --backend warp --device cpu --num-envs 8 ...   # Warp's CPU device (tests, slow)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from envs.config import EnvConfig
+from rotation.evaluate.metrics import UPRIGHT_TILT
+from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
+from rotation.policy.bundle import ActorNet, BundleConfig, PolicyBundle
+from rotation.policy.features import PrivilegedExtractor
+from rotation.policy.networks import EnvFactorEncoderConfig, mlp
+from rotation.train.runs import CurveLog, save_atomically
+
+GPU_RECIPE: dict[str, Any] = {
+    "num_envs": 8192,  # Hora: 16,384 worlds; MuJoCo Playground's LEAP rotation: 8,192
+    "n_steps": 8,  # Hora's horizon
+    "n_epochs": 5,  # Hora
+    "learning_rate": 5e-3,  # Hora's start; the adaptive-KL rule moves it
+    "total_steps": 200_000_000,
+    "checkpoint_every": 10_000_000,
+    "device": "cuda",
+}
+"""Defaults of `rotate train-teacher --backend warp` (reference/hora.md, "Training"); options given on the command
+line win. The minibatch size defaults to a quarter of the rollout (Hora: 4 minibatches of 32,768)."""
+
+TEACHER_GROUPS = ("proprio", "priv")
+"""Observation groups the teacher reads (the same as rotation.train.teacher.TEACHER_GROUPS)."""
+
+
+def apply_gpu_recipe(cfg, given: set[str]):
+    """``cfg`` with GPU_RECIPE for every field not in ``given`` (the options named on the command line)."""
+    changes = {k: v for k, v in GPU_RECIPE.items() if k not in given}
+    num_envs = changes.get("num_envs", cfg.num_envs)
+    n_steps = changes.get("n_steps", cfg.n_steps)
+    if "batch_size" not in given:
+        changes["batch_size"] = max(2, num_envs * n_steps // 4)
+    return dataclasses.replace(cfg, **changes)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# rsl_rl models around this project's networks
+
+
+def _orthogonal_init(module: nn.Module, gain: float) -> None:
+    """stable-baselines3's initialization, so both learners start alike: orthogonal weights, zero biases."""
+    for m in module.modules():
+        if isinstance(m, nn.Linear):
+            nn.init.orthogonal_(m.weight, gain=gain)
+            nn.init.zeros_(m.bias)
+
+
+class TeacherActor(nn.Module):
+    """rsl_rl actor interface over an ActorNet: a diagonal Gaussian with mean ActorNet.mean(obs) and a learned,
+    state-independent log std (SB3's DiagGaussianDistribution)."""
+
+    is_recurrent = False
+
+    def __init__(self, net: ActorNet, log_std_init: float) -> None:
+        super().__init__()
+        self.net = net
+        self.log_std = nn.Parameter(torch.full((net.action_mean.out_features,), float(log_std_init)))
+        self._mean: torch.Tensor | None = None
+        for m in net.modules():  # the statistics move in update_normalization, once per rollout
+            if hasattr(m, "frozen"):
+                m.frozen = True
+
+    def forward(self, obs, masks=None, hidden_state=None, stochastic_output: bool = False) -> torch.Tensor:
+        mean = self.net.mean({k: obs[k] for k in TEACHER_GROUPS})  # (B, A), unclipped
+        self._mean = mean
+        if stochastic_output:
+            return mean + self.log_std.exp() * torch.randn_like(mean)
+        return mean
+
+    def _dist(self) -> torch.distributions.Normal:
+        assert self._mean is not None, "call forward first"
+        return torch.distributions.Normal(self._mean, self.log_std.exp().expand_as(self._mean))
+
+    def get_output_log_prob(self, actions: torch.Tensor) -> torch.Tensor:
+        return self._dist().log_prob(actions).sum(-1)
+
+    @property
+    def output_entropy(self) -> torch.Tensor:
+        return self._dist().entropy().sum(-1)
+
+    @property
+    def output_distribution_params(self) -> tuple[torch.Tensor, torch.Tensor]:
+        d = self._dist()
+        return d.mean, d.stddev
+
+    def get_kl_divergence(self, old, new) -> torch.Tensor:
+        p = torch.distributions.Normal(*old)
+        q = torch.distributions.Normal(*new)
+        return torch.distributions.kl_divergence(p, q).sum(-1)
+
+    def update_normalization(self, obs) -> None:
+        self.net.extractor.proprio_norm.update(obs["proprio"])
+
+    def reset(self, dones=None, hidden_state=None) -> None:
+        pass
+
+    def get_hidden_state(self):
+        return None
+
+    def detach_hidden_state(self, dones=None) -> None:
+        pass
+
+
+class TeacherCritic(nn.Module):
+    """rsl_rl critic interface: the teacher's extractor (its own copy) -> the actor's MLP sizes -> a value (B, 1)."""
+
+    is_recurrent = False
+
+    def __init__(self, space, hidden: tuple[int, ...]) -> None:
+        super().__init__()
+        self.extractor = PrivilegedExtractor(space, EnvFactorEncoderConfig())
+        self.extractor.proprio_norm.frozen = True
+        self.mlp = mlp([self.extractor.features_dim, *hidden], nn.ELU, activate_last=True)
+        self.value = nn.Linear(hidden[-1], 1)
+
+    def forward(self, obs, masks=None, hidden_state=None) -> torch.Tensor:
+        return self.value(self.mlp(self.extractor({k: obs[k] for k in TEACHER_GROUPS})))  # (B, 1)
+
+    def update_normalization(self, obs) -> None:
+        self.extractor.proprio_norm.update(obs["proprio"])
+
+    def reset(self, dones=None, hidden_state=None) -> None:
+        pass
+
+    def get_hidden_state(self):
+        return None
+
+    def detach_hidden_state(self, dones=None) -> None:
+        pass
+
+
+def build_models(cfg, env_cfg: EnvConfig) -> tuple[BundleConfig, TeacherActor, TeacherCritic]:
+    """The bundle config and fresh actor / critic, initialized like stable-baselines3's (gains sqrt(2), 0.01, 1)."""
+    config = BundleConfig(latent_source="privileged", actor_hidden=tuple(cfg.net_arch),
+                          control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale)
+    net = ActorNet(config)
+    _orthogonal_init(net, math.sqrt(2))
+    _orthogonal_init(net.action_mean, 0.01)
+    actor = TeacherActor(net, cfg.log_std_init)
+    critic = TeacherCritic(config.observation_space(), tuple(cfg.net_arch))
+    _orthogonal_init(critic, math.sqrt(2))
+    _orthogonal_init(critic.value, 1.0)
+    return config, actor, critic
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# episode statistics on the device
+
+
+class DeviceEpisodeStats:
+    """Per-world running sums of the episode in progress and totals over the episodes that ended since the last
+    :meth:`collect`, all tensors on the device (one host read per log point). Rows match the CPU teacher's
+    EpisodeStats: return `r`, length `l`, rotation, rotation_rate, ttf, upright, and each `rew_<term>`."""
+
+    def __init__(self, n: int, env_cfg: EnvConfig, device: torch.device) -> None:
+        self.cfg = env_cfg
+        self.dev = device
+        self.ep: dict[str, torch.Tensor] = {}
+        self.totals: dict[str, torch.Tensor] = {}
+        self.n = n
+
+    def _zeros(self) -> torch.Tensor:
+        return torch.zeros(self.n, dtype=torch.float64, device=self.dev)
+
+    def step(self, reward: torch.Tensor, terminated: torch.Tensor, truncated: torch.Tensor, info: dict) -> None:
+        add = {"r": reward, "rotation": info["rotation"],
+               "upright": ((info["tilt"] < UPRIGHT_TILT) & ~info["fell"]),
+               **{k: v for k, v in info.items() if k.startswith("rew_")}}
+        for k, v in add.items():
+            self.ep[k] = self.ep.get(k, self._zeros()) + v.to(torch.float64)
+        done = terminated | truncated
+        steps = info["elapsed_steps"].to(torch.float64)
+        ended = {
+            "count": done.to(torch.float64),
+            "r": self.ep["r"], "l": steps, "rotation": self.ep["rotation"],
+            "rotation_rate": self.ep["rotation"] / (steps * self.cfg.control_dt),
+            "ttf": torch.where(terminated, steps / self.cfg.episode_steps, 1.0),
+            "upright": self.ep["upright"] / steps,
+            **{k: v for k, v in self.ep.items() if k.startswith("rew_")},
+        }
+        for k, v in ended.items():
+            self.totals[k] = self.totals.get(k, torch.zeros((), dtype=torch.float64, device=self.dev)) + \
+                torch.where(done, v, 0.0).sum()
+        for k in self.ep:
+            self.ep[k] = torch.where(done, 0.0, self.ep[k])
+
+    def collect(self) -> dict[str, float]:
+        """Means over the episodes that ended since the last call ({} when none did), and a fresh start."""
+        totals = {k: float(v) for k, v in self.totals.items()}  # one host read
+        self.totals = {}
+        count = totals.pop("count", 0.0)
+        if count <= 0:
+            return {}
+        return {"episodes": int(count), **{k: v / count for k, v in totals.items()}}
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# training
+
+
+def _require_rsl_rl():
+    try:
+        from rsl_rl.algorithms import PPO
+        from rsl_rl.storage import RolloutStorage
+        from tensordict import TensorDict
+    except ImportError as err:
+        raise ValueError(f"the warp backend trains with rsl_rl ({err.name} is not installed): "
+                         "pip install 'tactile-rotation[warp]'") from None
+    return PPO, RolloutStorage, TensorDict
+
+
+class WarpPPO:
+    """rsl_rl's PPO wired to a RotateCupWarp: :meth:`iteration` collects one rollout of ``n_steps`` x ``num_envs``
+    transitions on the device and updates on it (also what scripts/bench_warp.py times)."""
+
+    def __init__(self, cfg, env, env_cfg: EnvConfig) -> None:
+        ppo_cls, storage_cls, self._tensordict = _require_rsl_rl()
+        n, horizon = env.num_envs, cfg.n_steps
+        if (n * horizon) % cfg.batch_size:
+            raise ValueError(f"batch_size {cfg.batch_size} must divide num_envs x n_steps = {n * horizon} on the "
+                             "warp backend (rsl_rl splits each rollout into equal minibatches)")
+        self.cfg, self.env, self.n, self.horizon = cfg, env, n, horizon
+        self.config, self.actor, self.critic = build_models(cfg, env_cfg)
+        dev = env.torch_device
+        self.obs = self._td(env.reset(seed=cfg.seed))
+        storage = storage_cls("rl", n, horizon, self.obs, [env.single_action_space.shape[0]], device=str(dev))
+        self.alg = ppo_cls(self.actor, self.critic, storage, num_learning_epochs=cfg.n_epochs,
+                           num_mini_batches=n * horizon // cfg.batch_size, clip_param=cfg.clip_range,
+                           gamma=cfg.gamma, lam=cfg.gae_lambda, value_loss_coef=cfg.vf_coef,
+                           entropy_coef=cfg.ent_coef, learning_rate=cfg.learning_rate,
+                           max_grad_norm=cfg.max_grad_norm, schedule="adaptive", desired_kl=cfg.target_kl,
+                           device=str(dev))
+        self.stats = DeviceEpisodeStats(n, env_cfg, dev)
+
+    def _td(self, obs: dict[str, torch.Tensor]):
+        return self._tensordict({k: obs[k] for k in TEACHER_GROUPS}, batch_size=[self.n], device=self.env.torch_device)
+
+    def iteration(self) -> dict[str, float]:
+        """One rollout (every tensor stays on the device) and one PPO update; returns rsl_rl's mean losses."""
+        alg, env = self.alg, self.env
+        alg.train_mode()
+        with torch.no_grad():
+            for _ in range(self.horizon):
+                actions = alg.act(self.obs)
+                _, reward, terminated, truncated, info = env.step(actions)
+                self.stats.step(reward, terminated, truncated, info)
+                done = terminated | truncated
+                env.reset_done(done)  # finished worlds restart on the device
+                self.obs = self._td(env._observe())
+                alg.process_env_step(self.obs, reward * self.cfg.reward_scale, done,
+                                     {"time_outs": (truncated & ~terminated).to(torch.float32)})
+            alg.compute_returns(self.obs)
+        return alg.update()
+
+    def bundle(self, card: dict[str, Any]) -> PolicyBundle:
+        """The acting path as a policy bundle on the CPU (the format the CPU teacher writes)."""
+        bundle = PolicyBundle(dataclasses.replace(self.config, card=card), ActorNet(self.config))
+        bundle.net.load_state_dict({k: v.detach().cpu() for k, v in self.actor.net.state_dict().items()})
+        return bundle
+
+
+def train(cfg) -> PolicyBundle:
+    """Train the teacher on the Warp backend (cfg: rotation.train.teacher.Config with backend 'warp')."""
+    from rotation.configs import save_config
+    from rotation.sim_warp.core import RotateCupWarp, WarpConfig
+    from rotation.train.runs import check_run_dir, clear_outputs
+    from rotation.train.teacher import RUN_OUTPUTS
+
+    if cfg.resume is not None or cfg.init_from is not None:
+        raise ValueError("--resume / --init-from: not supported on the warp backend yet; start a new run")
+    _require_rsl_rl()
+    out = cfg.out
+    check_run_dir(out, RUN_OUTPUTS, overwrite=cfg.overwrite, resuming_here=False,
+                  resume_hint="--overwrite replaces it (the warp backend cannot resume yet)")
+    n, horizon = cfg.num_envs, cfg.n_steps
+    if (n * horizon) % cfg.batch_size:
+        raise ValueError(f"batch_size {cfg.batch_size} must divide num_envs x n_steps = {n * horizon} on the warp "
+                         "backend (rsl_rl splits each rollout into equal minibatches)")
+    torch.manual_seed(cfg.seed)
+    env_cfg = cfg.env_config()
+    env = RotateCupWarp(env_cfg, n, seed=cfg.seed, warp_cfg=WarpConfig(device=cfg.device))
+    if cfg.overwrite:
+        removed = clear_outputs(out, RUN_OUTPUTS)
+        if removed:
+            print(f"teacher: --overwrite deleted {', '.join(removed)} in {out}")
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out / "config.json")
+    learner = WarpPPO(cfg, env, env_cfg)
+    curves = CurveLog(out / "curves.jsonl")
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(log_dir=str(out / "tb" / "teacher_1"))
+    iterations = math.ceil(cfg.total_steps / (n * horizon))
+    steps, next_ckpt, rows, signum = 0, cfg.checkpoint_every, [], None
+    bar = tqdm(total=iterations * n * horizon, unit="step", disable=not cfg.progress, desc="train-teacher (warp)",
+               dynamic_ncols=True)
+    start = time.time()
+    t_iter = time.perf_counter()
+    try:
+        with StopSignals() as stop:
+            for _ in range(iterations):
+                losses = learner.iteration()
+                steps += n * horizon
+                bar.update(n * horizon)
+                now = time.perf_counter()
+                row = _log(writer, steps, learner.stats.collect(), losses, learner.alg.learning_rate,
+                           n * horizon / (now - t_iter))
+                t_iter = now
+                if row is not None:
+                    rows.append(row)
+                if steps >= next_ckpt:
+                    _save_checkpoint(out, learner.alg, steps)
+                    curves.append(rows)
+                    rows = []
+                    next_ckpt += cfg.checkpoint_every
+                if stop.requested:
+                    break
+            signum = stop.signum
+    except KeyboardInterrupt as err:
+        signum = getattr(err, "signum", signal.SIGINT)
+    finally:
+        bar.close()
+        writer.close()
+        env.close()
+    wall = time.time() - start
+    _save_checkpoint(out, learner.alg, steps)
+    curves.append(rows)
+    card = {"role": "teacher", "object": cfg.object, "steps": steps, "seed": cfg.seed, "wall_time_s": round(wall, 1),
+            "backend": "warp", "learner": "rsl_rl PPO (rotation.train.teacher_warp)",
+            "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out), "resume": str(cfg.resume)}}
+    if signum:
+        card["interrupted"] = f"stopped by {SIGNAL_NAMES.get(signum, signum)} at {steps} of {cfg.total_steps} steps"
+    bundle = learner.bundle(card)
+    bundle.save(out / "bundle")
+    if signum:
+        message = (f"teacher: interrupted by {SIGNAL_NAMES.get(signum, signum)} at {steps} of {cfg.total_steps} "
+                   f"steps; saved the bundle {out / 'bundle'}")
+        print(message)
+        raise Interrupted(signum, message)
+    print(f"teacher: {steps} steps in {wall:.0f} s ({steps / max(wall, 1e-9):,.0f} steps/s) on the warp backend; "
+          f"bundle at {out / 'bundle'}")
+    return bundle
+
+
+def _log(writer, steps: int, episodes: dict[str, float], losses: dict[str, float], lr: float,
+         fps: float) -> dict[str, Any] | None:
+    """TensorBoard points under the CPU teacher's tags; the curve row when episodes ended."""
+    writer.add_scalar("train/value_loss", losses.get("value", float("nan")), steps)
+    writer.add_scalar("train/policy_gradient_loss", losses.get("surrogate", float("nan")), steps)
+    writer.add_scalar("train/entropy_loss", -losses.get("entropy", float("nan")), steps)
+    writer.add_scalar("train/adaptive_lr", lr, steps)
+    writer.add_scalar("time/fps", fps, steps)
+    if not episodes:
+        return None
+    for k, v in episodes.items():
+        if k != "episodes":
+            writer.add_scalar(f"episode/{ {'r': 'return', 'l': 'length'}.get(k, k) }", v, steps)
+    return {"steps": steps, **episodes}
+
+
+def _save_checkpoint(out: Path, alg, steps: int) -> Path:
+    """`checkpoints/last.pt`: actor, critic, optimizer, learning rate and steps (for inspection; not resumable
+    yet), written atomically."""
+    path = out / "checkpoints" / "last.pt"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {"actor": alg.actor.state_dict(), "critic": alg.critic.state_dict(),
+             "optimizer": alg.optimizer.state_dict(), "learning_rate": alg.learning_rate, "steps": steps}
+    save_atomically(lambda tmp: torch.save(state, tmp), path)
+    return path
+
+
+__all__ = ["GPU_RECIPE", "TeacherActor", "TeacherCritic", "WarpPPO", "apply_gpu_recipe", "build_models", "train"]

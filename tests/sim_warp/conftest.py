@@ -1,0 +1,36 @@
+"""Fixtures of the MuJoCo Warp backend tests: Warp's CPU device, a few worlds, and one env for the session.
+
+Warp compiles its kernels on first use (about 40 s cold on a 2-core machine; Warp keeps them in its kernel cache
+for later runs) and keeps the compiled modules for the rest of the process, so the tests share one env where
+they can. Tests marked `gpu` need CUDA and are skipped without it.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+pytest.importorskip("mujoco_warp", reason="the warp backend needs the [warp] extra")
+
+from envs.config import EnvConfig  # noqa: E402
+from rotation.sim_warp.core import RotateCupWarp, WarpConfig  # noqa: E402
+
+NUM_WORLDS = 3
+SEED = 7
+
+
+def pytest_collection_modifyitems(config, items):
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA GPU")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def warp_env():
+    """RotateCup on Warp's CPU device with NUM_WORLDS worlds (the default randomized task); tests reset it."""
+    env = RotateCupWarp(EnvConfig(), num_envs=NUM_WORLDS, seed=SEED, warp_cfg=WarpConfig(device="cpu"))
+    yield env
+    env.close()
