@@ -60,3 +60,14 @@ class StopSignals:
         """After the job saved its outputs: raise :class:`Interrupted` if a signal asked to stop."""
         if self.signum is not None:
             raise Interrupted(self.signum, message)
+
+
+def ignore_stop_signals(worker_id: int = 0) -> None:
+    """DataLoader ``worker_init_fn``: loader workers ignore SIGINT and SIGTERM.
+
+    Ctrl-C in a terminal and ``timeout``/``kill`` on a process group signal every process of the group. Torch's
+    workers die on SIGTERM, and the main process then fails while it saves its checkpoint; ignoring the signals
+    leaves the decision to the main process, which stops, saves and shuts its workers down.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)

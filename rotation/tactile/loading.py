@@ -18,6 +18,7 @@ from envs.constants import FINGERS
 from rotation.data.dataset import TouchWindows, find_sessions
 from rotation.data.skin import SkinWindows
 from rotation.data.window_cache import CachedWindows, build_cache
+from rotation.interrupt import ignore_stop_signals
 from rotation.tactile.runtime import Processes
 
 
@@ -98,7 +99,8 @@ def step_loader(dataset: Dataset, batch_size: int, procs: Processes, seed: int, 
     """A DataLoader yielding this process's batch of every step from ``start`` to ``total``."""
     return DataLoader(dataset, batch_sampler=StepBatches(dataset, batch_size, procs, seed, start, total),
                       num_workers=workers, pin_memory=pin_memory, persistent_workers=False,
-                      prefetch_factor=4 if workers > 0 else None)
+                      prefetch_factor=4 if workers > 0 else None,
+                      worker_init_fn=ignore_stop_signals)
 
 
 def to_device(batch: dict, device: torch.device) -> dict:

@@ -25,6 +25,8 @@ the n training sessions in a seeded order (nested: 10% within 33% within 100%).
 OUT: results.json ``{"rows": [{"task", "variant", "budget", "metric", "value"}, ...], ...}``, results.md (table),
 probe.png (metric vs label budget per variant), <task>_over_time.png for temporal tasks (predicted vs true on a
 test session, largest budget), config.json, tb/.
+The report is rewritten after every (variant, budget) with ``"complete": false`` until the last one; Ctrl-C or
+SIGTERM stop after the probe being trained and keep the finished rows.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ from envs.validation import check_int, check_number, check_output_dir, check_see
 from rotation.configs import save_config, to_jsonable
 from rotation.data.dataset import split_sessions
 from rotation.data.session import SessionReader
+from rotation.interrupt import StopSignals, ignore_stop_signals
 from rotation.tactile.encoders import encoder_kind, kind_of, load_encoder
 from rotation.tactile.loading import check_fingers, open_encoder_windows, session_paths, step_loader, to_device
 from rotation.tactile.pooling import ProbeHead
@@ -336,7 +339,8 @@ def _evaluate(probes: _Probes, data: Dataset, tasks: dict[str, Task], cfg: Confi
     """Metrics per task on ``data``, and for temporal tasks the traces of the last window of every sequence
     (``pred``, ``true`` (N, outputs), ``time`` (N,) s, ``session`` (N,)) for the plots over time."""
     probes.eval()
-    loader = DataLoader(data, batch_size=cfg.batch_size, shuffle=False, num_workers=cfg.num_workers)
+    loader = DataLoader(data, batch_size=cfg.batch_size, shuffle=False, num_workers=cfg.num_workers,
+                        worker_init_fn=ignore_stop_signals)
     preds: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
     targets: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
     times, sessions = [], []
@@ -433,42 +437,51 @@ def _run(cfg: Config) -> dict[str, Any]:
     bar = tqdm(total=runs * cfg.steps, unit="step", desc="probe", disable=not cfg.progress, dynamic_ncols=True)
     sessions_used: dict[str, int] = {}
     traces: dict[str, dict[str, dict[str, np.ndarray]]] = {}  # task -> variant -> trace (largest budget)
+    first = next(iter(groups.values()))
+    fixed = {"baselines": [b for temporal, data in groups.items() for b in baselines(
+                 data, {n: t for n, t in all_tasks.items() if t.temporal == temporal}, cfg.slip_threshold)],
+             "encoder": encoder_kind(kind_of(pretrained)).describe(pretrained), "checkpoint": str(cfg.checkpoint),
+             "train_sessions": len(first.train_sessions), "test_sessions": len(first.test_sessions),
+             "train_windows": len(first.train), "test_windows": len(first.test), "config": to_jsonable(cfg)}
+
+    def report(complete: bool) -> dict[str, Any]:
+        """The report so far, written after every (variant, budget): a stopped run keeps what it finished."""
+        out_report = {"rows": rows, "complete": complete, **fixed, "sessions_per_budget": sessions_used}
+        if traces:
+            out_report["trace_plots"] = write_traces(traces, out, budget=max(cfg.budgets))
+        write_report(out_report, out)
+        return out_report
+
     try:
-        for variant in variants:
-            encoder = _variant_encoder(variant, pretrained, cfg, device)
-            for budget in sorted(cfg.budgets):
-                for temporal, data in groups.items():
-                    tasks = {n: t for n, t in all_tasks.items() if t.temporal == temporal}
-                    rows_b, n_sessions = budget_rows(data, budget, cfg.seed)
-                    sessions_used[str(budget)] = n_sessions
-                    stats, pos_weight = target_stats(data, rows_b, tasks, cfg.slip_threshold, device)
-                    torch.manual_seed(cfg.seed)
-                    probes = _Probes(encoder, variant != "e2e", tasks, cfg).to(device)
-                    bar.set_postfix(variant=variant, budget=budget)
-                    _train_probes(probes, Subset(data.train, rows_b.tolist()), tasks, cfg, stats, pos_weight, device,
-                                  bf16, bar, writer, f"{variant}/budget_{budget}")
-                    scores, task_traces = _evaluate(probes, data.test, tasks, cfg, stats, device, bf16)
-                    for task, metrics in scores.items():
-                        rows += [{"task": task, "variant": variant, "budget": float(budget), "metric": m, "value": v}
-                                 for m, v in metrics.items()]
-                    if budget == max(cfg.budgets):
-                        for task, trace in task_traces.items():
-                            traces.setdefault(task, {})[variant] = trace
-                    del probes
+        with StopSignals() as stop:
+            for variant in variants:
+                encoder = _variant_encoder(variant, pretrained, cfg, device)
+                for budget in sorted(cfg.budgets):
+                    for temporal, data in groups.items():
+                        tasks = {n: t for n, t in all_tasks.items() if t.temporal == temporal}
+                        rows_b, n_sessions = budget_rows(data, budget, cfg.seed)
+                        sessions_used[str(budget)] = n_sessions
+                        stats, pos_weight = target_stats(data, rows_b, tasks, cfg.slip_threshold, device)
+                        torch.manual_seed(cfg.seed)
+                        probes = _Probes(encoder, variant != "e2e", tasks, cfg).to(device)
+                        bar.set_postfix(variant=variant, budget=budget)
+                        _train_probes(probes, Subset(data.train, rows_b.tolist()), tasks, cfg, stats, pos_weight,
+                                      device, bf16, bar, writer, f"{variant}/budget_{budget}")
+                        scores, task_traces = _evaluate(probes, data.test, tasks, cfg, stats, device, bf16)
+                        for task, metrics in scores.items():
+                            rows += [{"task": task, "variant": variant, "budget": float(budget), "metric": m,
+                                      "value": v} for m, v in metrics.items()]
+                        if budget == max(cfg.budgets):
+                            for task, trace in task_traces.items():
+                                traces.setdefault(task, {})[variant] = trace
+                        del probes
+                    report(complete=False)
+                    stop.raise_if_requested(f"probe: stopped after {variant} at budget {budget:g}; the finished "
+                                            f"rows are in {out / 'results.md'}")
     finally:
         bar.close()
         writer.close()
-    first = next(iter(groups.values()))
-    report = {"rows": rows,
-              "baselines": [b for temporal, data in groups.items() for b in baselines(
-                  data, {n: t for n, t in all_tasks.items() if t.temporal == temporal}, cfg.slip_threshold)],
-              "encoder": encoder_kind(kind_of(pretrained)).describe(pretrained), "checkpoint": str(cfg.checkpoint),
-              "train_sessions": len(first.train_sessions), "test_sessions": len(first.test_sessions),
-              "train_windows": len(first.train), "test_windows": len(first.test),
-              "sessions_per_budget": sessions_used, "config": to_jsonable(cfg)}
-    if traces:
-        report["trace_plots"] = write_traces(traces, out, budget=max(cfg.budgets))
-    write_report(report, out)
+    final = report(complete=True)
     print(f"probe: {len(rows)} results for {len(variants)} variant(s) x {len(cfg.budgets)} budget(s) -> "
           f"{out / 'results.md'}")
-    return report
+    return final

@@ -37,6 +37,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from envs.sensors.xela import NUM_TAXELS, REST, TAXEL_TYPE, TAXEL_TYPES, WINDOW
 from rotation.configs import from_jsonable, to_jsonable
 from rotation.data.skin import VALID_RANGE
+from rotation.interrupt import ignore_stop_signals
 from rotation.tactile.blocks import LN_EPS, Block, Float32Buffers
 from rotation.tactile.sparshx_checkpoint import SHOW, CheckpointMismatch, mismatch_report, read_safetensors
 from rotation.tactile.tokens import TokenInterface
@@ -172,7 +173,8 @@ class SparshSkin(Float32Buffers):
         if n == 0:
             raise ValueError("fit_normalization: no windows")
         pick = np.sort(np.random.default_rng(seed).permutation(n)[: min(n, max_windows)])
-        loader = DataLoader(Subset(windows, pick.tolist()), batch_size=batch_size, num_workers=num_workers)
+        loader = DataLoader(Subset(windows, pick.tolist()), batch_size=batch_size, num_workers=num_workers,
+                            worker_init_fn=ignore_stop_signals)
         count = 0
         total, squares = torch.zeros(CHANNELS, dtype=torch.float64), torch.zeros(CHANNELS, dtype=torch.float64)
         for batch in loader:

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset, Subset
 
+from rotation.interrupt import ignore_stop_signals
 from rotation.tactile.audio import SPARSH_FBANK, fbank
 from rotation.tactile.blocks import LN_EPS
 
@@ -230,7 +231,8 @@ def fit_statistics(windows: Dataset, modalities: Sequence[str], max_windows: int
     if max_windows < 1 or batch_size < 1:
         raise ValueError(f"fit_statistics: max_windows and batch_size must be >= 1, got {max_windows}, {batch_size}")
     pick = np.sort(np.random.default_rng(seed).permutation(n)[: min(n, max_windows)])
-    loader = DataLoader(Subset(windows, pick.tolist()), batch_size=batch_size, num_workers=num_workers)
+    loader = DataLoader(Subset(windows, pick.tolist()), batch_size=batch_size, num_workers=num_workers,
+                        worker_init_fn=ignore_stop_signals)
     sums: dict[str, list[Tensor]] = {}  # modality -> [count, sum, sum of squares] over its reduced axes
 
     def accumulate(m: str, x: Tensor, dims: tuple[int, ...]) -> None:

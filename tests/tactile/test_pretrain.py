@@ -5,7 +5,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -195,3 +200,31 @@ def test_a_stop_signal_saves_then_stops(tmp_path, touch_sessions, touch_cache, m
     assert err.value.exit_code == 130
     assert [p.name for p in cfg.out.glob("ckpt_*")] == ["ckpt_000000001.safetensors"]
     assert (cfg.out / "encoder.safetensors").is_file()
+
+
+def test_sigterm_to_the_process_group_saves_with_loader_workers(tmp_path, touch_sessions, touch_cache):
+    """`timeout`, `kill -- -PGID` and Ctrl-C signal the whole process group, loader workers included: the run
+    still stops after its step, saves a checkpoint and the encoder, and exits with 143 without a traceback."""
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "rotation.cli", "pretrain", "--sessions", str(touch_sessions), "--cache",
+           str(touch_cache), "--stride", str(CACHE_STRIDE), "--size", "tinier", "--modalities", "imu,pressure",
+           "--steps", "100000", "--batch-size", "8", "--head-hidden", "64", "--head-bottleneck", "32",
+           "--prototypes", "64", "--stats-windows", "32", "--num-workers", "2", "--device", "cpu",
+           "--checkpoint-every", "100000", "--log-every", "2", "--torch-threads", "1", "--no-progress",
+           "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not list((out / "tb").glob("events.*")) and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        time.sleep(1.0)  # a few steps in: the workers are loading batches
+        assert proc.poll() is None, proc.communicate()[1]
+        os.killpg(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and "--resume continues" in err
+    assert len(list(out.glob("ckpt_*.safetensors"))) == 1 and (out / "encoder.safetensors").is_file()
+

@@ -77,6 +77,35 @@ def test_tiny_probe_writes_a_well_formed_report(tmp_path, touch_sessions, touch_
     md = (cfg.out / "results.md").read_text()
     assert "| task | metric | budget | pretrained | e2e | image_only | baseline |" in md and md.count("\n| ") >= 10
     assert (cfg.out / "probe.png").stat().st_size > 10_000 and (cfg.out / "config.json").is_file()
+    assert data["complete"] is True
+
+
+def test_a_stop_signal_keeps_the_finished_rows(tmp_path, touch_sessions, touch_cache, checkpoint, monkeypatch):
+    """Ctrl-C / SIGTERM during the first (variant, budget): the report holds its rows, marked incomplete."""
+    from rotation.interrupt import Interrupted
+
+    class Stopped:  # as if the signal arrived during the first probe run
+        requested, signum = True, 15
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+        def raise_if_requested(self, message=""):
+            raise Interrupted(self.signum, message)
+
+    monkeypatch.setattr(probe, "StopSignals", Stopped)
+    cfg = probe.Config(checkpoint=checkpoint, sessions=(touch_sessions,), cache=touch_cache, out=tmp_path / "probe",
+                       tasks=("force",), budgets=(0.5, 1.0), test_fraction=0.25, stride=CACHE_STRIDE, steps=2,
+                       batch_size=8, head_hidden=16, num_workers=0, device="cpu", progress=False, torch_threads=1)
+    with pytest.raises(Interrupted, match="stopped after pretrained at budget 0.5") as err:
+        probe.run(cfg)
+    assert err.value.exit_code == 143
+    data = json.loads((cfg.out / "results.json").read_text())
+    assert data["complete"] is False
+    assert {(r["variant"], r["budget"]) for r in data["rows"]} == {("pretrained", 0.5)}
 
 
 def test_image_only_view_shares_the_weights(checkpoint):
