@@ -36,6 +36,10 @@ class Config:
     """Scalar tags to plot, one panel each."""
     smooth: int = 25
     """Moving-average window (log points) drawn over the raw curve."""
+    x_label: str = "env steps (M)"
+    """Label of the x axis (the logged step, divided by x_scale)."""
+    x_scale: float = 1e6
+    """The logged step is divided by this (1e6: millions of env steps; 1 for optimizer steps)."""
     curves: tuple[Path, ...] = ()
     """curves.jsonl files (train-teacher's per-rollout episode means) to plot instead of TensorBoard logs."""
 
@@ -61,6 +65,8 @@ def read_curves(files: tuple[Path, ...], tags: tuple[str, ...]) -> dict[str, tup
 
 
 def run(cfg: Config) -> Path:
+    if not cfg.x_scale > 0:
+        raise ValueError(f"x_scale must be > 0, got {cfg.x_scale}")
     series: dict[str, tuple[np.ndarray, np.ndarray]] = read_curves(cfg.curves, cfg.tags) if cfg.curves else {}
     files = [] if cfg.curves else sorted(cfg.run.rglob("events.out.tfevents.*"))
     if not files and not cfg.curves:
@@ -79,12 +85,13 @@ def run(cfg: Config) -> Path:
     fig, axes = plt.subplots(1, len(cfg.tags), figsize=(4.2 * len(cfg.tags), 3.2))
     for ax, tag in zip(np.atleast_1d(axes), cfg.tags, strict=True):
         steps, values = series[tag]
-        ax.plot(steps / 1e6, values, color="0.75", lw=0.8)
+        ax.plot(steps / cfg.x_scale, values, color="0.75", lw=0.8)
         if len(values) >= cfg.smooth > 1:
             kernel = np.ones(cfg.smooth) / cfg.smooth
-            ax.plot(steps[cfg.smooth - 1 :] / 1e6, np.convolve(values, kernel, mode="valid"), color="C0", lw=1.6)
+            ax.plot(steps[cfg.smooth - 1 :] / cfg.x_scale, np.convolve(values, kernel, mode="valid"), color="C0",
+                    lw=1.6)
         ax.set_title(TITLES.get(tag, tag))
-        ax.set_xlabel("env steps (M)")
+        ax.set_xlabel(cfg.x_label)
         ax.grid(alpha=0.3)
     fig.tight_layout()
     png = cfg.out / "curves.png"

@@ -141,16 +141,31 @@ def parse_groups(text: str | Sequence[str], kind: str) -> tuple[str, ...]:
     return tuple(g for g in allowed if g in items)
 
 
+SHIPPED_ENCODERS = Path(__file__).resolve().parent / "pretrained"
+"""Encoders shipped with the package, one directory each (encoder.safetensors + card.md), loaded by name."""
+
+
+def shipped_encoders() -> list[str]:
+    """Names of the shipped encoders (``load_encoder(name)``)."""
+    if not SHIPPED_ENCODERS.is_dir():
+        return []
+    return sorted(p.name for p in SHIPPED_ENCODERS.iterdir() if (p / "encoder.safetensors").is_file())
+
+
 def load_encoder(path: str | Path, drop_path: float | None = None, device: torch.device | str = "cpu") -> nn.Module:
-    """An encoder from a file written by ``EncoderKind.save`` (or a released Sparsh-X checkpoint), or from a
-    `rotate pretrain` run directory (its ``encoder.safetensors``)."""
+    """An encoder from a file written by ``EncoderKind.save`` (or a released Sparsh-X checkpoint), from a
+    `rotate pretrain` run directory (its ``encoder.safetensors``), or a shipped encoder by name
+    (:func:`shipped_encoders`, e.g. ``sparshx-tinier-sim``)."""
     path = Path(path)
+    if not path.exists() and str(path) in shipped_encoders():
+        path = SHIPPED_ENCODERS / str(path)
     if path.is_dir():
         if not (path / "encoder.safetensors").is_file():
             raise ValueError(f"{path}: no encoder.safetensors (a `rotate pretrain` run writes it at each checkpoint)")
         path = path / "encoder.safetensors"
     if not path.is_file():
-        raise ValueError(f"no encoder checkpoint at {path}")
+        shipped = ", ".join(shipped_encoders()) or "none"
+        raise ValueError(f"no encoder checkpoint at {path} (shipped encoders: {shipped})")
     return ENCODERS[file_kind(path)].load(path, drop_path).to(device)
 
 

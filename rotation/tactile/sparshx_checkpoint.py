@@ -205,13 +205,19 @@ def check_checkpoint(path: str | Path, config: SparshXConfig) -> tuple[SparshXCo
     return cfg, len(state)
 
 
-def save_checkpoint(model: SparshX, path: str | Path) -> Path:
-    """Write the model's state dict (released names) as safetensors with its config in the metadata."""
+def save_checkpoint(model: SparshX, path: str | Path, weights_dtype: torch.dtype | None = None) -> Path:
+    """Write the model's state dict (released names) as safetensors with its config in the metadata.
+
+    ``weights_dtype`` (e.g. torch.float16, for a small shipped file) stores the parameters in that type; buffers
+    (input statistics, positional tables) stay as they are. Loading casts back to the model's float32.
+    """
     from safetensors.torch import save_file
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    params = {name for name, _ in model.named_parameters()}
+    tensors = {k: (v.to(weights_dtype) if weights_dtype is not None and k in params else v).detach().contiguous().cpu()
+               for k, v in model.state_dict().items()}
     meta = {"format": _META_FORMAT, "config": json.dumps(to_jsonable(model.cfg))}
     save_file(tensors, str(path), metadata=meta)
     return path

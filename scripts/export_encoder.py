@@ -1,0 +1,53 @@
+"""Export a pretrained Sparsh-X encoder for shipping: its weights in float16 (half the file), buffers kept.
+
+    python scripts/export_encoder.py --checkpoint runs/pretrain_tinier --out rotation/tactile/pretrained/NAME
+
+Writes OUT/encoder.safetensors (loads with ``rotation.tactile.encoders.load_encoder(OUT)`` or, once under
+rotation/tactile/pretrained/, by NAME) and prints the largest difference of the tokens it encodes on random inputs
+from the float32 original's, so the export's cost is measured, not assumed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from rotation.configs import script_main
+from rotation.tactile.encoders import kind_of, load_encoder
+from rotation.tactile.sparshx_checkpoint import save_checkpoint
+from rotation.tactile.sparshx_inputs import INPUT_SHAPES
+
+
+@dataclass
+class Config:
+    checkpoint: Path = Path("runs/pretrain")
+    """A `rotate pretrain` run directory or an encoder.safetensors (Sparsh-X)."""
+    out: Path = Path("runs/encoder_export")
+    """Directory to write encoder.safetensors into (created)."""
+    dtype: str = "float16"
+    """Stored type of the weights: float16 or bfloat16 (float32: a plain copy)."""
+
+
+def run(cfg: Config) -> dict:
+    dtypes = {"float16": torch.float16, "bfloat16": torch.bfloat16, "float32": torch.float32}
+    if cfg.dtype not in dtypes:
+        raise ValueError(f"dtype: one of {', '.join(dtypes)}, got {cfg.dtype!r}")
+    model = load_encoder(cfg.checkpoint).eval()
+    if kind_of(model) != "sparshx":
+        raise ValueError(f"{cfg.checkpoint}: export handles Sparsh-X encoders, got {kind_of(model)}")
+    path = save_checkpoint(model, Path(cfg.out) / "encoder.safetensors", weights_dtype=dtypes[cfg.dtype])
+    exported = load_encoder(path).eval()
+    g = torch.Generator().manual_seed(0)
+    inputs = {m: torch.randn((2, *INPUT_SHAPES[m]), generator=g) for m in model.modalities}
+    with torch.no_grad():
+        a, b = model(inputs), exported(inputs)
+    err = max(float((a[k] - b[k]).abs().max() / a[k].abs().max()) for k in a)
+    print(f"export: {path} ({path.stat().st_size / 1e6:.1f} MB, weights {cfg.dtype}); largest token difference "
+          f"from float32: {err:.2e} of the largest token")
+    return {"path": str(path), "bytes": path.stat().st_size, "relative_error": err}
+
+
+if __name__ == "__main__":
+    raise SystemExit(script_main(Config, run, __doc__))

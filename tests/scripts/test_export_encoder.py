@@ -1,0 +1,45 @@
+"""scripts/export_encoder.py halves a Sparsh-X file with a measured error; the shipped encoder loads by name."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from rotation.tactile.encoders import ENCODERS, load_encoder, shipped_encoders
+from rotation.tactile.sparshx import SparshX, SparshXConfig
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "export_encoder.py"
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("export_encoder", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_export_halves_the_weights_and_keeps_the_tokens(tmp_path):
+    torch.manual_seed(0)
+    model = SparshX(SparshXConfig(size="tinier", modalities=("imu", "pressure")))
+    src = ENCODERS["sparshx"].save(model, tmp_path / "run" / "encoder.safetensors")
+    mod = _script()
+    out = mod.run(mod.Config(checkpoint=src.parent, out=tmp_path / "ship"))
+    assert out["bytes"] < 0.6 * src.stat().st_size
+    assert 0 < out["relative_error"] < 1e-2
+    loaded = load_encoder(tmp_path / "ship")
+    assert all(p.dtype == torch.float32 for p in loaded.parameters())  # cast back on load
+    with pytest.raises(ValueError, match="dtype: one of"):
+        mod.run(mod.Config(checkpoint=src.parent, out=tmp_path / "bad", dtype="int8"))
+
+
+def test_the_shipped_encoder_loads_by_name():
+    assert "sparshx-tinier-sim" in shipped_encoders()
+    model = load_encoder("sparshx-tinier-sim")
+    assert model.cfg.size == "tinier" and model.modalities == ("img", "mic", "imu", "pressure")
+    with pytest.raises(ValueError, match="shipped encoders: .*sparshx-tinier-sim"):
+        load_encoder("sparshx-nonexistent")
