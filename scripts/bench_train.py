@@ -40,6 +40,8 @@ class Config:
     """PPO minibatch size."""
     n_epochs: int = teacher.Config.n_epochs
     """PPO passes over each rollout."""
+    net_arch: tuple[int, ...] = teacher.Config.net_arch
+    """Hidden widths of the actor and critic MLPs (cheaper updates with smaller ones)."""
     object: str = teacher.Config.object
     """Object (envs.objects)."""
     grasp_cache: str = ""
@@ -58,7 +60,8 @@ class Config:
 def teacher_config(cfg: Config, out: Path) -> teacher.Config:
     threads = {} if cfg.torch_threads is None else {"torch_threads": cfg.torch_threads}
     return teacher.Config(out=out, object=cfg.object, num_envs=cfg.num_envs, total_steps=cfg.train_steps,
-                          seed=cfg.seed, n_steps=cfg.n_steps, n_epochs=cfg.n_epochs, grasp_cache=cfg.grasp_cache,
+                          seed=cfg.seed, n_steps=cfg.n_steps, n_epochs=cfg.n_epochs, net_arch=tuple(cfg.net_arch),
+                          grasp_cache=cfg.grasp_cache,
                           batch_size=min(cfg.batch_size, cfg.num_envs * cfg.n_steps), progress=False,
                           overlap=cfg.overlap, **threads)
 
