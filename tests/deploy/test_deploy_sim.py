@@ -39,8 +39,12 @@ def test_sim_allegro_cli_run_records_and_switches_motors_off(tmp_path, capsys, p
                  "--digit360", "sim", "--status-every-s", "0.5"])
     out, err = capsys.readouterr()
     summary = json.loads(out.strip().splitlines()[-1])
-    assert code == 0 and summary["exit_code"] == 0 and summary["fault"] is None
-    # rates and jitter are benchmark figures (scripts/bench_deploy.py), not asserted on a shared machine
+    # rates and jitter are benchmark figures (scripts/bench_deploy.py), not asserted on a shared machine: with four
+    # emulated Digit 360 streams beside the emulated hand, a cold 2-core machine can miss most 20 Hz slots of this
+    # short run, which deploy must then report as a fault (exit status 1), never as done
+    rate_fault = summary["fault"] is not None and "could not hold 20 Hz" in summary["fault"]
+    assert (code == 0 and summary["exit_code"] == 0 and summary["fault"] is None) or (
+        rate_fault and code == 1 and summary["exit_code"] == 1), summary["fault"]
     assert summary["steps"] > 0 and summary["loop_hz"] > 0 and summary["late_steps"] <= summary["steps"]
     assert summary["rotation_rad"] is not None and summary["max_temperature_c"] >= 35.0
     assert summary["motors_off"] and summary["motors_off_witness"] == "emulator"
@@ -48,7 +52,7 @@ def test_sim_allegro_cli_run_records_and_switches_motors_off(tmp_path, capsys, p
     emu = hand_hook.opened.emulator
     assert not emu.servo_on and emu.periods_ms == (0, 0, 0)  # the hand heard SYSTEM_OFF and SET_PERIOD 0
     with read_session(record, summary["steps"]) as r:
-        assert r.complete and r.meta.source == "sim" and r.meta.hand == "allegro"
+        assert r.complete is not rate_fault and r.meta.source == "sim" and r.meta.hand == "allegro"
         assert r.meta.extra["hand"] == "sim-allegro" and r.meta.extra["policy"] == policy
         assert r.meta.properties["scale"] == pytest.approx(0.78)
         assert r.stream("labels/object_pose").data.shape == (summary["steps"], 7)
