@@ -52,6 +52,24 @@ def task_model(cfg: EnvConfig, edit=None) -> tuple[mujoco.MjModel, ObjectSpec, f
     return m, obj, max_scale
 
 
+def observation_space(cfg: EnvConfig) -> gym.spaces.Dict:
+    """One env's observation groups, the same on both physics backends (touch and skin only when on)."""
+    return gym.spaces.Dict(
+        {
+            "proprio": gym.spaces.Box(-np.inf, np.inf, (C.PROPRIO_STEPS, C.PROPRIO_DIM), np.float32),
+            "proprio_hist": gym.spaces.Box(-np.inf, np.inf, (C.HISTORY_STEPS, C.PROPRIO_DIM), np.float32),
+            "priv": gym.spaces.Box(-np.inf, np.inf, (C.PRIV_DIM,), np.float32),
+            **({"tactile": tactile_space()} if cfg.tactile else {}),  # touch on
+            **({"skin": skin_space()} if cfg.skin else {}),  # skin on
+        }
+    )
+
+
+def action_space() -> gym.spaces.Box:
+    """One env's actions: 16 joint-target deltas in [-1, 1] (scaled by the config's action_scale)."""
+    return gym.spaces.Box(-1.0, 1.0, (C.NUM_JOINTS,), np.float32)
+
+
 class RotateCupVec:
     """N RotateCup simulations stepped together; observations and rewards are (N, ...) numpy arrays."""
 
@@ -123,16 +141,8 @@ class RotateCupVec:
         self._axis = np.asarray(cfg.reward.axis, dtype=np.float64)
         self._needs_reset = True
 
-        self.single_observation_space = gym.spaces.Dict(
-            {
-                "proprio": gym.spaces.Box(-np.inf, np.inf, (C.PROPRIO_STEPS, C.PROPRIO_DIM), np.float32),
-                "proprio_hist": gym.spaces.Box(-np.inf, np.inf, (C.HISTORY_STEPS, C.PROPRIO_DIM), np.float32),
-                "priv": gym.spaces.Box(-np.inf, np.inf, (C.PRIV_DIM,), np.float32),
-                **({"tactile": tactile_space()} if cfg.tactile else {}),  # touch on
-                **({"skin": skin_space()} if cfg.skin else {}),  # skin on
-            }
-        )
-        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (C.NUM_JOINTS,), np.float32)
+        self.single_observation_space = observation_space(cfg)
+        self.single_action_space = action_space()
 
     # ------------------------------------------------------------------ helpers
     def _nominal_scale(self) -> float:

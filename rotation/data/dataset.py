@@ -87,6 +87,21 @@ def split_sessions(paths: Iterable[str | Path], val_fraction: float = 0.1, seed:
     return train, val
 
 
+def check_session_sources(sources: Sequence[str | os.PathLike]) -> tuple[Path, ...]:
+    """The ``sessions`` field of a config: at least one session file or directory; returned as Paths (a config read
+    back from JSON holds strings). ValueError naming the field otherwise."""
+    if not sources:
+        raise ValueError("sessions: give at least one session file or directory")
+    return tuple(Path(p) for p in sources)
+
+
+def check_fingers(fingers: Sequence[str]) -> None:
+    """The ``fingers`` field of a config: distinct fingertip names (ValueError naming the field otherwise)."""
+    bad = [f for f in fingers if f not in FINGERS]
+    if bad or not fingers or len(set(fingers)) != len(fingers):
+        raise ValueError(f"fingers: need distinct names among {', '.join(FINGERS)}, got {list(fingers)}")
+
+
 def find_sessions(root: str | Path) -> list[Path]:
     """Every ``*.h5`` session under ``root`` (a file is returned as is), sorted."""
     root = Path(root)

@@ -47,7 +47,7 @@ from tqdm import tqdm
 from envs.constants import FINGERS
 from envs.validation import check_int, check_output_dir, check_types
 from rotation.configs import to_jsonable
-from rotation.data.dataset import TouchWindows, find_sessions
+from rotation.data.dataset import TouchWindows, check_fingers, check_session_sources, find_sessions
 from rotation.data.session import SessionError
 from rotation.tactile.audio import fbank
 
@@ -383,13 +383,9 @@ class Config:
 
     def __post_init__(self) -> None:
         check_types(self)
-        if not self.sessions:
-            raise ValueError("sessions: give at least one session file or directory")
-        object.__setattr__(self, "sessions", tuple(Path(p) for p in self.sessions))  # JSON gives strings back
+        object.__setattr__(self, "sessions", check_session_sources(self.sessions))
         check_output_dir("out", self.out)
-        bad = [f for f in self.fingers if f not in FINGERS]
-        if bad or not self.fingers or len(set(self.fingers)) != len(self.fingers):
-            raise ValueError(f"fingers: need distinct names among {', '.join(FINGERS)}, got {list(self.fingers)}")
+        check_fingers(self.fingers)
         check_int("stride", self.stride, 1, 1000)
         check_int("workers", self.workers, 0, 1024)
 

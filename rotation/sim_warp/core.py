@@ -19,14 +19,13 @@ from __future__ import annotations
 import numbers
 from dataclasses import dataclass
 
-import gymnasium as gym
 import numpy as np
 import torch
 
 from envs import constants as C
 from envs import task
 from envs.config import EnvConfig
-from envs.core import task_model
+from envs.core import action_space, observation_space, task_model
 from envs.grasps import GraspCache, load_default_cache
 from envs.scene import OBJECT_BODY
 from envs.validation import check_int, check_seed, check_types
@@ -183,14 +182,8 @@ class RotateCupWarp:
                         ("kd", (n, 16)))}
         self.history = torch.zeros((n, C.HISTORY_STEPS, C.PROPRIO_DIM), dtype=f32, device=dev)  # newest last
         self._needs_reset = True
-        self.single_observation_space = gym.spaces.Dict(
-            {
-                "proprio": gym.spaces.Box(-np.inf, np.inf, (C.PROPRIO_STEPS, C.PROPRIO_DIM), np.float32),
-                "proprio_hist": gym.spaces.Box(-np.inf, np.inf, (C.HISTORY_STEPS, C.PROPRIO_DIM), np.float32),
-                "priv": gym.spaces.Box(-np.inf, np.inf, (C.PRIV_DIM,), np.float32),
-            }
-        )
-        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (C.NUM_JOINTS,), np.float32)
+        self.single_observation_space = observation_space(cfg)  # touch and skin are refused above
+        self.single_action_space = action_space()
 
     # ------------------------------------------------------------------ API
     def reset(self, seed: int | None = None, ids=None) -> dict[str, torch.Tensor]:

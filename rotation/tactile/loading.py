@@ -14,19 +14,11 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
-from envs.constants import FINGERS
 from rotation.data.dataset import TouchWindows, find_sessions
 from rotation.data.skin import SkinWindows
 from rotation.data.window_cache import CachedWindows, build_cache
 from rotation.interrupt import ignore_stop_signals
 from rotation.tactile.runtime import Processes
-
-
-def check_fingers(fingers: tuple[str, ...]) -> None:
-    """The ``fingers`` field of a config: distinct fingertip names (ValueError naming the field otherwise)."""
-    bad = [f for f in fingers if f not in FINGERS]
-    if bad or not fingers or len(set(fingers)) != len(fingers):
-        raise ValueError(f"fingers: need distinct names among {', '.join(FINGERS)}, got {list(fingers)}")
 
 
 def session_paths(sources: Sequence[str | Path]) -> list[Path]:

@@ -10,8 +10,8 @@ from typing import Literal
 from envs.constants import FINGERS
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import from_jsonable
+from rotation.data.dataset import check_fingers, check_session_sources
 from rotation.tactile.encoders import ENCODERS, encoder_kind, parse_groups
-from rotation.tactile.loading import check_fingers
 from rotation.tactile.pretrain_objectives import SkinObjectiveConfig
 from rotation.tactile.runtime import check_device
 from rotation.tactile.ssl import MaskConfig
@@ -126,9 +126,7 @@ class Config:
 
     def __post_init__(self) -> None:
         check_types(self)
-        if not self.sessions:
-            raise ValueError("sessions: give at least one session file or directory")
-        object.__setattr__(self, "sessions", tuple(Path(p) for p in self.sessions))  # JSON gives strings back
+        object.__setattr__(self, "sessions", check_session_sources(self.sessions))
         check_output_dir("out", self.out)
         if self.cache is not None:
             check_output_dir("cache", self.cache)

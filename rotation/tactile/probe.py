@@ -46,11 +46,11 @@ from tqdm import tqdm
 from envs.constants import FINGERS, PRIV_FIELDS
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import save_config, to_jsonable
-from rotation.data.dataset import split_sessions
+from rotation.data.dataset import check_fingers, check_session_sources, split_sessions
 from rotation.data.session import SessionReader
 from rotation.interrupt import StopSignals, ignore_stop_signals
 from rotation.tactile.encoders import encoder_kind, kind_of, load_encoder
-from rotation.tactile.loading import check_fingers, open_encoder_windows, session_paths, step_loader, to_device
+from rotation.tactile.loading import open_encoder_windows, session_paths, step_loader, to_device
 from rotation.tactile.pooling import ProbeHead
 from rotation.tactile.probe_data import (
     ProbeData,
@@ -177,9 +177,7 @@ class Config:
 
     def __post_init__(self) -> None:
         check_types(self)
-        if not self.sessions:
-            raise ValueError("sessions: give at least one session file or directory")
-        object.__setattr__(self, "sessions", tuple(Path(p) for p in self.sessions))  # JSON gives strings back
+        object.__setattr__(self, "sessions", check_session_sources(self.sessions))
         check_output_dir("out", self.out)
         if self.encoder not in ENCODER_TASKS:
             raise ValueError(f"encoder: unknown encoder {self.encoder!r}; encoders: {', '.join(ENCODER_TASKS)}")

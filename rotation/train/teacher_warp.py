@@ -72,11 +72,24 @@ def _orthogonal_init(module: nn.Module, gain: float) -> None:
             nn.init.zeros_(m.bias)
 
 
-class TeacherActor(nn.Module):
-    """rsl_rl actor interface over an ActorNet: a diagonal Gaussian with mean ActorNet.mean(obs) and a learned,
-    state-independent log std (SB3's DiagGaussianDistribution)."""
+class _Feedforward:
+    """The part of rsl_rl's actor / critic interface that only recurrent models use: no hidden state."""
 
     is_recurrent = False
+
+    def reset(self, dones=None, hidden_state=None) -> None:
+        pass
+
+    def get_hidden_state(self):
+        return None
+
+    def detach_hidden_state(self, dones=None) -> None:
+        pass
+
+
+class TeacherActor(_Feedforward, nn.Module):
+    """rsl_rl actor interface over an ActorNet: a diagonal Gaussian with mean ActorNet.mean(obs) and a learned,
+    state-independent log std (SB3's DiagGaussianDistribution)."""
 
     def __init__(self, net: ActorNet, log_std_init: float) -> None:
         super().__init__()
@@ -118,20 +131,9 @@ class TeacherActor(nn.Module):
     def update_normalization(self, obs) -> None:
         self.net.extractor.proprio_norm.update(obs["proprio"])
 
-    def reset(self, dones=None, hidden_state=None) -> None:
-        pass
 
-    def get_hidden_state(self):
-        return None
-
-    def detach_hidden_state(self, dones=None) -> None:
-        pass
-
-
-class TeacherCritic(nn.Module):
+class TeacherCritic(_Feedforward, nn.Module):
     """rsl_rl critic interface: the teacher's extractor (its own copy) -> the actor's MLP sizes -> a value (B, 1)."""
-
-    is_recurrent = False
 
     def __init__(self, space, hidden: tuple[int, ...]) -> None:
         super().__init__()
@@ -145,15 +147,6 @@ class TeacherCritic(nn.Module):
 
     def update_normalization(self, obs) -> None:
         self.extractor.proprio_norm.update(obs["proprio"])
-
-    def reset(self, dones=None, hidden_state=None) -> None:
-        pass
-
-    def get_hidden_state(self):
-        return None
-
-    def detach_hidden_state(self, dones=None) -> None:
-        pass
 
 
 def build_models(cfg, env_cfg: EnvConfig) -> tuple[BundleConfig, TeacherActor, TeacherCritic]:
