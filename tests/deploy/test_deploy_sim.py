@@ -58,10 +58,12 @@ def test_sim_allegro_cli_run_records_and_switches_motors_off(tmp_path, capsys, p
         assert r.stream("labels/object_pose").data.shape == (summary["steps"], 7)
         for finger in ("index", "middle", "ring", "thumb"):
             assert len(r.stream(f"digit360/{finger}/imu")) > 200 and len(r.stream(f"digit360/{finger}/pressure")) > 100
-        # the first step's target is the start pose moved by one action of at most 1/24 rad; the recorded q[0] is a
-        # later reading than the start pose, so allow the hand a little motion in between (2 mrad)
+        # every step moves the targets by at most one action (1/24 rad; a held step by none); the first moves the
+        # start pose, read before the policy's warm-up, while q[0] is read after it: on a loaded machine the hand
+        # settles a little in between, so allow it 10 mrad there
         q, target = r.stream("joints/position").data, r.stream("joints/target").data
-        assert np.abs(target[0] - q[0]).max() <= 1 / 24 + 2e-3
+        assert np.abs(np.diff(target, axis=0)).max() <= 1 / 24 + 1e-5
+        assert np.abs(target[0] - q[0]).max() <= 1 / 24 + 1e-2
 
 
 def test_sim_leap_run(tmp_path, policy, hand_hook):
