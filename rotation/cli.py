@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "cache-touch": ("rotation.data.window_cache", "pre-render touch windows of sessions into shards for fast training"),
     "pretrain": ("rotation.tactile.pretrain", "pretrain a touch encoder by self-distillation (DINO, EMA teacher)"),
     "probe": ("rotation.tactile.probe", "probe frozen vs end-to-end touch encoders at several label budgets"),
+    "finetune-adapter": ("adapters.finetune", "fine-tune the tactile adapter toward the teacher's latent"),
 }
 """Subcommand registry; later issues add their jobs here."""
 

@@ -52,7 +52,8 @@ def run(cfg: Config) -> Path:
     if dest.exists():
         shutil.rmtree(dest)
     dest.mkdir(parents=True)
-    for f in ("config.json", "model.safetensors"):
+    weights = "adapter.safetensors" if hasattr(bundle, "adapter_config") else "model.safetensors"
+    for f in ("config.json", weights):  # an adapter bundle names its student and encoder: they are not copied
         shutil.copy2(cfg.bundle / f, dest / f)
     load_bundle(dest)
     wall = cfg.wall_time_s if cfg.wall_time_s is not None else card.get("wall_time_s")
@@ -67,7 +68,7 @@ def run(cfg: Config) -> Path:
              f"- environment steps: {steps:,}" if isinstance(steps, int) else f"- environment steps: {steps}",
              f"- wall time: {wall / 3600:.2f} h" if isinstance(wall, int | float) else "- wall time: unknown",
              f"- machine: {machine()}",
-             f"- files: config.json, model.safetensors ({(dest / 'model.safetensors').stat().st_size / 1e6:.2f} MB)",
+             f"- files: config.json, {weights} ({(dest / weights).stat().st_size / 1e6:.2f} MB)",
              ""]
     if cfg.evaluation is not None:
         rows = [r for r in json.loads(Path(cfg.evaluation).read_text())["rows"] if r["policy"] == cfg.name]

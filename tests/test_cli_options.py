@@ -44,6 +44,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "grasps:noise": {"zero": "grasps exactly at the canonical pose"},
     "train-teacher:critic_warmup": {"zero": "0 = the actor trains from the first update"},
     "deploy:duration": {"zero": "0 runs until Ctrl-C / SIGTERM (documented)"},
+    "finetune-adapter:val_fraction": {"zero": "no held-out sessions: train on every session"},
     "deploy:rt_priority": {"zero": "0 leaves the scheduling alone"},
     "deploy:grasp": {"zero": "row 0 of the grasp cache"},
     "inspect-tactile:time": {"negative": "< 0 picks the middle of the session (documented)",
@@ -70,9 +71,21 @@ ALLOWED: dict[str, dict[str, str]] = {
     "pretrain:skin.koleo_weight": {"zero": "turns the KoLeo regularizer off"},
     "train-student:env.randomization.com": {"zero": "the range (0, 0): no CoM randomization"},
     "train-student:env.randomization.kd": {"zero": "the range (0, 0): no damping"},
-    **{f"train-student:env.reward.{term}": {
+    "finetune-adapter:env.kd": {"zero": "no joint damping is a valid nominal gain"},
+    "finetune-adapter:env.randomization.scale_jitter": {"zero": "the scale buckets without jitter"},
+    "finetune-adapter:env.randomization.joint_noise": {"zero": "noise-free joint observations"},
+    "finetune-adapter:env.randomization.push_prob": {"zero": "no pushes"},
+    "finetune-adapter:env.randomization.push_scale": {"zero": "pushes of zero force"},
+    "finetune-adapter:env.randomization.push_decay": {"zero": "a push lasts one policy step"},
+    "finetune-adapter:env.perturb.added_mass": {"zero": "no added mass"},
+    "finetune-adapter:env.perturb.com_shift": {"zero": "no shift of the centre of mass"},
+    "finetune-adapter:env.randomization.com": {"zero": "the range (0, 0): no CoM randomization"},
+    "finetune-adapter:env.randomization.kd": {"zero": "the range (0, 0): no damping"},
+    "finetune-adapter:student_steps": {"zero": "0 = the adapter acts from the first step (no student-only phase)"},
+    **{f"{command}:env.reward.{term}": {
         "negative": "a penalty weight", "zero": "turns the term off",
         "huge": "reward weights need only be finite (their relative sizes are the reward design)"}
+       for command in ("train-student", "finetune-adapter")
        for term in ("rotate", "obj_linvel", "pose_diff", "torque", "work", "tilt", "fall")},
 }
 """Values of a 'bad' kind that are valid for one field, each with the reason."""

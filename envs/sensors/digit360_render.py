@@ -457,28 +457,54 @@ def render_audio(track: ContactTrack, first_sample: int, num_samples: int, key: 
 
 
 # ---------------------------------------------------------------------------------------------------- IMU, pressure
-def render_imu(track: ContactTrack, samples: np.ndarray, key: int, model: Digit360Model = DEFAULT_MODEL) -> np.ndarray:
-    """Accelerometer (n, 3) float32 in g at 400 Hz sample indices ``samples`` (sample i at i / 400 s)."""
+def imu_terms(samples: np.ndarray, key: int, model: Digit360Model = DEFAULT_MODEL) -> tuple[np.ndarray, np.ndarray]:
+    """The accelerometer's contact-independent terms at 400 Hz sample indices ``samples``: the per-axis bias (3,) and
+    the white noise (n, 3), in g. Pure functions of (key, sample index), so a live emulator can draw them ahead in
+    blocks and pass them to :func:`render_imu`."""
     samples = np.asarray(samples, dtype=np.int64)
-    acc = track.causal(samples / IMU_HZ, track.rows[:, FIELD["acc_x"] : FIELD["acc_z"] + 1].astype(np.float64))
     bias = model.imu_bias * (2.0 * _uniform(np.uint64(key), _STREAM_PARAMS, np.arange(3)) - 1.0)
     n0, n1 = _normal_pair(np.uint64(key), _STREAM_IMU, samples)
     n2, _ = _normal_pair(np.uint64(key), _STREAM_IMU, samples + (1 << 50))
-    g = acc / GRAVITY + bias + model.imu_noise * np.stack([n0, n1, n2], axis=1)
+    return bias, model.imu_noise * np.stack([n0, n1, n2], axis=1)
+
+
+def render_imu(track: ContactTrack, samples: np.ndarray, key: int, model: Digit360Model = DEFAULT_MODEL,
+               terms: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Accelerometer (n, 3) float32 in g at 400 Hz sample indices ``samples`` (sample i at i / 400 s).
+
+    ``terms``: ``imu_terms(samples, key, model)`` when already drawn (the same values; computed here otherwise).
+    """
+    samples = np.asarray(samples, dtype=np.int64)
+    acc = track.causal(samples / IMU_HZ, track.rows[:, FIELD["acc_x"] : FIELD["acc_z"] + 1].astype(np.float64))
+    bias, noise = imu_terms(samples, key, model) if terms is None else terms
+    g = acc / GRAVITY + bias + noise
     return (np.rint(g * IMU_LSB_PER_G) / IMU_LSB_PER_G).astype(np.float32)
 
 
-def render_pressure(track: ContactTrack, samples: np.ndarray, key: int,
-                    model: Digit360Model = DEFAULT_MODEL) -> np.ndarray:
-    """Pressure (n,) float32 in hPa at 200 Hz sample indices ``samples`` (sample i at i / 200 s)."""
+def pressure_terms(samples: np.ndarray, key: int,
+                   model: Digit360Model = DEFAULT_MODEL) -> tuple[np.ndarray, np.ndarray]:
+    """The barometer's contact-independent terms at 200 Hz sample indices ``samples``: the no-contact level (n,)
+    (rest + per-session offset + drift) and the white noise (n,), in hPa. Pure functions of (key, sample index),
+    like :func:`imu_terms`."""
     samples = np.asarray(samples, dtype=np.int64)
     t = samples / PRESSURE_HZ
     u = _uniform(np.uint64(key), _STREAM_PARAMS, np.arange(3, 5))
     offset = model.pressure_offset * (2.0 * u[0] - 1.0)
     drift = model.pressure_drift * np.sin(2.0 * np.pi * (t / model.pressure_drift_period + u[1]))
-    force = track.causal(t, track.normal_force())
     noise, _ = _normal_pair(np.uint64(key), _STREAM_PRESSURE, samples)
-    p = model.pressure_rest + offset + drift + model.pressure_per_newton * force + model.pressure_noise * noise
+    return model.pressure_rest + offset + drift, model.pressure_noise * noise
+
+
+def render_pressure(track: ContactTrack, samples: np.ndarray, key: int, model: Digit360Model = DEFAULT_MODEL,
+                    terms: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Pressure (n,) float32 in hPa at 200 Hz sample indices ``samples`` (sample i at i / 200 s).
+
+    ``terms``: ``pressure_terms(samples, key, model)`` when already drawn (the same values; computed here otherwise).
+    """
+    samples = np.asarray(samples, dtype=np.int64)
+    force = track.causal(samples / PRESSURE_HZ, track.normal_force())
+    level, noise = pressure_terms(samples, key, model) if terms is None else terms
+    p = level + model.pressure_per_newton * force + noise
     return p.astype(np.float32)
 
 

@@ -8,8 +8,10 @@
   deadline-bounded policy worker;
 - :mod:`loop`: the control loop at the bundle's rate, with hold-on-stall, NaN rejection, timing statistics and
   the live status line;
+- :mod:`touch`: a tactile adapter policy's touch correction, refreshed on its own thread from the Digit 360
+  readers, and the fallback to its student when touch is unusable;
 - :mod:`recording`: the session file (rotation.data.session) of a run; :mod:`sensors`: Digit 360 readers.
 
-Imports point one way: deploy -> rotation.policy / rotation.hardware / rotation.sim_hardware (emulated hands
-only, imported lazily) / envs.
+Imports point one way: deploy -> rotation.policy / adapters (tactile adapter policies) / rotation.hardware /
+rotation.sim_hardware (emulated hands only, imported lazily) / envs.
 """

@@ -19,12 +19,15 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from rotation.hardware.hand import Hand
 from rotation.hardware.safety import SafetyConfig
+
+if TYPE_CHECKING:
+    from rotation.sim_hardware.hand_physics import HandPhysics
 
 log = logging.getLogger(__name__)
 
@@ -153,19 +156,30 @@ def _leap(setup: HandSetup, port: str):
     return LeapHand(port, LeapConfig(**options))
 
 
+def emulated_physics(setup: HandSetup) -> HandPhysics | None:
+    """The emulated hand's world (a HandPhysics holding ``setup.object`` at grasp ``setup.grasp``, frozen until the
+    driver holds it), or None for a real hand. Made before anything starts, so that the emulated touch sensors
+    (opened before the hand) sense the same hand that :func:`open_hand` then drives."""
+    if not setup.emulated:
+        return None
+    from rotation.sim_hardware.hand_physics import HandPhysics
+
+    return HandPhysics.at_grasp(setup.object, setup.grasp, hold=True)
+
+
 def open_hand(setup: HandSetup, stack: contextlib.ExitStack,
-              created: Callable[[OpenedHand], None] | None = None) -> OpenedHand:
+              created: Callable[[OpenedHand], None] | None = None,
+              physics: HandPhysics | None = None) -> OpenedHand:
     """Start the hand (and its emulator) inside ``stack``; leaving the stack switches the motors off, then stops
     the emulator. Raises what the driver raises when the hand does not come up (HandFault, CAN/serial errors).
 
     ``created`` receives the :class:`OpenedHand` as soon as its driver exists, before the start-up: a caller learns
-    whether the motors were switched on (and confirmed off) also when the start-up fails.
+    whether the motors were switched on (and confirmed off) also when the start-up fails. ``physics``: the emulated
+    hand's world from :func:`emulated_physics` (default: a new one); ignored for a real hand.
     """
     emulator = None
     if setup.emulated:
-        from rotation.sim_hardware.hand_physics import HandPhysics
-
-        physics = HandPhysics.at_grasp(setup.object, setup.grasp, hold=True)
+        physics = physics if physics is not None else emulated_physics(setup)
         if setup.kind == "allegro":
             from rotation.sim_hardware.allegro_emulator import AllegroEmulator
 

@@ -5,19 +5,34 @@
     rotate deploy --hand allegro --can socketcan:can0 --policy student --gain-scale 0.3 --duration 5
     rotate deploy --hand leap --port /dev/ttyUSB0 --policy student --record runs/leap.h5
     rotate deploy --hand allegro --policy student --skin ws://localhost:5000 --record runs/skin.h5   # + Xela skin
+    rotate deploy --hand allegro --policy student --digit360 D360-A,D360-B,D360-C,D360-D --record runs/cup_tape.h5 \
+        --properties mass=0.12,friction=0.8,com=0,0,0.01,scale=0.8    # measured object: adapter fine-tuning data
+    rotate deploy --hand sim-allegro --policy adapter --duration 10   # student + tactile adapter, emulated touch
+    rotate deploy --hand allegro --policy runs/adapter_pressure/bundle --digit360 SERIAL1,SERIAL2,SERIAL3,SERIAL4
 
---policy takes a bundle directory or a shipped bundle name (student). The loop runs at the bundle's control
-rate, builds observations with the env's own code (envs.observation.ProprioHistory), integrates targets as the
-env does and sends them through the driver, whose safety layer clamps joints and torques, limits the target
-rate and holds the last target if commands stop. Ctrl-C or SIGTERM end the run: motors off, recording closed.
-Prints a live status line (stderr), then the summary as one JSON object on the last line of stdout. Exit status:
-0 run completed, 1 fault, 130 Ctrl-C (SIGINT), 143 SIGTERM, 2 bad options (nothing was started).
+--policy takes a bundle directory or a shipped bundle name (student), or a tactile adapter bundle (a directory, or
+a shipped name such as adapter), which is its student plus a latent correction from the Digit 360 fingertips,
+refreshed every ``touch_every`` steps on its own thread and held in between (rotation.deploy.touch). On an emulated
+hand it starts the emulated fingertips itself (no --digit360 needed); on a real hand --digit360 must name a sensor
+for every fingertip the adapter reads, and the sensors must stream every window it reads (today IMU and pressure:
+deploy does not open a Digit 360's camera or microphones), else the run is refused before anything starts. When
+touch is unusable (a stalled or missing stream, non-finite embeddings, a correction older than 3 refresh periods,
+at least 1 s) the adapter's student acts alone, with one warning, until touch is back.
+
+The loop runs at the bundle's control rate, builds observations with the env's own code
+(envs.observation.ProprioHistory), integrates targets as the env does and sends them through the driver, whose
+safety layer clamps joints and torques, limits the target rate and holds the last target if commands stop. Ctrl-C
+or SIGTERM end the run: motors off, recording closed. Prints a live status line (stderr), then the summary as one
+JSON object on the last line of stdout. Exit status: 0 run completed, 1 fault, 130 Ctrl-C (SIGINT), 143 SIGTERM,
+2 bad options (nothing was started).
 
 Nothing is reported as safe or done unless it was: the bundle, the --record file, the --digit360 sensors and the
 --skin server are checked before any motor is switched on; a run whose steps were mostly late or held is a fault;
 the summary's "motors_off" is true only when confirmed (by the emulated hand, or by the real hand's answer), and a
 motors-off that was not confirmed ends with a non-zero status and the instruction to cut the hand's power. With
---skin the summary's "skin" counts the frames received, the malformed messages skipped and the disconnects.
+--skin the summary's "skin" counts the frames received, the malformed messages skipped and the disconnects; with a
+touch-reading policy its "touch" counts the refreshes, the steps acted with the adapter and as the student alone
+(fallback), and the refresh time (rotation.deploy.touch.TouchStats).
 """
 
 from __future__ import annotations
@@ -38,12 +53,16 @@ from typing import Any, Literal
 
 from envs.validation import check_int, check_number, check_types
 from rotation.configs import add_dataclass_arguments, dataclass_from_args, to_jsonable
-from rotation.deploy.hands import HANDS, HandSetup, OpenedHand, open_hand
+from rotation.data.properties import parse_properties
+from rotation.deploy.hands import HANDS, HandSetup, OpenedHand, emulated_physics, open_hand
 from rotation.deploy.sensors import check_digit360, check_skin, parse_digit360, parse_skin
 
 log = logging.getLogger("rotation.deploy")
 
 EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
+TOUCH_JOIN_S = 5.0
+"""Longest wait (s), after the motors are off, for a touch refresh still running (one takes up to ~1 s on a loaded
+2-core machine); torch still computing on a daemon thread when the interpreter exits aborts the process."""
 
 
 @dataclass(frozen=True)
@@ -51,18 +70,19 @@ class Config:
     hand: Literal["allegro", "leap", "sim-allegro", "sim-leap"] = "sim-allegro"
     """Real Allegro (CAN) or LEAP (Dynamixel), or its MuJoCo emulator driven through the real driver and protocol."""
     policy: str = ""
-    """Policy bundle: a directory (config.json + model.safetensors) or a shipped name (student)."""
+    """Policy bundle: a directory (config.json + model.safetensors) or a shipped name (student); or a tactile adapter
+    bundle (a directory with adapter.safetensors, or a shipped name such as adapter), which reads the Digit 360
+    fingertips."""
     can: str = "socketcan:can0"
     """Allegro bus as INTERFACE:CHANNEL: socketcan:can0, pcan:PCAN_USBBUS1, slcan:/dev/ttyACM0 (any serial device)."""
     port: str = "/dev/ttyUSB0"
     """LEAP serial device (U2D2 adapter; any serial device path)."""
     baud: int = 4_000_000
     """LEAP baud rate."""
-    adapter: str = ""
-    """Tactile adapter (a path). Not supported by deploy yet: given, it is checked to exist, then refused."""
     digit360: str = ""
-    """Digit 360 sensors to record: 4 comma-separated USB serials in finger order (index,middle,ring,thumb),
-    FINGER=SERIAL pairs, tty paths, or 'sim' (emulated sensors, emulated hands only)."""
+    """Digit 360 sensors to record (and to read, for a tactile adapter policy): 4 comma-separated USB serials in
+    finger order (index,middle,ring,thumb), FINGER=SERIAL pairs, tty paths, or 'sim' (emulated sensors that sense the
+    emulated hand, emulated hands only; what an adapter policy on an emulated hand starts without this option)."""
     skin: str = ""
     """Xela skin to record (skin/xela, 100 Hz): the vendor xela_server's WebSocket URL (ws://HOST:5000), or 'sim'
     (a stand-in server, emulated hands only); empty: none. Start with the skin free of contact (baseline)."""
@@ -76,6 +96,12 @@ class Config:
     """Factor in (0, 1] on the driver's gains (Allegro kp/kd, LEAP position P/D): start a new hand low."""
     object: str = "cup"
     """Object in the hand: recorded as metadata; emulated hands simulate it (needs a shipped grasp cache)."""
+    properties: str = ""
+    """Measured object properties to store in the recording (its metadata's ``properties``; needs --record), e.g.
+    'mass=0.12,friction=0.8,com=0,0,0.01,scale=0.8': kg, friction coefficient against the fingertips, center of
+    mass offset (m, object frame), size relative to the simulated cup (rotation.data.properties). Fine-tuning the
+    tactile adapter on the recording needs all four. An emulated hand records its simulated values; stated ones
+    replace them."""
     grasp: int = 0
     """Emulated hands: the row of the shipped grasp cache to start from (nominal scale)."""
     sim_transport: Literal["virtual", "slcan"] = "virtual"
@@ -108,13 +134,10 @@ class Config:
 
             if self.baud not in BAUD_CODES:
                 raise ValueError(f"baud: {self.baud} is not a Dynamixel baud rate; choose one of {sorted(BAUD_CODES)}")
-        if self.adapter:
-            if not Path(self.adapter).exists():
-                raise ValueError(f"adapter: {self.adapter!r} does not exist")
-            raise ValueError(f"adapter: tactile adapters are not supported by `rotate deploy` yet (a later issue); "
-                             f"{self.adapter!r} was not loaded. Run without --adapter to deploy the policy alone.")
         parse_digit360(self.digit360, emulated=self.hand.startswith("sim-"))
         parse_skin(self.skin, emulated=self.hand.startswith("sim-"))
+        if parse_properties(self.properties) and not self.record:
+            raise ValueError("properties: they are stored in the recording; give --record FILE.h5 as well")
         if self.grasp < 0:
             raise ValueError(f"grasp must be >= 0, got {self.grasp}")
         if self.sim_transport not in ("virtual", "slcan"):
@@ -289,20 +312,26 @@ def run(cfg: Config) -> dict[str, Any]:
     from rotation.deploy.policy import check_deployable
     from rotation.deploy.recording import DeployRecorder
     from rotation.deploy.sensors import open_digit360, open_skin
+    from rotation.deploy.touch import reads_touch, touch_sensors
     from rotation.hardware.realtime import set_realtime_priority
     from rotation.policy.bundle import load_bundle
 
     bundle = load_bundle(cfg.policy)
-    check_deployable(bundle.config, cfg.policy)
-    _check_before_start(cfg)
+    touch = reads_touch(bundle)
+    check_deployable(bundle.config, cfg.policy, reads_touch=touch)
     hz = float(bundle.config.control_hz)
     setup = HandSetup(hand=cfg.hand, can=cfg.can, port=cfg.port, baud=cfg.baud, gain_scale=cfg.gain_scale,
                       control_hz=hz, object=cfg.object, grasp=cfg.grasp, sim_transport=cfg.sim_transport)
     digit_specs = parse_digit360(cfg.digit360, setup.emulated)
+    if touch:  # the sensors the adapter reads, checked (or, emulated, started) before anything else
+        digit_specs = touch_sensors(bundle, cfg.policy, digit_specs, setup.emulated)
+    _check_before_start(cfg)
     loop_cfg = LoopConfig(control_hz=hz, duration_s=cfg.duration, policy_budget=cfg.policy_budget,
                           hold_limit_s=cfg.hold_limit_s, status_every_s=cfg.status_every_s)
-    log.info("deploying %s (%s, %.0f Hz, action scale %.4f rad) on %s for %s", cfg.policy,
-             bundle.config.latent_source, hz, bundle.config.action_scale, cfg.hand,
+    kind = bundle.config.latent_source + (f" + tactile adapter: {', '.join(bundle.windows)}, every "
+                                          f"{bundle.touch_every} steps" if touch else "")
+    log.info("deploying %s (%s, %.0f Hz, action scale %.4f rad) on %s for %s", cfg.policy, kind, hz,
+             bundle.config.action_scale, cfg.hand,
              f"{cfg.duration:g} s" if cfg.duration > 0 else "until Ctrl-C")
 
     critical = _CriticalRecords()
@@ -329,10 +358,11 @@ def run(cfg: Config) -> dict[str, Any]:
                 # every 0.5 ms instead of 5 ms so the emulated hardware answers in time
                 sys.setswitchinterval(5e-4)
             sched = set_realtime_priority(cfg.rt_priority)
-            readers = open_digit360(digit_specs, stack)  # before the hand: the hand leaves first on exit
+            physics = emulated_physics(setup)  # emulation: the hand's world, which the emulated fingertips sense
+            readers = open_digit360(digit_specs, stack, physics)  # before the hand: the hand leaves first on exit
             skin, skin_baseline = open_skin(parse_skin(cfg.skin, setup.emulated), stack)
             # motors on, holding the current pose; the stack switches them off
-            opened = open_hand(setup, stack, created=created.append)
+            opened = open_hand(setup, stack, created=created.append, physics=physics)
             hand = opened.hand
             info = hand.info()
             temps = np.asarray(info.temperatures, dtype=np.float64)
@@ -355,6 +385,8 @@ def run(cfg: Config) -> dict[str, Any]:
             log.error("deploy: unexpected error", exc_info=err)
     finally:
         signals.defer()  # the hand has left (motors off): nothing may cut the rest short
+        if loop is not None and loop.touch is not None:
+            loop.touch.join(TOUCH_JOIN_S)  # a refresh still encoding; now that the motors are off it may be waited for
         sys.setswitchinterval(switch_interval)
         torch.set_num_threads(torch_threads)
         hw_log.removeHandler(critical)
@@ -375,22 +407,35 @@ def run(cfg: Config) -> dict[str, Any]:
 
 def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple[str, ...], hz: float,
                    skin_baseline=None):
+    import numpy as np
+
     from rotation.data.session import SessionError, SessionMeta
     from rotation.deploy.recording import DeployRecorder
 
     properties: dict[str, Any] = {}
     physics = opened.physics
-    if physics is not None:
+    if physics is not None:  # the simulated object's values (com: its inertial frame's offset, object frame)
         body = physics.model.body("object")
         properties = {"scale": physics.scale, "grasp": physics.grasp, "mass": float(body.mass[0]),
-                      "friction": float(physics.model.geom_friction[physics.model.body_geomadr[body.id], 0])}
+                      "friction": float(physics.model.geom_friction[physics.model.body_geomadr[body.id], 0]),
+                      "com": [float(x) for x in physics.model.body_ipos[body.id]]}
+    stated = parse_properties(cfg.properties)
+    differ = [k for k, v in stated.items() if k in properties and not np.allclose(v, properties[k])]
+    if differ:
+        log.warning("--properties: the stated %s replace the emulated object's %s", {k: stated[k] for k in differ},
+                    {k: properties[k] for k in differ})
+    properties.update(stated)
     extra = {
         "hand": cfg.hand, "policy": cfg.policy, "policy_latent_source": bundle.config.latent_source,
         "policy_card": bundle.config.card, "torque_unit": opened.hand.torque_unit,
         "hand_info": {"kind": info.kind, "firmware": info.firmware, "hardware": info.hardware,
                       "serial": info.serial},
         "target": "targets commanded by the policy (before the driver's rate limit)",
+        "policy_touch": None if not bundle.config.adapter else {
+            "adapter": bundle.config.adapter, "touch_encoder": bundle.config.touch_encoder,
+            "windows": list(getattr(bundle, "windows", ())), "touch_every": getattr(bundle, "touch_every", None)},
         "deploy_config": to_jsonable(cfg),
+        "stated_properties": sorted(stated),
     }
     if skin_baseline is not None:
         from rotation.data.skin import BASELINE_KEY
@@ -438,6 +483,7 @@ def _finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, c
         "motors_off_confirmed": confirmed, "motors_off_witness": witness,
         "record": str(recorder.path) if recorder is not None else None, "exit_code": exit_code,
         "skin": None if skin is None else {k: skin.counters[k] for k in ("frames", "skipped", "disconnects")},
+        "touch": None if loop is None or loop.touch is None else loop.touch.stats.summary(),
     }
     rot = "" if summary["rotation_rad"] is None else f" (object rotation {summary['rotation_rad']:+.2f} rad)"
     rate = "n/a" if summary["loop_hz"] is None else f"{summary['loop_hz']:.1f} Hz"
@@ -450,6 +496,10 @@ def _finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, c
         why_not = "; ".join(msgs[:2]) + (f"; and {len(msgs) - 2} more" if len(msgs) > 2 else "")
         off = (f"MOTORS NOT CONFIRMED OFF ({why_not}): the hand may still be driving its joints; SWITCH THE HAND OFF "
                "AT ITS POWER SUPPLY NOW")
+    touch = summary["touch"]
+    if touch is not None:  # with the rotation: what the adapter did
+        rot += (f"; touch: {touch['refreshes']} refreshes (median {touch['refresh_ms_p50'] or 0:.0f} ms), the "
+                f"adapter acted {touch['adapter_steps']} steps, the student alone {touch['fallback_steps']}")
     if fault is None:
         log.info("deploy: done after %d steps at %s, late %d, held %d%s -- %s", summary["steps"], rate,
                  summary["late_steps"], summary["held_steps"], rot, off)

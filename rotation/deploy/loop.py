@@ -4,6 +4,10 @@ One control step k, scheduled at ``t_k = t_start + k / control_hz`` (host ``time
 
 1. read the hand's latest state; for k > 0 push the frame of the previous step (measured q, current targets);
 2. hand the observation to the policy worker and wait at most ``policy_budget`` control periods for the action;
+   a touch-reading policy (a tactile adapter) gets with it the newest touch correction, which the touch worker
+   (rotation.deploy.touch) refreshes on its own thread every ``touch_every`` steps from the observation of the
+   step that asked; the loop never waits for touch, and without a usable correction the policy acts as its
+   student alone (the documented fallback);
 3. a usable action moves the targets as in the env; no action in time, a worker still busy with an earlier step,
    or a NaN/inf action (logged) HOLDS the last safe target for this step (the step still counts and its frame is
    still pushed one period later, so the history keeps the env's 20 Hz spacing);
@@ -36,6 +40,7 @@ from rotation.deploy.hands import OpenedHand
 from rotation.deploy.policy import PolicyFault, PolicyState, PolicyWorker, action_problem
 from rotation.deploy.recording import DeployRecorder
 from rotation.deploy.sensors import DigitDrain, SkinDrain
+from rotation.deploy.touch import STALE_REFRESHES, WARM_UP_S, TouchWorker, reads_touch
 from rotation.hardware.hand import HandFault
 from rotation.policy.bundle import PolicyBundle
 
@@ -70,6 +75,12 @@ class LoopConfig:
     """Joint temperature poll period (s), on its own thread (a LEAP poll is 48 register reads)."""
     drain_every_s: float = 0.25
     """Period (s) of moving Digit 360 and skin samples into the recording."""
+    touch_stale_refreshes: float = STALE_REFRESHES
+    """A touch-reading policy drops a correction older than this many refresh periods (``touch_every`` control
+    periods; at least rotation.deploy.touch.MIN_STALE_S) and acts as its student alone until a fresh one arrives."""
+    touch_warm_up_s: float = WARM_UP_S
+    """Longest wait (s), before the clock starts, for the first touch correction (else the run starts in the
+    fallback)."""
     max_degraded_fraction: float = 0.5
     """A run in which more than this fraction of the control slots were late, held or skipped did not run the
     policy at its rate: ``rotate deploy`` reports it as a fault (exit status 1), not as done."""
@@ -213,8 +224,8 @@ class ControlLoop:
     def __init__(self, opened: OpenedHand, bundle: PolicyBundle, cfg: LoopConfig,
                  recorder: DeployRecorder | None = None, readers: dict | None = None,
                  status_out: TextIO | None = None, temperature_c: float = float("nan"), skin=None) -> None:
-        """``readers``: Digit 360 readers by finger (recorded only); ``temperature_c``: hottest joint at start (C);
-        ``skin``: the Xela skin reader (recorded only)."""
+        """``readers``: Digit 360 readers by finger (recorded, and read by a touch-reading ``bundle``);
+        ``temperature_c``: hottest joint at start (C); ``skin``: the Xela skin reader (recorded only)."""
         self.opened = opened
         self.hand = opened.hand
         self.bundle = bundle
@@ -228,6 +239,14 @@ class ControlLoop:
         self.t0: float | None = None
         """Session time zero: host monotonic time (s) of the first joint measurement."""
         self._monitor: TemperatureMonitor | None = None
+        self.touch: TouchWorker | None = None
+        """The touch worker of a touch-reading policy (its ``stats`` stay valid after the run); None otherwise."""
+
+    def _act(self, request: tuple[dict[str, np.ndarray], np.ndarray | None]) -> np.ndarray:
+        """The policy worker's call: one observation and the touch correction to act with (None: the policy alone,
+        for an adapter its student)."""
+        obs, correction = request
+        return self.bundle.act(obs) if correction is None else self.bundle.act(obs, correction=correction)
 
     def run(self) -> None:
         """Run until ``duration_s`` has passed; raises on a fault (HandFault, PolicyFault, SessionError, signals)."""
@@ -242,11 +261,21 @@ class ControlLoop:
         drains = ([DigitDrain(self.readers, t0)] if self.readers else []) + (
             [SkinDrain(self.skin, t0)] if self.skin is not None else [])
         drain = _Drains(drains) if drains else None
-        worker = PolicyWorker(self.bundle.act)
+        worker = PolicyWorker(self._act)
+        touch = self.touch = (TouchWorker(self.bundle, self.readers, self.period, cfg.touch_stale_refreshes)
+                              if reads_touch(self.bundle) else None)
         try:  # before the clock starts; the hand holds its start pose meanwhile
-            log.info("policy warm-up: first inference took %.0f ms", 1e3 * worker.warm_up(policy.observation()))
+            log.info("policy warm-up: first inference took %.0f ms",
+                     1e3 * worker.warm_up((policy.observation(), None)))
+            if touch is not None:
+                took = touch.warm_up(policy.observation(), cfg.touch_warm_up_s)
+                if took is not None:
+                    log.info("touch warm-up: first correction after %.0f ms (refreshed every %d steps, dropped when "
+                             "older than %.0f ms)", 1e3 * took, touch.every, 1e3 * touch.max_age_s)
         except BaseException:
             worker.close(join_timeout_s=0.0)
+            if touch is not None:
+                touch.close()
             raise
         self._monitor = TemperatureMonitor(hand, cfg.temperature_every_s, stats.max_temperature_c)
         budget = cfg.policy_budget * self.period
@@ -274,9 +303,11 @@ class ControlLoop:
                 if k > 0:
                     policy.push(state.q)
 
-                # 2. act within the budget
+                # 2. act within the budget, with the newest touch correction (never waited for)
+                obs = policy.observation()
+                correction = None if touch is None else touch.correction(k, now)
                 action, why = None, ""
-                if worker.submit(k, policy.observation()):
+                if worker.submit(k, (obs, correction)):
                     action = worker.wait(k, now + budget - time.monotonic())
                     if action is None:
                         why = f"no action within {1e3 * budget:.0f} ms"
@@ -286,6 +317,9 @@ class ControlLoop:
                     stats.rejected_actions += 1
                     log.error("step %d: rejected the policy's action (%s); holding the last safe target", k, problem)
                     action, why = None, f"rejected action ({problem})"
+
+                if touch is not None:  # a due touch refresh starts now, after the policy's inference, from this step
+                    touch.refresh_if_due(k, obs, now)
 
                 # 3. move the targets, or hold them
                 if action is not None:
@@ -339,18 +373,23 @@ class ControlLoop:
                 drain.drain(self.recorder.append)
         finally:
             worker.close(join_timeout_s=0.0)
+            if touch is not None:
+                touch.close()
             self._monitor.stop()
             stats.max_temperature_c = self._monitor.max_c
             self.status.end()
 
     def status_text(self, elapsed: float, since: float) -> str:
-        """``deploy 3.0/5.0 s | loop 20.0 Hz | late 0 | held 0 | temp max 41 C | rotation +0.52 rad``."""
+        """``deploy 3.0/5.0 s | loop 20.0 Hz | late 0 | held 0 | touch on | temp max 41 C | rotation +0.52 rad``
+        (``touch on`` / ``touch off``: whether a touch-reading policy's adapter acts now)."""
         s = self.stats
         recent = [t for t in s.tick_times if t >= since]
         rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] else 0.0
         total = f"/{self.cfg.duration_s:.0f}" if self.cfg.duration_s > 0 else ""
         parts = [f"deploy {elapsed:5.1f}{total} s", f"loop {rate:4.1f} Hz", f"late {s.late_steps}",
                  f"held {s.held_steps}"]
+        if self.touch is not None:
+            parts.append("touch on" if self.touch.active else "touch off")
         parts.append(f"temp max {s.max_temperature_c:.0f} C" if not math.isnan(s.max_temperature_c)
                      else "temp max n/a")
         if s.rotation_rad is not None:

@@ -12,7 +12,8 @@ All joint vectors are (16,) in the Allegro bus order, radians, Allegro frame (th
 hardware boundary).
 
 :class:`PolicyWorker` runs ``bundle.act`` on its own thread, so a slow or hung policy can never block the control
-loop: the loop waits for an action only until a deadline and holds the last safe target otherwise.
+loop: the loop waits for an action only until a deadline and holds the last safe target otherwise. (A tactile
+adapter's touch correction is computed on another thread, rotation.deploy.touch, and handed in with the request.)
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -42,8 +44,11 @@ class PolicyFault(RuntimeError):
     """The policy could not produce usable actions (it raised, stalled or returned non-finite values too long)."""
 
 
-def check_deployable(config: BundleConfig, name: str) -> None:
-    """ValueError unless the bundle reads only groups a hand provides, with the shapes ProprioHistory builds."""
+def check_deployable(config: BundleConfig, name: str, reads_touch: bool = False) -> None:
+    """ValueError unless the bundle reads only groups a hand provides, with the shapes ProprioHistory builds.
+
+    ``reads_touch``: the policy is a tactile adapter bundle (its touch comes from the Digit 360 readers, not from
+    the observation: rotation.deploy.touch); a config that references an adapter must be one."""
     unknown = sorted(set(config.obs_groups) - set(DEPLOYABLE_GROUPS))
     if unknown:
         hint = (" ('priv' is privileged simulator state: deploy the student bundle, which estimates it from the "
@@ -56,9 +61,9 @@ def check_deployable(config: BundleConfig, name: str) -> None:
                              f"observation builder makes {DEPLOYABLE_GROUPS[key]}")
     if config.action_dim != C.NUM_JOINTS:
         raise ValueError(f"policy {name!r} has {config.action_dim} actions; a hand has {C.NUM_JOINTS} joints")
-    if config.adapter:
-        raise ValueError(f"policy {name!r} references the tactile adapter {config.adapter!r}; deploying tactile "
-                         "adapters is not supported yet (a later issue). Deploy a bundle without an adapter.")
+    if config.adapter and not reads_touch:
+        raise ValueError(f"policy {name!r} references the tactile adapter {config.adapter!r} but loads without it; "
+                         "deploy the adapter bundle itself (--policy ADAPTER_DIR), which names its student")
 
 
 class PolicyState:
@@ -109,17 +114,20 @@ def action_problem(action: object) -> str | None:
 
 
 class PolicyWorker:
-    """Computes ``act(obs)`` on a daemon thread; the caller waits for each result only until a deadline.
+    """Computes ``act(request)`` on a daemon thread; the caller waits for each result only until a deadline.
+
+    ``request`` is whatever the caller's ``act`` takes: an observation dict, or (observation, touch correction) in
+    the control loop.
 
     One request at a time: :meth:`submit` refuses a new observation while the previous one is still being
     computed. A result that arrives after its deadline is dropped (it was computed for an old observation).
     An exception raised by ``act`` is handed to the caller of :meth:`wait`.
     """
 
-    def __init__(self, act: Callable[[dict[str, np.ndarray]], np.ndarray], name: str = "policy") -> None:
+    def __init__(self, act: Callable[[Any], np.ndarray], name: str = "policy") -> None:
         self._act = act
         self._cv = threading.Condition()
-        self._request: tuple[int, dict[str, np.ndarray]] | None = None
+        self._request: tuple[int, Any] | None = None
         self._result: tuple[int, np.ndarray | None, BaseException | None] | None = None
         self._busy = False
         self._stop = False
@@ -131,8 +139,9 @@ class PolicyWorker:
         with self._cv:
             return self._busy
 
-    def submit(self, seq: int, obs: dict[str, np.ndarray]) -> bool:
-        """Queue observation number ``seq``; False (nothing queued) while the previous request is still running."""
+    def submit(self, seq: int, obs: Any) -> bool:
+        """Queue request (observation) number ``seq``; False (nothing queued) while the previous one is still
+        running."""
         with self._cv:
             if self._busy or self._stop:
                 return False
@@ -153,7 +162,7 @@ class PolicyWorker:
             raise PolicyFault(f"the policy raised {type(error).__name__}: {error}") from error
         return action
 
-    def warm_up(self, obs: dict[str, np.ndarray], timeout_s: float = 10.0) -> float:
+    def warm_up(self, obs: Any, timeout_s: float = 10.0) -> float:
         """Run one inference on the worker thread and wait for it; returns its duration (s).
 
         The first call allocates buffers and loads kernels, which can take many control periods; doing it before

@@ -4,11 +4,17 @@ recording.
 ``--digit360`` names one sensor per finger, either positionally in the bus order of the fingers
 (``index,middle,ring,thumb``: exactly four entries) or by name for any subset (``thumb=D360-A,index=D360-B``).
 An entry is a USB serial number (the data tty is found by it) or, if it starts with ``/``, a tty path (e.g. a
-pseudo-terminal). ``sim`` (emulated hands only) starts one emulated sensor per finger.
+pseudo-terminal). ``sim`` (emulated hands only) starts one emulated sensor per finger that senses that finger of the
+emulated hand with the env's simulated Digit 360 (rotation.sim_hardware.digit360_touch): IMU and pressure from the
+fingertip's contact and motion on its serial stream, and an emulated camera and microphones whose frames and audio
+are rendered from the same contact history when a window is asked for.
 
-No policy reads touch yet (the tactile adapter comes in a later issue), so the sensors are recorded only:
-their serial streams (accelerometer 400 Hz, pressure 200 Hz) go to ``digit360/<finger>/{imu,pressure}``. A sensor
-that stops streaming leaves a gap in its streams and a log line; it does not stop the hand.
+The sensors are recorded: their serial streams (accelerometer 400 Hz, pressure 200 Hz) go to
+``digit360/<finger>/{imu,pressure}`` (images and audio are not recorded). Their Sparsh-X windows (image, audio, IMU,
+pressure; rotation.hardware.digit360_window) are read by a touch-reading policy (rotation.deploy.touch) through
+``reader.window()`` of each finger's reader; emulated sensors give all four modalities, a real one its serial
+streams (IMU and pressure: deploy does not open the camera or microphones yet; :func:`digit360_windows`).
+A sensor that stops streaming leaves a gap in its streams and a log line; it does not stop the hand.
 
 ``--skin`` names the Xela skin's ``xela_server`` (a ws:// URL; ``sim`` starts the local stand-in server,
 rotation.sim_hardware.xela_emulator, emulated hands only). Its frames (raw counts, our taxel order,
@@ -23,11 +29,14 @@ import contextlib
 import logging
 import os
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from envs.constants import FINGERS
+
+if TYPE_CHECKING:
+    from rotation.sim_hardware.hand_physics import HandPhysics
 
 log = logging.getLogger(__name__)
 
@@ -97,25 +106,49 @@ def check_digit360(specs: dict[str, str]) -> None:
         raise ValueError(f"--digit360: {'; '.join(missing)}. Connected Digit 360 sensors: {found}")
 
 
-def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack) -> dict[str, Any]:
+SIM_WINDOWS = ("image", "audio", "imu", "pressure")
+"""Sparsh-X windows of an emulated fingertip beside an emulated hand (its camera and microphones are emulated)."""
+SERIAL_WINDOWS = ("imu", "pressure")
+"""Sparsh-X windows of a sensor that :func:`open_digit360` opens by serial number or tty: its serial streams only
+(deploy does not open a Digit 360's camera or microphones yet)."""
+
+
+def digit360_windows(value: str, emulated: bool) -> tuple[str, ...]:
+    """The windows in ``reader.window()`` of the sensor that :func:`open_digit360` starts for one ``--digit360``
+    entry (``value``: 'sim', a serial or a tty path) beside an emulated (``emulated``) or a real hand."""
+    return SIM_WINDOWS if value == "sim" and emulated else SERIAL_WINDOWS
+
+
+def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack,
+                  physics: HandPhysics | None = None) -> dict[str, Any]:
     """Start one reader per finger (and its emulator for 'sim') inside ``stack``; {finger: Digit360}. A sensor that
-    does not open raises :class:`SensorError` naming the finger."""
+    does not open raises :class:`SensorError` naming the finger.
+
+    ``physics``: the emulated hand (rotation.deploy.hands.emulated_physics); a 'sim' sensor then senses its finger
+    of that hand and its reader gets the emulated camera and microphones. Without it, 'sim' sensors stream the
+    emulator's synthetic readings (IMU and pressure only).
+    """
     if not specs:
         return {}
     from rotation.hardware.digit360 import Digit360, Digit360Config
 
     readers: dict[str, Any] = {}
+    epoch = time.monotonic()  # one device clock for the emulated fingertips of the hand: they sample it together
     for finger, value in specs.items():
+        media = None
         try:
             if value == "sim":
                 from rotation.sim_hardware.digit360_emulator import Digit360Emulator
 
-                cfg = Digit360Config(port=stack.enter_context(Digit360Emulator()).path)
+                emulator = Digit360Emulator() if physics is None else Digit360Emulator(physics=physics, finger=finger,
+                                                                                       epoch=epoch)
+                cfg = Digit360Config(port=stack.enter_context(emulator).path)
+                media = emulator.media
             elif value.startswith("/"):
                 cfg = Digit360Config(port=value)
             else:
                 cfg = Digit360Config(serial_number=value)
-            readers[finger] = stack.enter_context(Digit360(cfg, name=f"digit360-{finger}"))
+            readers[finger] = stack.enter_context(Digit360(cfg, name=f"digit360-{finger}", media=media))
         except OSError as err:  # pyserial's SerialException is an OSError
             raise SensorError(f"digit360 {finger} ({value}) did not open: {err}") from err
         log.info("digit360 %s: %s", finger, value if value != "sim" else f"emulated on {cfg.port}")

@@ -33,8 +33,17 @@ they may differ between a run and its continuation. Everything else must match."
 
 
 def weights_digest(policy: str) -> str:
-    """First 16 hex digits of the SHA-256 of a bundle's weights (a path may hold a retrained policy later)."""
-    return hashlib.sha256((resolve_bundle(policy) / WEIGHTS_FILE).read_bytes()).hexdigest()[:16]
+    """First 16 hex digits of the SHA-256 of a bundle's weights (a path may hold a retrained policy later); for an
+    adapter bundle, of its weights and its config, which holds the digests of its student and encoder."""
+    path = resolve_bundle(policy)
+    from adapters.bundle import CONFIG_FILE, is_adapter_dir
+    from adapters.bundle import WEIGHTS_FILE as ADAPTER_WEIGHTS
+
+    if is_adapter_dir(path):
+        data = (path / ADAPTER_WEIGHTS).read_bytes() + (path / CONFIG_FILE).read_bytes()
+    else:
+        data = (path / WEIGHTS_FILE).read_bytes()
+    return hashlib.sha256(data).hexdigest()[:16]
 
 
 def identity(cfg: Any, policies: dict[str, str]) -> dict[str, Any]:

@@ -217,6 +217,10 @@ def load_policies(cfg: Config) -> dict[str, PolicyBundle]:
     if not policies:
         raise ValueError("no policies given (--policy NAME=PATH) and no bundles are shipped with the package")
     bundles = {name: load_bundle(path) for name, path in policies.items()}
+    touch = [name for name, b in bundles.items() if reads_touch(b)]
+    if touch and cfg.backend != "cpu":
+        raise ValueError(f"--policy {', '.join(touch)} read(s) touch, which the simulated Digit 360 provides on the "
+                         "cpu backend only; evaluate with --backend cpu")
     timing = {(b.config.control_hz, b.config.action_scale) for b in bundles.values()}
     if len(timing) > 1:
         raise ValueError(f"the policies were trained at different control rates / action scales {sorted(timing)}; "
@@ -224,12 +228,18 @@ def load_policies(cfg: Config) -> dict[str, PolicyBundle]:
     return bundles
 
 
-def env_config(cfg: Config, bundle: PolicyBundle, perturb: Perturbation) -> EnvConfig:
-    """The env of one condition; control rate and action scale come from the bundle, not from this config."""
+def env_config(cfg: Config, bundle: PolicyBundle, perturb: Perturbation, tactile: bool = False) -> EnvConfig:
+    """The env of one condition; control rate and action scale come from the bundle, not from this config.
+    ``tactile``: simulate the Digit 360 fingertips (a policy reads touch); it changes no other policy's episodes."""
     rand = RandomizationConfig() if cfg.randomize else RandomizationConfig(enabled=False)
     return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, episode_steps=cfg.episode_steps,
                      control_hz=bundle.config.control_hz, action_scale=bundle.config.action_scale,
-                     randomization=rand, perturb=perturb)
+                     randomization=rand, perturb=perturb, tactile=tactile)
+
+
+def reads_touch(bundle: PolicyBundle) -> bool:
+    """True for a policy with a tactile adapter (it needs the env's `tactile` group)."""
+    return bool(getattr(bundle, "touch_every", 0))
 
 
 def run(cfg: Config) -> list[dict]:
@@ -279,8 +289,10 @@ def run(cfg: Config) -> list[dict]:
 def _run_condition(cfg: Config, cond: Condition, bundles: dict[str, PolicyBundle], first: PolicyBundle, out: Path,
                    bar: tqdm) -> list[dict]:
     """Every policy under one condition (same env, same seeds): one row per policy; the video if asked for."""
-    env = make_vec(cfg.backend, env_config(cfg, first, cond.perturb), num_envs=min(cfg.num_envs, cfg.episodes),
-                   seed=cfg.seed, nthread=cfg.nthread or None, device=cfg.warp_device)
+    tactile = any(reads_touch(b) for b in bundles.values())
+    env = make_vec(cfg.backend, env_config(cfg, first, cond.perturb, tactile),
+                   num_envs=min(cfg.num_envs, cfg.episodes), seed=cfg.seed, nthread=cfg.nthread or None,
+                   device=cfg.warp_device)
     recorder = None
     try:
         if cfg.video:

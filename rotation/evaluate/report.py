@@ -38,6 +38,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions:
     (out / "results.json").write_text(json.dumps({"rows": rows, "config": to_jsonable(config)}, indent=2) + "\n")
     (out / "results.md").write_text(markdown_table(rows))
     plot_metrics(out / "plots", rows, conditions)
+    plot_bars(out / "plots" / "bars.png", rows, conditions)
 
 
 def markdown_table(rows: list[dict[str, Any]]) -> str:
@@ -103,3 +104,39 @@ def plot_metrics(folder: Path, rows: list[dict[str, Any]], conditions: list[Cond
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+BAR_METRICS = ("ttf", "vertical_drift", "upright")
+"""Metrics of the bar chart: whether the cup is kept, how much it sinks, how upright it stays."""
+
+
+def plot_bars(path: Path, rows: list[dict[str, Any]], conditions: list[Condition]) -> Path:
+    """plots/bars.png: one panel per metric of BAR_METRICS, a group of bars per condition, one bar per policy
+    (mean; the error bar is the standard error over episodes, std / sqrt(episodes))."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    policies = list(dict.fromkeys(r["policy"] for r in rows))
+    by_key = {(r["policy"], r["condition"]): r for r in rows}
+    x = np.arange(len(conditions))
+    width = 0.8 / max(len(policies), 1)
+    size = (max(5.0, 0.8 * len(conditions) + 2.0), 3.0 * len(BAR_METRICS))
+    fig, axes = plt.subplots(len(BAR_METRICS), 1, figsize=size, squeeze=False)
+    for ax, metric in zip(axes[:, 0], BAR_METRICS, strict=True):
+        for j, policy in enumerate(policies):
+            cells = [by_key[(policy, c.name)] for c in conditions]
+            ys = np.array([r[metric] for r in cells])
+            se = np.array([r[metric + "_std"] / np.sqrt(max(r["episodes"], 1)) for r in cells])
+            ax.bar(x + (j - (len(policies) - 1) / 2) * width, ys, width, yerr=se, capsize=2, label=policy)
+        ax.set_xticks(x, [c.name for c in conditions], rotation=20, ha="right", fontsize=8)
+        ax.set_ylabel(f"{metric} ({METRICS[metric]})")
+        ax.set_title(metric)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -27,6 +27,9 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     n = env.num_envs
+    touch_every = getattr(bundle, "touch_every", 0)  # a tactile adapter (adapters.bundle.AdaptedPolicy)
+    if touch_every and not env.cfg.tactile:
+        raise ValueError("this policy reads touch: evaluate it in an env with tactile=True (the cpu backend)")
     tracker = EpisodeTracker(n, env.cfg.control_dt, env.cfg.episode_steps)
     results: list[EpisodeMetrics | None] = [None] * episodes
     for first in range(0, episodes, n):
@@ -37,10 +40,19 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
         if record:
             on_frame(env)
         actions = np.zeros((n, env.single_action_space.shape[0]), dtype=np.float32)
+        correction = np.zeros((n, bundle.config.latent_dim), dtype=np.float32) if touch_every else None
+        k = 0
         while active.any():
             idx = np.flatnonzero(active)
             actions[:] = 0.0
-            actions[idx] = bundle.act_batch({k: obs[k][idx] for k in bundle.config.obs_groups})
+            groups = {key: obs[key][idx] for key in bundle.config.obs_groups}
+            if correction is not None:
+                if k % touch_every == 0:  # refresh the touch correction, hold it in between
+                    correction[idx] = touch_correction(bundle, obs["tactile"][idx], groups)
+                actions[idx] = bundle.act_batch(groups, correction=correction[idx])
+            else:
+                actions[idx] = bundle.act_batch(groups)
+            k += 1
             obs, reward, terminated, truncated, info = env.step(actions)
             if record and active[0]:
                 on_frame(env)
@@ -54,3 +66,15 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
             active &= ~done
     assert all(r is not None for r in results)
     return results  # type: ignore[return-value]
+
+
+def touch_correction(policy, tactile, groups: dict[str, np.ndarray]) -> np.ndarray:
+    """The adapter's (N, Z) correction from the env's `tactile` group (rendered here, for these envs only); zero
+    (the student alone) when touch is unusable, as on the robot."""
+    from adapters.bundle import TouchUnavailable
+
+    windows = {f: {w: tactile[f][w] for w in policy.windows} for f in policy.fingers}
+    try:
+        return policy.correction(windows, groups)
+    except TouchUnavailable:
+        return np.zeros((len(next(iter(groups.values()))), policy.config.latent_dim), dtype=np.float32)

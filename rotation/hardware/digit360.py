@@ -12,6 +12,12 @@ found by its USB serial number with pyserial's ``list_ports``; each device -> ho
 by 0x00. Audio (48 kHz, 2 microphones, int16) comes through ``sounddevice`` and the camera (UVC) through OpenCV;
 both are imported only when enabled (extra ``[hardware]``).
 
+Emulated sensors have no camera or microphone device: ``Digit360(cfg, media=...)`` takes a :class:`Digit360Media`
+instead, which renders the two frames and the audio of a window when :meth:`Digit360.window` asks for them (the
+emulated fingertips of rotation.sim_hardware render them from their contact history with the env's sensor model;
+rendering every frame at 30 fps would cost more than the control loop can spare). Configs stay plain data: the
+media object is a constructor argument, not a config field, and with it OpenCV and sounddevice are never imported.
+
 Timestamps are host ``time.monotonic()`` seconds. Serial samples carry the device's microsecond clock; it is
 mapped to host time by the smallest observed (receive time - device time) offset (USB delivers in bursts, the
 minimum is the least-delayed sample), allowed to drift by 100 ppm and re-anchored when a sample would map more
@@ -29,6 +35,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import serial
@@ -99,6 +106,17 @@ class Digit360Config:
             raise ValueError("Digit360Config: stale_timeout_s, reconnect_s and device_clock_hz must be > 0")
 
 
+class Digit360Media(Protocol):
+    """Camera and microphones rendered on request instead of read from devices (an emulated sensor's)."""
+
+    def media_window(self, t_end: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+        """Image and audio of the window ending at the newest frame at or before ``t_end`` (host
+        ``time.monotonic()`` s; None: now): ``image`` (6, 224, 224) uint8 channel-major
+        [R(t-5), R(t), G(t-5), G(t), B(t-5), B(t)], ``audio`` (2, 27000) int16 up to that frame, and the frame's
+        host time. Raises :class:`digit360_window.WindowNotReady` while there is not enough history."""
+        ...
+
+
 class _ClockMap:
     """Device clock (ticks, uint32, wraps) -> host seconds by the minimum-offset rule (see module docstring)."""
 
@@ -127,11 +145,19 @@ class _ClockMap:
 
 
 class Digit360:
-    """Reader threads filling ring buffers; :meth:`window` assembles a Sparsh-X sample."""
+    """Reader threads filling ring buffers; :meth:`window` assembles a Sparsh-X sample.
 
-    def __init__(self, cfg: Digit360Config, name: str = "digit360") -> None:
+    ``media``: an emulated sensor's camera and microphones (:class:`Digit360Media`), used instead of the devices
+    named by ``cfg.camera`` / ``cfg.audio_device`` (which must then be None).
+    """
+
+    def __init__(self, cfg: Digit360Config, name: str = "digit360", media: Digit360Media | None = None) -> None:
+        if media is not None and (cfg.camera is not None or cfg.audio_device is not None):
+            raise ValueError(f"{name}: an emulated sensor's image and audio come from `media`; leave "
+                             "Digit360Config.camera and audio_device unset")
         self.cfg = cfg
         self.name = name
+        self.media = media
         n = int(cfg.buffer_s * 1.5 * dw.IMU_RATE)
         self.imu = dw.RingBuffer(n, (3,))
         self.pressure = dw.RingBuffer(int(cfg.buffer_s * 1.5 * dw.PRESSURE_RATE), (1,))
@@ -174,14 +200,27 @@ class Digit360:
             self._serial.close()
             self._serial = None
 
-    def window(self, t_end: float | None = None, now: float | None = None) -> dict[str, np.ndarray | float]:
-        """One Sparsh-X sample (see :mod:`digit360_window`); SensorStale if the serial stream stopped."""
+    def window(self, t_end: float | None = None, now: float | None = None,
+               serial_only: bool = False) -> dict[str, np.ndarray | float]:
+        """One Sparsh-X sample (see :mod:`digit360_window`); SensorStale if the serial stream stopped.
+
+        With ``media`` the sample has all four modalities and every window ends at the media's frame (the newest at
+        or before ``t_end``); WindowNotReady until each stream has enough history. ``serial_only``: only the IMU and
+        pressure windows (a reader of those alone skips rendering an emulated sensor's image and audio).
+        """
         now = time.monotonic() if now is None else now
         age = now - max(self.imu.newest_time(), self.pressure.newest_time())
         if age > self.cfg.stale_timeout_s:
             raise SensorStale(f"{self.name}: newest IMU/pressure sample is {age:.3f} s old "
                               f"(> {self.cfg.stale_timeout_s} s); connected={self.connected.is_set()}")
-        return dw.sparshx_window(self.image, self.audio, self.imu, self.pressure, t_end)
+        if serial_only:
+            return dw.sparshx_window(None, None, self.imu, self.pressure, t_end)
+        if self.media is None:
+            return dw.sparshx_window(self.image, self.audio, self.imu, self.pressure, t_end)
+        image, audio, t_frame = self.media.media_window(t_end)
+        serial = dw.sparshx_window(None, None, self.imu, self.pressure, t_frame)
+        return {"image": image, "t_end": serial["t_end"], "audio": audio, "imu": serial["imu"],
+                "pressure": serial["pressure"]}
 
     # ------------------------------------------------------------------ serial
     def _start(self, fn, what: str) -> None:

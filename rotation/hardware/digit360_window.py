@@ -84,6 +84,13 @@ def series_window(buf: RingBuffer, t_end: float, rate: float, n: int = SERIES_LE
                   min_coverage: float = 0.9, name: str = "series") -> np.ndarray:
     """(n, c) float32: ``buf`` resampled linearly on the ``rate`` Hz grid of n points ending at ``t_end``."""
     t, v = buf.snapshot()
+    return series_from_samples(t, v, t_end, rate, n, min_coverage, name)
+
+
+def series_from_samples(t: np.ndarray, v: np.ndarray, t_end: float, rate: float, n: int = SERIES_LEN,
+                        min_coverage: float = 0.9, name: str = "series") -> np.ndarray:
+    """:func:`series_window` on samples already in hand (t (k,) increasing, v (k, c)): a live buffer's snapshot or
+    a recorded session's stream, so both give the same window from the same samples."""
     keep = t <= t_end  # never a future sample
     t, v = t[keep], v[keep]
     grid = t_end - (n - 1 - np.arange(n)) / rate
@@ -108,8 +115,13 @@ def image_window(buf: RingBuffer, gap: int = IMAGE_GAP) -> tuple[np.ndarray, flo
     t, v = buf.snapshot()
     if len(t) < gap + 1:
         raise WindowNotReady(f"image: {len(t)} frames, need {gap + 1}")
-    pair = np.stack([v[-1 - gap], v[-1]])  # (2, H, W, 3) RGB
-    return np.ascontiguousarray(pair.transpose(3, 0, 1, 2).reshape(6, *pair.shape[1:3])), float(t[-1])
+    return channel_major(np.stack([v[-1 - gap], v[-1]])), float(t[-1])
+
+
+def channel_major(pair: np.ndarray) -> np.ndarray:
+    """Frames t-gap and t (2, H, W, 3) RGB -> (6, H, W) channel-major [R(t-gap), R(t), G(t-gap), G(t), B(...)]."""
+    pair = np.asarray(pair)
+    return np.ascontiguousarray(pair.transpose(3, 0, 1, 2).reshape(6, *pair.shape[1:3]))  # (3, 2, H, W) -> (6, H, W)
 
 
 def sparshx_window(image: RingBuffer | None, audio: RingBuffer | None, imu: RingBuffer | None,

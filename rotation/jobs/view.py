@@ -82,7 +82,8 @@ def env_config(cfg: Config, bundle) -> EnvConfig:
     rc = RandomizationConfig() if cfg.randomize else RandomizationConfig(enabled=False)
     timing = {} if bundle is None else dict(control_hz=bundle.config.control_hz,
                                             action_scale=bundle.config.action_scale)
-    return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, randomization=rc, **timing)
+    touch = bool(getattr(bundle, "touch_every", 0))  # a tactile adapter reads the simulated Digit 360
+    return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, randomization=rc, tactile=touch, **timing)
 
 
 def _actor(cfg: Config, bundle):
@@ -91,6 +92,19 @@ def _actor(cfg: Config, bundle):
     if cfg.policy == "random":
         rng = np.random.default_rng(cfg.seed)
         return lambda obs: rng.uniform(-1.0, 1.0, (1, 16))
+    if getattr(bundle, "touch_every", 0):  # a tactile adapter: refresh its correction as evaluate and deploy do
+        from rotation.evaluate.rollout import touch_correction
+
+        state = {"k": 0, "correction": None}
+
+        def act(obs):
+            groups = {key: obs[key] for key in bundle.config.obs_groups}
+            if state["k"] % bundle.touch_every == 0:
+                state["correction"] = touch_correction(bundle, obs["tactile"], groups)
+            state["k"] += 1
+            return bundle.act_batch(groups, correction=state["correction"])
+
+        return act
     return lambda obs: bundle.act_batch(obs)
 
 

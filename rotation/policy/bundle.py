@@ -374,8 +374,15 @@ def resolve_bundle(name_or_path: str | Path) -> Path:
 
 
 def load_bundle(name_or_path: str | Path) -> PolicyBundle:
-    """Load a bundle by shipped name (``teacher``, ``student``) or directory path."""
-    return PolicyBundle.load(resolve_bundle(name_or_path))
+    """Load a bundle by shipped name (``teacher``, ``student``, ``adapter``) or directory path. An adapter bundle
+    (adapters.bundle) loads as an ``AdaptedPolicy``: its student with the tactile adapter, which acts like a
+    PolicyBundle and also reads touch."""
+    path = resolve_bundle(name_or_path)
+    from adapters.bundle import is_adapter_dir, load_adapter  # adapters build on this module: imported when used
+
+    if is_adapter_dir(path):
+        return load_adapter(path)  # type: ignore[return-value]
+    return PolicyBundle.load(path)
 
 
 # ---------------------------------------------------------------------------------------------------------------------

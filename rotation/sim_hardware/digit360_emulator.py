@@ -4,8 +4,12 @@ Streams (reference/hardware.md section 4, rates from reference/sparsh.md): a ``s
 every second, raw accelerometer IMU frames at 400 Hz (counts, 4096 per g) and pressure frames at 200 Hz (hPa,
 about 1000 at rest, rising with contact force). ``ts`` fields are emulated device time in microseconds.
 
-Readings come from ``source(t) -> (force_N, accel_g (3,))``; the default is synthetic (a slow 0..1 N press and
-gravity plus a small vibration). The simulated touch of the env can be plugged in as the source later.
+Beside an emulated hand (``physics=``, ``finger=``) the sensor senses that hand's fingertip with the env's simulated
+Digit 360 (rotation.sim_hardware.digit360_touch.FingertipTouch): IMU and pressure rendered from the fingertip's
+contact history, and ``emu.media``, the camera and microphones that the reader takes instead of devices
+(``Digit360(cfg, media=emu.media)``), rendered when a window is asked for. Without a hand, readings come from
+``source(t) -> (force_N, accel_g (3,))`` with pressure ``REST_HPA + HPA_PER_N * force``; the default is synthetic
+(a slow 0..1 N press and gravity plus a small vibration), and there is no camera or microphone (``media`` None).
 
 Fault switches (``emu.faults``): corrupt frames, a stream pause, and :meth:`disconnect` (the pty closes).
 """
@@ -22,6 +26,8 @@ import numpy as np
 from cobs import cobs
 
 from rotation.hardware.digit360 import ACC_PER_G, SENSOR, messages
+from rotation.sim_hardware.digit360_touch import FingertipTouch
+from rotation.sim_hardware.hand_physics import HandPhysics
 from rotation.sim_hardware.pty_link import PtyLink
 from rotation.sim_hardware.worker import EmulatorThread
 
@@ -30,8 +36,10 @@ log = logging.getLogger(__name__)
 IMU_PERIOD_S = 1.0 / 400.0
 PRESSURE_EVERY = 2  # pressure at 200 Hz = every second IMU tick
 HPA_PER_N = 20.0
-"""Emulated pressure rise per newton of contact force (hPa/N), a made-up sensitivity."""
+"""Emulated pressure rise per newton of contact force (hPa/N) of a ``source``, a made-up sensitivity (a hand's
+fingertip uses the env's model instead)."""
 REST_HPA = 1000.0
+"""Pressure of a ``source`` at zero force (hPa)."""
 
 
 def synthetic_source(t: float) -> tuple[float, np.ndarray]:
@@ -51,12 +59,29 @@ class Digit360Faults:
 
 
 class Digit360Emulator(EmulatorThread):
-    """Context manager streaming on ``emu.path`` until closed."""
+    """Context manager streaming on ``emu.path`` until closed.
+
+    Args:
+        source: readings without a hand, ``source(t) -> (force_N, accel_g (3,))`` (see the module docstring).
+        version: the firmware version the ``system`` messages report.
+        physics: an emulated hand: sense its fingertip ``finger`` instead of ``source`` (and provide ``media``).
+        finger: the fingertip of ``physics`` (envs.sensors.digit360.FINGERS).
+        seed: noise key of the emulated session (the fingertip's key is derived from it, as in the env).
+        epoch: host time (``time.monotonic()`` s) of device time 0; default: when the emulator starts. The sensors of
+            one hand share one, so that they sample the hand at the same instants and one computation of the hand's
+            contact fields serves them all (HandPhysics caches it per physics step).
+    """
 
     def __init__(self, source: Callable[[float], tuple[float, np.ndarray]] = synthetic_source,
-                 version: str = "emulated-1.0") -> None:
+                 version: str = "emulated-1.0", *, physics: HandPhysics | None = None, finger: str = "index",
+                 seed: int = 0, epoch: float | None = None) -> None:
+        if physics is not None and source is not synthetic_source:
+            raise ValueError("Digit360Emulator: give a source or a hand's physics, not both")
         self.source = source
         self.version = version
+        self.epoch = epoch
+        self.touch = FingertipTouch(physics, finger, seed) if physics is not None else None
+        """The sensed fingertip of ``physics`` (None with a ``source``)."""
         self.faults = Digit360Faults()
         self.link = PtyLink()
         self.path = self.link.path
@@ -66,6 +91,12 @@ class Digit360Emulator(EmulatorThread):
 
     def _close_link(self) -> None:
         self.link.close()
+
+    @property
+    def media(self) -> FingertipTouch | None:
+        """Emulated camera and microphones for the reader (``Digit360(cfg, media=emu.media)``); None without a
+        hand."""
+        return self.touch
 
     def disconnect(self) -> None:
         """Emulate unplugging the sensor."""
@@ -84,36 +115,45 @@ class Digit360Emulator(EmulatorThread):
         m.system.version = self.version
         self._emit(m)
 
+    def _readings(self, k: int) -> tuple[np.ndarray, float | None]:
+        """IMU tick ``k`` (device time k / 400 s): accelerometer (3,) g, and pressure (hPa) on pressure ticks."""
+        if self.touch is not None:
+            return self.touch.readings(k)
+        force, accel = self.source(k * IMU_PERIOD_S)
+        return np.asarray(accel), (REST_HPA + HPA_PER_N * float(force) if k % PRESSURE_EVERY == 0 else None)
+
     def _run(self) -> None:
-        t0 = time.perf_counter()
+        t0 = time.monotonic() if self.epoch is None else self.epoch  # device time 0 in host time (frame stamps)
+        if self.touch is not None:
+            self.touch.start(t0)
         k = 0
         self._system()
         while not self._stop.is_set():
             next_t = t0 + (k + 1) * IMU_PERIOD_S
-            self.link.read(max(0.0, next_t - time.perf_counter()))  # drain host -> device bytes; also paces
-            if time.perf_counter() < next_t:
+            self.link.read(max(0.0, next_t - time.monotonic()))  # drain host -> device bytes; also paces
+            if time.monotonic() < next_t:
                 continue
             if self.faults.pause_s > 0:  # the device clock runs on; the samples of the pause are lost
                 pause, self.faults.pause_s = self.faults.pause_s, 0.0
                 self._stop.wait(pause)
-                k = int((time.perf_counter() - t0) / IMU_PERIOD_S)
+                k = int((time.monotonic() - t0) / IMU_PERIOD_S)
             k += 1
             t = k * IMU_PERIOD_S
             ts = int(t * 1e6) & 0xFFFFFFFF
             try:
-                force, accel = self.source(t)
+                accel, pressure = self._readings(k)
             except Exception:  # a broken source must not kill the stream silently
                 log.exception("digit360 emulator: source failed at t=%.3f s", t)
                 continue
             m = self._msg()
             m.imu.ts = ts
             m.imu.raw.sensor = SENSOR["ACC"]
-            m.imu.raw.x, m.imu.raw.y, m.imu.raw.z = (int(round(a * ACC_PER_G)) for a in accel)
+            m.imu.raw.x, m.imu.raw.y, m.imu.raw.z = (int(round(float(a) * ACC_PER_G)) for a in accel)
             self._emit(m)
-            if k % PRESSURE_EVERY == 0:
+            if pressure is not None:
                 p = self._msg()
                 p.pressure.ts = ts
-                p.pressure.pressure = REST_HPA + HPA_PER_N * float(force)
+                p.pressure.pressure = pressure
                 p.pressure.temperature = 30.0
                 self._emit(p)
             if k % 400 == 0:

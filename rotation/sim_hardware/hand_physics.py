@@ -13,12 +13,18 @@ the emulated hand has no torque until the driver's start-up sequence switches th
 bus that is ~200 register round trips), and a cup left in an unpowered hand drops out of the grasp; the hold
 stands in for the operator who keeps the cup in place until the hand holds it.
 
+Touch: the model carries the env's Digit 360 sensors (envs.sensors.digit360, one sample kept), and
+:meth:`HandPhysics.contact_fields` turns them into the env's contact-field rows, one per fingertip, with the env's
+own readout (``Digit360Readout``): what the emulated Digit 360 sensors (rotation.sim_hardware.digit360_touch)
+sample. Sensors do not change the dynamics. A held scene is still, so its accelerometers read gravity alone.
+
 Thread-safe: one emulator thread advances it, others may read the joint state and the object pose.
 """
 
 from __future__ import annotations
 
 import threading
+from functools import partial
 
 import mujoco
 import numpy as np
@@ -28,6 +34,7 @@ from envs.constants import HOME_POSE, JOINT_NAMES, NUM_JOINTS
 from envs.grasps import load_default_cache
 from envs.objects import get_object
 from envs.scene import OBJECT_JOINT, OBJECT_START, build_model
+from envs.sensors.digit360 import Digit360Readout, add_digit360_sensors
 
 TIMESTEP = 1e-3
 """Physics step (s): 3 steps per 3 ms hand cycle; finer than the env's 10 ms because the torque loop is explicit."""
@@ -45,7 +52,8 @@ class HandPhysics:
         self.scale = float(scale)
         self.grasp: int | None = None
         """Grasp cache row the scene started from (set by :meth:`at_grasp`), None otherwise."""
-        self.model = build_model(get_object(object_name), scale=scale, timestep=TIMESTEP)
+        self.model = build_model(get_object(object_name), scale=scale, timestep=TIMESTEP,
+                                 edit=partial(add_digit360_sensors, history=1))
         self.model.actuator_gainprm[:, 0] = 0.0  # position actuators off: torque comes from qfrc_applied
         self.model.actuator_biasprm[:, :3] = 0.0
         self.data = mujoco.MjData(self.model)
@@ -62,6 +70,18 @@ class HandPhysics:
         self._torque = np.zeros(NUM_JOINTS)
         self._lock = threading.Lock()
         self._held = bool(hold)
+        self._readout = Digit360Readout(self.model)
+        self._steps = 0  # physics steps taken: the key of the contact-field cache
+        self._fields: tuple[int, np.ndarray] | None = None  # (steps, (4, NUM_FIELDS)) of the last computation
+        if self._held:
+            self._still_sensors()
+
+    def _still_sensors(self) -> None:
+        """Recompute the acceleration-stage sensors as if the scene stood still (qacc = 0): a held scene reads
+        gravity on its accelerometers, and its contact forces stay those of the forward pass."""
+        self.data.qacc[:] = 0.0
+        mujoco.mj_rnePostConstraint(self.model, self.data)  # body accelerations from qacc, for the accelerometers
+        mujoco.mj_sensorAcc(self.model, self.data)
 
     @classmethod
     def at_grasp(cls, object_name: str = "cup", grasp: int = 0, hold: bool = True) -> HandPhysics:
@@ -115,6 +135,7 @@ class HandPhysics:
             self.data.qfrc_applied[self._dof_adr] = self._torque
             for _ in range(n):
                 mujoco.mj_step(self.model, self.data)
+            self._steps += n
             if self.data.qpos[self._obj_qpos + 2] < -0.5:  # the object fell off: put it back above the hand
                 self.data.qpos[self._obj_qpos: self._obj_qpos + 3] = OBJECT_START
                 self.data.qpos[self._obj_qpos + 3: self._obj_qpos + 7] = (1.0, 0.0, 0.0, 0.0)
@@ -129,3 +150,13 @@ class HandPhysics:
         """(7,) object position (m) + orientation quaternion (w, x, y, z), world frame."""
         with self._lock:
             return self.data.qpos[self._obj_qpos: self._obj_qpos + 7].copy()
+
+    def contact_fields(self) -> np.ndarray:
+        """(4, NUM_FIELDS) float32 Digit 360 contact fields of the fingertips (envs.sensors.digit360.FINGERS order,
+        sensor frames, SI units), as the env computes them: the state at the start of the last physics step (the
+        sensor stage of ``mj_step``), or the initial state before any step. Computed once per physics step."""
+        with self._lock:
+            if self._fields is None or self._fields[0] != self._steps:
+                rows = self._readout.read_current(self.data.sensordata[None])[0, :, 0]  # (4, NUM_FIELDS)
+                self._fields = (self._steps, rows)
+            return self._fields[1].copy()

@@ -1,4 +1,5 @@
-"""Fixtures for the deploy tests: a policy bundle, a hook on the started hand, and leak checks."""
+"""Fixtures for the deploy tests: a policy bundle, hooks on the started hand and its emulated Digit 360 sensors, and
+leak checks."""
 
 from __future__ import annotations
 
@@ -72,3 +73,21 @@ def hand_hook(monkeypatch):
     for timer in hook.timers:
         timer.cancel()
         timer.join()
+
+
+@pytest.fixture
+def digit360_emulators(monkeypatch) -> dict:
+    """The emulated Digit 360 sensors `rotate deploy` starts ('sim'), by finger, for their fault switches
+    (``emulators["thumb"].faults.pause_s = 0.5``); filled as they start."""
+    from rotation.sim_hardware import digit360_emulator
+
+    started: dict = {}
+    real = digit360_emulator.Digit360Emulator
+
+    class Recorded(real):  # type: ignore[misc, valid-type]
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            started[kwargs.get("finger", "index")] = self
+
+    monkeypatch.setattr(digit360_emulator, "Digit360Emulator", Recorded)
+    return started

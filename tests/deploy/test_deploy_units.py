@@ -71,20 +71,17 @@ def test_action_problems():
     assert "shape" in action_problem(np.zeros(15))
 
 
-def test_only_proprioceptive_adapter_free_bundles_deploy():
+def test_only_proprioceptive_bundles_deploy():
     check_deployable(BundleConfig(latent_source="adaptation"), "student")
     with pytest.raises(ValueError, match="'priv'.*student"):
         check_deployable(BundleConfig(latent_source="privileged"), "teacher")
-    with pytest.raises(ValueError, match="adapters is not supported yet"):
+    # an adapter reference deploys as the adapter bundle itself (it reads touch), never as a plain student
+    check_deployable(BundleConfig(latent_source="adaptation", adapter="adapters/x"), "adapter", reads_touch=True)
+    with pytest.raises(ValueError, match="deploy the adapter bundle itself"):
         check_deployable(BundleConfig(latent_source="adaptation", adapter="adapters/x"), "student+adapter")
 
 
 def test_option_errors_before_anything_starts(tmp_path, policy):
-    with pytest.raises(ValueError, match="does not exist"):
-        Config(hand="sim-allegro", policy=policy, adapter=str(tmp_path / "missing.safetensors"))
-    (tmp_path / "adapter").mkdir()
-    with pytest.raises(ValueError, match="not supported by `rotate deploy` yet"):
-        Config(hand="sim-allegro", policy=policy, adapter=str(tmp_path / "adapter"))
     with pytest.raises(ValueError, match="unknown interface"):
         Config(hand="allegro", policy=policy, can="kvaser:0")
     with pytest.raises(ValueError, match="baud"):
@@ -105,8 +102,9 @@ def test_cli_requires_hand_and_policy_and_reports_bad_options(capsys, tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["deploy", "--policy", "student"])
     assert exc.value.code == 2 and "--hand" in capsys.readouterr().err
-    assert main(["deploy", "--hand", "sim-leap", "--policy", "x", "--adapter", str(tmp_path)]) == 2
-    assert "adapters are not supported" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # the adapter bundle is the policy: no separate --adapter
+        main(["deploy", "--hand", "sim-leap", "--policy", "x", "--adapter", str(tmp_path)])
+    assert exc.value.code == 2 and "--adapter" in capsys.readouterr().err
 
 
 def test_digit360_option():

@@ -59,7 +59,7 @@ def test_suite_report_is_well_formed(setup, tmp_path):
     assert by_cond["friction_0.5+mass_+0.1kg"]["added_mass"] == 0.1
     md = (tmp_path / "eval" / "results.md").read_text()
     assert md.count("| teacher |") == 4 and "rotation_rate (rad/s)" in md
-    assert sorted(p.stem for p in (tmp_path / "eval" / "plots").glob("*.png")) == sorted(METRICS)
+    assert sorted(p.stem for p in (tmp_path / "eval" / "plots").glob("*.png")) == sorted([*METRICS, "bars"])
     assert json.loads((tmp_path / "eval" / "config.json").read_text())["suite"] == "perturbations"
 
 

@@ -1,0 +1,303 @@
+"""Adapter bundles: a tactile adapter that names its student and touch encoder, loadable as a policy.
+
+An adapter bundle is a directory::
+
+    <adapter>/config.json          AdapterConfig: kind "adapter", the student and encoder references with the
+                                   sha256 of their weights, the encoder's modalities, the adapter network's sizes,
+                                   the touch refresh period, a free-form card
+    <adapter>/adapter.safetensors  the adapter network's weights (g and the ZeroLinear)
+
+It holds no copy of the student or the encoder: loading resolves both references (a shipped name or a path) and
+refuses weights whose digest differs from the one the adapter was trained with. Loaded, it is an
+:class:`AdaptedPolicy`, which acts like a policy bundle (``config``, ``act``, ``act_batch``, ``latent``) and adds
+touch::
+
+    policy = load_adapter("adapter")                       # shipped, or a directory
+    corr = policy.correction(windows, obs)                 # {finger: {image, audio, imu, pressure}} -> (N, Z)
+    actions = policy.act_batch(obs, correction=corr)       # z = phi(history) + corr; corr None = the student
+
+The correction is refreshed every ``touch_every`` control steps and held in between (touch tells friction and
+mass, which change slowly; rendering and encoding four fingertips every step would cost more than the step).
+Without a correction (no touch yet, a stalled sensor, non-finite embeddings) the policy is exactly its student.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from adapters.model import AdapterNetConfig, TouchAdapter
+from rotation.configs import from_jsonable, to_jsonable
+from rotation.policy.bundle import BundleConfig, BundleError, PolicyBundle, load_bundle, resolve_bundle
+from rotation.tactile.encoders import ENCODERS, SHIPPED_ENCODERS, kind_of, load_encoder, shipped_encoders
+
+KIND = "adapter"
+CONFIG_FILE = "config.json"
+WEIGHTS_FILE = "adapter.safetensors"
+FORMAT_VERSION = 1
+SHIPPED_ADAPTERS = Path(__file__).resolve().parent.parent / "rotation" / "policies"
+"""Adapter bundles ship beside the policy bundles (``rotation/policies/adapter``), so `--policy adapter` finds them."""
+
+MODALITY_WINDOWS = {"img": "image", "mic": "audio", "imu": "imu", "pressure": "pressure"}
+"""Sparsh-X token group -> the window (env `tactile` group, dataset, sensor) it is computed from."""
+
+
+class TouchUnavailable(RuntimeError):
+    """No usable touch for this step (a missing fingertip, a modality the sensors do not stream, non-finite
+    embeddings); the caller acts as the student alone."""
+
+
+@dataclass(frozen=True)
+class AdapterConfig:
+    """What an adapter bundle's config.json holds."""
+
+    student: str
+    """The student bundle it corrects: a shipped name or a directory."""
+    student_sha256: str
+    """sha256 (first 16 hex digits) of the student's model.safetensors."""
+    encoder: str
+    """The frozen touch encoder: a shipped name (rotation/tactile/pretrained) or a checkpoint path."""
+    encoder_sha256: str
+    """sha256 (first 16 hex digits) of the encoder's weights file."""
+    modalities: tuple[str, ...]
+    """Encoder token groups it reads (img, mic, imu, pressure for Sparsh-X); the encoder is restricted to them."""
+    net: AdapterNetConfig
+    """Adapter network sizes."""
+    touch_every: int = 4
+    """Control steps between touch refreshes (the correction is held in between)."""
+    card: dict[str, Any] = field(default_factory=dict)
+    """Free-form metadata: training command, steps, evaluation."""
+    kind: str = KIND
+    format_version: int = FORMAT_VERSION
+
+    def __post_init__(self) -> None:
+        if self.kind != KIND:
+            raise BundleError(f"not an adapter bundle (kind {self.kind!r})")
+        if self.format_version != FORMAT_VERSION:
+            raise BundleError(f"adapter bundle format {self.format_version} is not readable by this version "
+                              f"(reads {FORMAT_VERSION})")
+        if not isinstance(self.touch_every, int) or self.touch_every < 1:
+            raise BundleError(f"touch_every must be an integer >= 1, got {self.touch_every!r}")
+        if tuple(self.modalities) != tuple(n for n, _ in self.net.groups):
+            raise BundleError(f"modalities {self.modalities} differ from the network's token groups "
+                              f"{[n for n, _ in self.net.groups]}")
+
+
+def file_digest(path: Path) -> str:
+    """sha256 (first 16 hex digits) of a file, read in chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()[:16]
+
+
+def student_weights(ref: str) -> Path:
+    return resolve_bundle(ref) / "model.safetensors"
+
+
+def encoder_weights(ref: str) -> Path:
+    """The weights file of an encoder reference (shipped name, run directory or checkpoint file)."""
+    path = Path(ref)
+    if not path.exists() and ref in shipped_encoders():
+        path = SHIPPED_ENCODERS / ref
+    if path.is_dir():
+        path = path / "encoder.safetensors"
+    if not path.is_file():
+        raise BundleError(f"no touch encoder at {ref!r} (shipped encoders: {', '.join(shipped_encoders()) or 'none'})")
+    return path
+
+
+def is_adapter_dir(path: str | Path) -> bool:
+    """True when ``path`` (a directory or a shipped name) holds an adapter bundle."""
+    path = Path(path)
+    if not path.is_dir() and (SHIPPED_ADAPTERS / str(path)).is_dir():
+        path = SHIPPED_ADAPTERS / str(path)
+    cfg = path / CONFIG_FILE
+    if not cfg.is_file() or not (path / WEIGHTS_FILE).is_file():
+        return False
+    try:
+        return json.loads(cfg.read_text()).get("kind") == KIND
+    except (OSError, ValueError):
+        return False
+
+
+def frozen_encoder(ref: str, modalities: tuple[str, ...], device: str = "cpu") -> nn.Module:
+    """The touch encoder of ``ref`` restricted to ``modalities``, in eval mode with gradients off."""
+    try:
+        enc = load_encoder(ref, device=device)
+    except ValueError as err:
+        raise BundleError(str(err)) from None
+    kind = kind_of(enc)
+    try:
+        enc = ENCODERS[kind].restrict(enc, tuple(modalities))
+    except ValueError as err:
+        raise BundleError(f"encoder {ref}: {err}") from None
+    return enc.eval().requires_grad_(False)
+
+
+class AdaptedPolicy:
+    """A student with a tactile adapter: acts like a PolicyBundle, plus :meth:`correction` from touch windows."""
+
+    def __init__(self, adapter_config: AdapterConfig, student: PolicyBundle, encoder: nn.Module,
+                 adapter: TouchAdapter, path: str | None = None) -> None:
+        if student.config.latent_source != "adaptation":
+            raise BundleError(f"an adapter corrects a student (latent_source 'adaptation'), got "
+                              f"{student.config.latent_source!r}")
+        if adapter.cfg.latent_dim != student.config.latent_dim:
+            raise BundleError(f"adapter latent size {adapter.cfg.latent_dim} != the student's "
+                              f"{student.config.latent_dim}")
+        interface = encoder.token_interface
+        if tuple(interface.groups) != tuple((n, c) for n, c in adapter.cfg.groups) or \
+                interface.width != adapter.cfg.width:
+            raise BundleError(f"the encoder's tokens {interface} do not fit the adapter (groups {adapter.cfg.groups}, "
+                              f"width {adapter.cfg.width})")
+        self.adapter_config = adapter_config
+        self.student = student
+        student.net.eval().requires_grad_(False)  # frozen: only the adapter ever learns
+        self.encoder = encoder
+        self.adapter = adapter.eval()
+        self.config: BundleConfig = replace(student.config, adapter=path or "(in memory)",
+                                            touch_encoder=adapter_config.encoder, card=dict(adapter_config.card))
+
+    # ------------------------------------------------------------------ touch
+    @property
+    def fingers(self) -> tuple[str, ...]:
+        """The sensor samples read per step (fingertips)."""
+        return self.adapter.cfg.samples
+
+    @property
+    def touch_every(self) -> int:
+        return self.adapter_config.touch_every
+
+    @property
+    def windows(self) -> tuple[str, ...]:
+        """Window names per fingertip it needs (image, audio, imu, pressure)."""
+        return tuple(MODALITY_WINDOWS.get(m, m) for m in self.adapter_config.modalities)
+
+    def tokens(self, windows: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, torch.Tensor]]:
+        """{finger: {window: (N, ...)}} -> {finger: {group: (N, N_g, D)}} from the frozen encoder (one batched call);
+        TouchUnavailable when a finger or window is missing."""
+        missing = [f for f in self.fingers if f not in windows or windows[f] is None]
+        if missing:
+            raise TouchUnavailable(f"no touch from {', '.join(missing)}")
+        gaps = [f"{f}/{w}" for f in self.fingers for w in self.windows if w not in windows[f] and
+                not (w == "audio" and "audio_wave" in windows[f])]
+        if gaps:
+            raise TouchUnavailable(f"missing touch windows {', '.join(gaps)}")
+        batches = [self.encoder.preprocess(windows[f]) for f in self.fingers]
+        n = next(iter(batches[0].values())).shape[0]
+        inputs = {g: torch.cat([b[g] for b in batches]) for g in batches[0]}  # (F * N, ...)
+        with torch.no_grad():
+            try:
+                out = self.encoder(inputs)
+            except ValueError as err:  # non-finite or malformed windows
+                raise TouchUnavailable(str(err)) from None
+        return {f: {g: t[i * n:(i + 1) * n] for g, t in out.items()} for i, f in enumerate(self.fingers)}
+
+    @torch.no_grad()
+    def student_latent(self, obs: Mapping[str, Any]) -> torch.Tensor:
+        """phi(history): (N, Z) for batched observations."""
+        t = self.student._tensors(dict(obs), batched=True)
+        return self.student.net.extractor.z(t)
+
+    @torch.no_grad()
+    def correction(self, windows: Mapping[str, Mapping[str, Any]], obs: Mapping[str, Any]) -> np.ndarray:
+        """(N, Z) latent correction from touch windows and the batched observation (for phi); TouchUnavailable
+        when touch is missing or the result is not finite."""
+        corr = self.adapter(self.tokens(windows), self.student_latent(obs))
+        if not torch.isfinite(corr).all():
+            raise TouchUnavailable("non-finite touch embeddings")
+        return corr.numpy()
+
+    # ------------------------------------------------------------------ acting (PolicyBundle's interface)
+    @torch.no_grad()
+    def act_batch(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
+        """(N, 16) actions; without a correction exactly the student's."""
+        if correction is None:
+            return self.student.act_batch(dict(obs))
+        t = self.student._tensors(dict(obs), batched=True)
+        z = self.student.net.extractor.z(t) + torch.as_tensor(correction, dtype=torch.float32)
+        return self.student.net.mean(t, z).clamp(-1.0, 1.0).numpy()
+
+    def act(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
+        """One observation (no batch dim) -> (16,) action; ``correction`` (Z,) or (1, Z)."""
+        batched = {k: np.asarray(obs[k])[None] for k in self.config.obs_groups}
+        corr = None if correction is None else np.asarray(correction, np.float32).reshape(1, -1)
+        return self.act_batch(batched, corr)[0]
+
+    def latent(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
+        z = self.student.latent(dict(obs))
+        return z if correction is None else z + np.asarray(correction, np.float32).reshape(z.shape)
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        tensors = {k: v.detach().cpu().contiguous() for k, v in self.adapter.state_dict().items()}
+        bad = [k for k, v in tensors.items() if not torch.isfinite(v).all()]
+        if bad:
+            raise BundleError(f"refusing to save an adapter with non-finite weights: {bad}")
+        save_file(tensors, str(path / WEIGHTS_FILE), metadata={"kind": KIND, "format_version": str(FORMAT_VERSION)})
+        (path / CONFIG_FILE).write_text(json.dumps(to_jsonable(self.adapter_config), indent=2) + "\n")
+        self.config = replace(self.config, adapter=str(path))
+        return path
+
+
+def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch_every: int = 4,
+                  hidden: tuple[int, ...] = (256, 128), with_latent: bool = True, seed: int = 0,
+                  device: str = "cpu") -> AdaptedPolicy:
+    """A fresh adapter (zero correction) for ``student`` reading ``encoder`` restricted to ``modalities``."""
+    from envs.constants import FINGERS
+
+    student_bundle = load_bundle(student)
+    enc = frozen_encoder(encoder, modalities, device)
+    interface = enc.token_interface
+    torch.manual_seed(seed)
+    net = AdapterNetConfig(samples=tuple(FINGERS), groups=tuple(interface.groups), width=interface.width,
+                           latent_dim=student_bundle.config.latent_dim, hidden=tuple(hidden), with_latent=with_latent)
+    cfg = AdapterConfig(student=student, student_sha256=file_digest(student_weights(student)), encoder=encoder,
+                        encoder_sha256=file_digest(encoder_weights(encoder)), modalities=tuple(interface.names),
+                        net=net, touch_every=touch_every)
+    return AdaptedPolicy(cfg, student_bundle, enc, TouchAdapter(net).to(device))
+
+
+def load_adapter(name_or_path: str | Path, device: str = "cpu") -> AdaptedPolicy:
+    """Load an adapter bundle (a directory or a shipped name), resolving and checking its student and encoder."""
+    path = Path(name_or_path)
+    if not path.is_dir() and (SHIPPED_ADAPTERS / str(name_or_path)).is_dir():
+        path = SHIPPED_ADAPTERS / str(name_or_path)
+    if not is_adapter_dir(path):
+        raise BundleError(f"{name_or_path}: not an adapter bundle (needs {CONFIG_FILE} with kind 'adapter' and "
+                          f"{WEIGHTS_FILE})")
+    try:
+        cfg = from_jsonable(AdapterConfig, json.loads((path / CONFIG_FILE).read_text()))
+    except (TypeError, ValueError, KeyError) as err:
+        raise BundleError(f"{path / CONFIG_FILE}: {err}") from None
+    for what, ref, want, weights in (("student", cfg.student, cfg.student_sha256, student_weights),
+                                     ("encoder", cfg.encoder, cfg.encoder_sha256, encoder_weights)):
+        try:
+            got = file_digest(weights(ref))
+        except BundleError as err:
+            raise BundleError(f"adapter {path}: its {what} {ref!r} cannot be found ({err})") from None
+        if got != want:
+            raise BundleError(f"adapter {path} was trained for the {what} {ref!r} with weights sha256 {want}, but "
+                              f"{ref!r} now has {got}: retrain the adapter for this {what}")
+    student = load_bundle(cfg.student)
+    encoder = frozen_encoder(cfg.encoder, cfg.modalities, device)
+    adapter = TouchAdapter(cfg.net)
+    try:
+        adapter.load_state_dict(load_file(str(path / WEIGHTS_FILE)), strict=True)
+    except (SafetensorError, RuntimeError, OSError) as err:
+        raise BundleError(f"{path / WEIGHTS_FILE}: {str(err).splitlines()[0]}") from None
+    return AdaptedPolicy(cfg, student, encoder, adapter.to(device), path=str(path))

@@ -1,0 +1,140 @@
+"""The simulation path of `rotate finetune-adapter` (adapters.finetune; its module docstring describes it).
+
+DAgger over the batched env with simulated Digit 360 fingertips: every ``touch_every`` control steps the windows of
+every env are encoded once into the TokenBuffer and ``updates`` Adam steps draw minibatches from it; checkpoint
+intervals start from fresh resets and an empty buffer, so a resumed run is bit-identical.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import time
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from adapters.bundle import TouchUnavailable
+from adapters.finetune import Job, Result, TokenBuffer, adam_step, log_point
+from rotation.evaluate.metrics import EpisodeTracker, summarize
+from rotation.interrupt import StopSignals
+
+
+def train_in_sim(job: Job) -> Result:
+    """Train ``job``'s adapter in simulation (the module docstring); returns the bundle and the history."""
+    cfg, policy, teacher, optim = job.cfg, job.policy, job.teacher, job.optim
+    adapter = policy.adapter
+    n, k = cfg.num_envs, cfg.touch_every
+    total_iters = math.ceil(cfg.total_steps / n)
+    interval = max(k, round(cfg.checkpoint_every / n / k) * k)  # whole touch periods
+    start_iter = job.start
+
+    from rotation.sim_warp.host import make_vec
+
+    env = make_vec("cpu", cfg.env, num_envs=n, seed=cfg.seed, nthread=cfg.nthread or None, device="cpu")
+    curves, writer = job.open_outputs("env_steps", start_iter * n)
+
+    interface = adapter.interface
+    buffer = TokenBuffer(cfg.buffer_size, adapter.cfg.samples, interface.counts, interface.width,
+                         adapter.cfg.latent_dim)
+    tracker = EpisodeTracker(n, cfg.env.control_dt, cfg.env.episode_steps)
+    history: list[dict[str, float]] = []
+    sums: dict[str, float] = {}
+    episodes: list = []
+    correction = np.zeros((n, adapter.cfg.latent_dim), np.float32)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    bar = tqdm(total=total_iters * n, initial=start_iter * n, unit="step", disable=not cfg.progress,
+               desc="finetune-adapter", dynamic_ncols=True)
+    t_log = time.perf_counter()
+    obs: dict[str, Any] = {}
+    done_iters, flushed, signum, refreshes = start_iter, 0, None, 0
+    stop = StopSignals()
+    try:
+        stop.__enter__()
+        for it in range(start_iter, total_iters):
+            if it == start_iter or it % interval == 0:  # fresh resets, empty buffer, reseeded minibatches
+                obs = env.reset(seed=cfg.seed + it * n)
+                tracker.begin(obs)
+                buffer.clear()
+                gen.manual_seed(cfg.seed + it)
+                correction[:] = 0.0
+            groups = {key: obs[key] for key in policy.config.obs_groups}
+            if it % k == 0:
+                t_obs = {key: torch.as_tensor(obs[key]) for key in teacher.config.obs_groups}
+                with torch.no_grad():
+                    z_teacher = teacher.net.extractor.z(t_obs)
+                    z_student = policy.student_latent(groups)
+                windows = {f: {w: obs["tactile"][f][w] for w in policy.windows} for f in policy.fingers}
+                try:
+                    tokens = policy.tokens(windows)
+                except TouchUnavailable as err:  # cannot happen in simulation unless the renderer breaks
+                    raise RuntimeError(f"simulated touch unusable: {err}") from None
+                buffer.add(tokens, z_student, z_teacher)
+                with torch.no_grad():
+                    corr = adapter(tokens, z_student)
+                correction[:] = corr.numpy()
+                # errors on the fresh samples, before the adapter trains on them
+                _add(sums, "latent_mse", float(((z_student + corr - z_teacher) ** 2).mean()))
+                _add(sums, "student_mse", float(((z_student - z_teacher) ** 2).mean()))
+                loss_sum = 0.0
+                adapter.train()
+                for _ in range(cfg.updates):
+                    idx = torch.randint(0, buffer.size, (min(cfg.batch_size, buffer.size),), generator=gen)
+                    loss_sum += adam_step(adapter, optim, *buffer.batch(idx))
+                adapter.eval()
+                _add(sums, "train_loss", loss_sum / max(cfg.updates, 1))
+                refreshes += 1
+            adapted = it * n >= cfg.student_steps
+            actions = policy.act_batch(groups, correction=correction if adapted else None)
+            obs, reward, terminated, truncated, info = env.step(actions)
+            episodes += tracker.step(reward, terminated, truncated, info)
+            done = np.flatnonzero(terminated | truncated)
+            if len(done):
+                obs = env.reset(ids=done)
+                tracker.begin(obs, done)
+                correction[done] = 0.0  # a fresh episode starts as the student until its first touch refresh
+            bar.update(n)
+            if (it % k == 0 and refreshes % cfg.log_every == 0) or it + 1 == total_iters:
+                if refreshes:
+                    now = time.perf_counter()
+                    point: dict[str, float] = {"iteration": it + 1, "env_steps": (it + 1) * n,
+                                               "adapted": float(adapted)}
+                    point.update({key: v / refreshes for key, v in sums.items()})
+                    point["steps_per_s"] = refreshes * k * n / max(now - t_log, 1e-9)
+                    if episodes:
+                        s = summarize(episodes)
+                        point.update(rotation_rate=s["rotation_rate"], ttf=s["ttf"], ep_length=s["length"])
+                    log_point(writer, point, "env_steps")
+                    history.append(point)
+                    bar.set_postfix(latent_mse=f"{point['latent_mse']:.4f}",
+                                    student_mse=f"{point['student_mse']:.4f}")
+                    sums, refreshes, episodes, t_log = {}, 0, [], now
+            done_iters = it + 1
+            if (it + 1) % interval == 0 or it + 1 == total_iters or stop.requested:
+                job.checkpoint(it + 1)
+                curves.append(history[flushed:])
+                flushed = len(history)
+            if stop.requested:
+                break
+    except KeyboardInterrupt as err:
+        signum = getattr(err, "signum", signal.SIGINT)
+        job.checkpoint(done_iters)
+        curves.append(history[flushed:])
+    finally:
+        stop.__exit__(None, None, None)
+        bar.close()
+        writer.close()
+        env.close()
+    signum = signum or stop.signum
+
+    card: dict[str, Any] = {"env_steps": done_iters * n}
+    if history:
+        card["final_latent_mse"] = history[-1]["latent_mse"]
+        card["final_student_mse"] = history[-1]["student_mse"]
+    return job.finish(card, history, signum, f"{done_iters * n} env steps", f"{total_iters * n}")
+
+
+def _add(sums: dict[str, float], key: str, value: float) -> None:
+    sums[key] = sums.get(key, 0.0) + value

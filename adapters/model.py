@@ -1,0 +1,106 @@
+"""The tactile adapter network: frozen touch tokens -> a correction of the student's latent.
+
+    z_hat = phi(history) + ZeroLinear(g(pooled fingertip tokens, phi(history)))
+
+``g`` pools each sensor sample's tokens (one Digit 360 fingertip for Sparsh-X, the whole hand for Sparsh-skin)
+with one attentive pooler shared by the samples (rotation.tactile.pooling, over ``TokenInterface.concat``: every
+token group layer-normed, so any encoder and any modality subset plug in unchanged), adds a learned per-sample
+embedding (which finger), concatenates the samples and, optionally, the student's own latent, and runs a small MLP.
+``ZeroLinear`` is a linear layer whose weight and bias start at exactly zero (ControlNet's "zero convolution"):
+at initialization the correction is exactly 0.0, so the adapted policy acts bit for bit like its student, and
+training can only move it away from there as far as the latent error pays for.
+
+Shapes (B = batch, S = sensor samples per step, e.g. 4 fingertips, N = tokens, D = encoder width, Z = latent)::
+
+    tokens  {sample: {group: (B, N_g, D)}}   -> pooled (B, S, D) -> g (B, H) -> ZeroLinear -> (B, Z)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from rotation.policy.networks import mlp
+from rotation.tactile.pooling import AttentivePooler
+from rotation.tactile.tokens import TokenInterface
+
+
+@dataclass(frozen=True)
+class AdapterNetConfig:
+    """Sizes of the adapter network (saved in the adapter bundle's config.json)."""
+
+    samples: tuple[str, ...]
+    """Sensor samples per step, in order (Sparsh-X: the fingertips, e.g. index, middle, ring, thumb)."""
+    groups: tuple[tuple[str, int], ...]
+    """The encoder's token groups it reads, (name, count) in the encoder's order (its TokenInterface)."""
+    width: int
+    """Token width D of the encoder."""
+    latent_dim: int = 8
+    """Size of the student's latent z that the adapter corrects."""
+    hidden: tuple[int, ...] = (256, 128)
+    """Hidden widths of g's MLP (ELU after each)."""
+    pool_heads: int = 4
+    """Attention heads of the pooler (the width must be a multiple)."""
+    with_latent: bool = True
+    """Also feed g the student's own latent phi(history) (proprioceptive features)."""
+
+    def __post_init__(self) -> None:
+        if not self.samples or len(set(self.samples)) != len(self.samples):
+            raise ValueError(f"adapter: samples must be distinct names, got {self.samples}")
+        if self.width < 1 or self.width % self.pool_heads:
+            raise ValueError(f"adapter: width {self.width} must be a positive multiple of pool_heads "
+                             f"{self.pool_heads}")
+        if self.latent_dim < 1 or not self.hidden or min(self.hidden) < 1:
+            raise ValueError(f"adapter: latent_dim {self.latent_dim} and hidden {self.hidden} must be positive")
+        TokenInterface(tuple((str(n), int(c)) for n, c in self.groups), self.width)  # validates the groups
+
+    @property
+    def interface(self) -> TokenInterface:
+        return TokenInterface(tuple((str(n), int(c)) for n, c in self.groups), self.width)
+
+
+class ZeroLinear(nn.Linear):
+    """A linear layer that starts as the zero map: weight and bias exactly 0.0 (ControlNet's zero convolution)."""
+
+    def reset_parameters(self) -> None:
+        nn.init.zeros_(self.weight)
+        if self.bias is not None:
+            nn.init.zeros_(self.bias)
+
+
+class TouchAdapter(nn.Module):
+    """g + ZeroLinear: ``forward(tokens, z_student) -> (B, Z)`` correction added to the student's latent."""
+
+    def __init__(self, cfg: AdapterNetConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.interface = cfg.interface
+        s, d = len(cfg.samples), cfg.width
+        self.pool = AttentivePooler(d, cfg.pool_heads)
+        self.sample_embed = nn.Parameter(torch.zeros(s, d))
+        nn.init.trunc_normal_(self.sample_embed, std=0.02)
+        self.g = mlp([s * d + (cfg.latent_dim if cfg.with_latent else 0), *cfg.hidden], nn.ELU, activate_last=True)
+        self.zero = ZeroLinear(cfg.hidden[-1], cfg.latent_dim)
+
+    def pooled(self, tokens: dict[str, dict[str, Tensor]]) -> Tensor:
+        """{sample: {group: (B, N_g, D)}} -> (B, S, D): one attentive pooling per sample, plus its embedding."""
+        missing = [s for s in self.cfg.samples if s not in tokens]
+        if missing:
+            raise ValueError(f"adapter: no tokens for {missing} (it reads {list(self.cfg.samples)})")
+        parts = [self.interface.concat({g: tokens[s][g] for g in self.interface.names}) for s in self.cfg.samples]
+        b = parts[0].shape[0]
+        flat = torch.cat(parts, dim=0)  # (S * B, N, D): one pooler call for every sample
+        pooled = self.pool(flat).view(len(parts), b, -1).transpose(0, 1)  # (B, S, D)
+        return pooled + self.sample_embed.to(pooled.dtype)
+
+    def from_pooled(self, pooled: Tensor, z_student: Tensor) -> Tensor:
+        """(B, S, D) pooled features and the student's (B, Z) latent -> (B, Z) correction."""
+        x = pooled.flatten(1)  # (B, S * D)
+        if self.cfg.with_latent:
+            x = torch.cat([x, z_student.to(x.dtype)], dim=-1)
+        return self.zero(self.g(x))
+
+    def forward(self, tokens: dict[str, dict[str, Tensor]], z_student: Tensor) -> Tensor:
+        return self.from_pooled(self.pooled(tokens), z_student)

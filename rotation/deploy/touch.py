@@ -1,0 +1,391 @@
+"""Touch during deploy: a tactile adapter's correction, refreshed on its own thread, with the documented fallback.
+
+A touch-reading policy (an adapter bundle, adapters.bundle.AdaptedPolicy) is its student plus a latent correction
+computed from the Digit 360 windows of every fingertip it reads. Touch tells friction and mass, which change
+slowly, and encoding four fingertips costs more than a control period, so (as in training and evaluation) the
+correction is refreshed every ``policy.touch_every`` control steps and held in between:
+
+- :class:`TouchWorker` runs the refreshes on its own thread (torch limited to one thread there, so the control loop
+  and the drivers keep the other core). When a refresh is due (``touch_every`` steps after the previous one) the
+  loop hands that step's observation over without waiting, once the policy has acted on it (so the refresh runs
+  in the step's slack, not beside the policy's inference); the worker reads ``reader.window()`` of each fingertip
+  at that moment, batches them (N = 1) and computes ``policy.correction(windows, obs)``. A refresh that falls due
+  while the previous one is still running starts at the first step after it (counted as delayed; a worker that is
+  slower than the refresh period is reported once, with its time).
+- The loop never waits for touch: every step acts with the newest finished correction, or as the student alone.
+
+Fallback (the student alone, ``correction=None``): no usable correction because a fingertip's stream stalled
+(``SensorStale``), a reader raised, a window lacks a modality the adapter reads, the embeddings were not finite
+(``TouchUnavailable``), the worker itself raised (a bug: logged with its traceback), or the newest correction is
+older than ``max_age_s`` (the worker is behind or hung; ``STALE_REFRESHES`` refresh periods, at least
+``MIN_STALE_S``). Entering the fallback logs ONE warning naming the cause; leaving it logs one info line (a cause
+that keeps coming back is warned about again every ``REPEAT_WARN_EVERY``-th time, at info in between). Touch never
+stops the hand.
+
+Which sensors a touch-reading policy needs (:func:`touch_sensors`) is checked before anything starts: on an emulated
+hand without ``--digit360`` the emulated fingertips are started for it; on a real hand every fingertip the adapter
+reads must be named by ``--digit360`` and stream every window it reads, else it is a ValueError (motors never on).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import statistics
+import threading
+import time
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from rotation.deploy.sensors import digit360_windows
+
+log = logging.getLogger(__name__)
+
+STALE_REFRESHES = 3.0
+"""A correction older than this many refresh periods (``touch_every`` control periods), and at least
+``MIN_STALE_S``, is dropped (its age: since the observation and windows it was computed from)."""
+MIN_STALE_S = 1.0
+"""Floor of the staleness limit (s). A worker that keeps up replaces a correction at an age of about one refresh
+period plus its refresh time; a slow but working one (on a loaded 2-core machine an all-modality refresh took
+0.3-0.5 s) at about twice its refresh time, which 3 periods of a ``touch_every`` 4 adapter at 20 Hz (0.6 s) would
+drop every cycle; the object properties touch estimates (friction, mass) do not change within a second, and a hung
+worker is still caught within it (1.2 s for ``touch_every`` 8 at 20 Hz)."""
+SLOW_REFRESHES = 5
+"""Refreshes in a row longer than the refresh period that are reported (once) as a worker too slow for the adapter."""
+REPEAT_WARN_EVERY = 20
+"""A fallback cause that comes back is warned about again every this many times (info in between)."""
+WARM_UP_S = 5.0
+"""Longest wait (s) before the clock starts for the first correction (the sensors' windows need about 1.2 s of
+history after they open); without one by then the run starts in the fallback."""
+
+
+def reads_touch(policy: Any) -> bool:
+    """True for a policy that reads touch (a tactile adapter bundle: ``correction``, ``fingers``, ``windows``)."""
+    return all(hasattr(policy, name) for name in ("correction", "fingers", "windows", "touch_every"))
+
+
+def touch_sensors(policy: Any, name: str, specs: dict[str, str], emulated: bool) -> dict[str, str]:
+    """The ``--digit360`` sensors to open for ``policy`` ({finger: spec}, as rotation.deploy.sensors.parse_digit360).
+
+    Emulated hand without ``--digit360``: emulated fingertips on every finger ('sim', logged). Otherwise every
+    fingertip the adapter reads must be named and its sensor must give every window the adapter reads; ValueError
+    (naming the fingers or windows, and the fix) when not, before anything is started.
+    """
+    if not specs and emulated:
+        log.info("policy %s reads touch (%s from %s): starting emulated Digit 360 fingertips (--digit360 sim)",
+                 name, ", ".join(policy.windows), ", ".join(policy.fingers))
+        return {finger: "sim" for finger in policy.fingers}
+    missing = [f for f in policy.fingers if f not in specs]
+    if missing:
+        given = f"--digit360 names {', '.join(specs)}" if specs else "no --digit360 was given"
+        raise ValueError(f"policy {name!r} reads touch ({', '.join(policy.windows)}) from the fingertips "
+                         f"{', '.join(policy.fingers)}, but {given}: name a Digit 360 for each of "
+                         f"{', '.join(missing)} (e.g. --digit360 {','.join(f'{f}=SERIAL' for f in policy.fingers)})"
+                         + ("" if emulated else ", or deploy the student alone (--policy student)"))
+    gaps = {f: [w for w in policy.windows if w not in digit360_windows(specs[f], emulated)] for f in policy.fingers}
+    gaps = {f: w for f, w in gaps.items() if w}
+    if gaps:
+        lacking = "; ".join(f"{f}={specs[f]} gives {', '.join(digit360_windows(specs[f], emulated))}, not "
+                            f"{', '.join(w)}" for f, w in gaps.items())
+        raise ValueError(f"policy {name!r} reads the touch windows {', '.join(policy.windows)}, which its "
+                         f"--digit360 sensors do not all stream ({lacking}). Deploy an adapter that reads only what "
+                         "the sensors give (e.g. imu, pressure), or the student alone")
+    return specs
+
+
+def adapter_inputs(window: Mapping[str, Any], names: tuple[str, ...], finger: str) -> dict[str, np.ndarray]:
+    """One reader window (rotation.hardware.digit360: image (6, 224, 224) uint8, audio (2, 27000) int16, imu
+    (224, 3) g, pressure (224, 1) hPa) -> the adapter's batch-of-one inputs of the windows ``names``: image as the
+    contract's float32 in [0, 1] (as the env's ``tactile`` group), audio as ``audio_wave`` int16 (the encoder's
+    preprocessing runs the filterbank). TouchUnavailable naming the finger when a window is missing."""
+    from adapters.bundle import TouchUnavailable
+
+    gaps = [n for n in names if n not in window]
+    if gaps:
+        raise TouchUnavailable(f"digit360 {finger}: its window has no {', '.join(gaps)}")
+    out: dict[str, np.ndarray] = {}
+    for n in names:
+        x = np.asarray(window[n])
+        if n == "image":
+            x = x.astype(np.float32) / np.float32(255.0)  # uint8 -> [0, 1], channel order unchanged
+        out["audio_wave" if n == "audio" else n] = x[None]  # (1, ...)
+    return out
+
+
+@dataclass
+class TouchStats:
+    """What the touch side did in one run (the summary's ``touch``)."""
+
+    touch_every: int
+    """Control steps between refreshes (the adapter's)."""
+    max_age_s: float
+    """Staleness limit (s): older corrections were dropped."""
+    refreshes: int = 0
+    """Corrections computed (the warm-up's not counted)."""
+    failed_refreshes: int = 0
+    """Refreshes without a correction (stalled stream, missing window, non-finite embeddings, worker error)."""
+    delayed_refreshes: int = 0
+    """Refreshes that fell due while the worker was still busy with the previous one (started later)."""
+    adapter_steps: int = 0
+    """Steps acted with a correction."""
+    fallback_steps: int = 0
+    """Steps acted as the student alone (touch unusable, or no correction yet)."""
+    fallbacks: int = 0
+    """Times the fallback started (each logged: a warning the first time per cause)."""
+    refresh_s: list[float] = field(default_factory=list)
+    """Duration (s) of every refresh (windows + correction), successful or not."""
+    last_cause: str | None = None
+    """Why the last fallback started."""
+
+    def summary(self) -> dict[str, Any]:
+        ms = [1e3 * t for t in self.refresh_s]
+        return {"touch_every": self.touch_every, "max_age_ms": 1e3 * self.max_age_s, "refreshes": self.refreshes,
+                "failed_refreshes": self.failed_refreshes, "delayed_refreshes": self.delayed_refreshes,
+                "adapter_steps": self.adapter_steps, "fallback_steps": self.fallback_steps,
+                "fallbacks": self.fallbacks, "refresh_ms_p50": statistics.median(ms) if ms else None,
+                "refresh_ms_max": max(ms) if ms else None, "last_fallback_cause": self.last_cause}
+
+
+@dataclass(frozen=True)
+class _Result:
+    """One finished refresh: the correction (Z,) or None with the cause (and the exception of a bug)."""
+
+    seq: int
+    t_obs: float
+    """Host time (s) of the observation and windows it was computed from."""
+    correction: np.ndarray | None
+    cause: str | None = None
+    error: BaseException | None = None
+    """The exception of a bug-level failure (logged with its traceback); None for the expected ones."""
+
+
+class TouchWorker:
+    """Refreshes ``policy``'s touch correction from ``readers`` ({finger: Digit360}) on a daemon thread.
+
+    The control loop calls, once per control step, :meth:`correction` before the policy acts (the correction to act
+    with; None: act as the student alone) and :meth:`refresh_if_due` once the policy has acted (so that the refresh
+    starts in the slack of the step, not beside the policy's inference). Neither blocks. See the module docstring.
+    """
+
+    def __init__(self, policy: Any, readers: Mapping[str, Any], control_period_s: float,
+                 stale_refreshes: float = STALE_REFRESHES) -> None:
+        self.policy = policy
+        self.readers = dict(readers)
+        self.every = int(policy.touch_every)
+        self.refresh_period_s = self.every * control_period_s
+        self.stats = TouchStats(touch_every=self.every,
+                                max_age_s=max(stale_refreshes * self.refresh_period_s, MIN_STALE_S))
+        self._groups = tuple(policy.config.obs_groups)
+        self._cv = threading.Condition()
+        self._request: tuple[int, float, dict[str, np.ndarray]] | None = None
+        self._busy = False
+        self._stop = False
+        self._latest: _Result | None = None
+        self._state = "starting"
+        """'starting' (no correction yet, nothing logged), 'acting' (the adapter acts) or 'fallback' (the student
+        alone since ``_fallback_since``, after one warning)."""
+        self._fallback_since = 0.0
+        self._last_request: int | None = None  # control step of the newest refresh request
+        self._delayed = False  # the due refresh found the worker busy (counted once)
+        self._slow_reported = False
+        self._causes: Counter[str] = Counter()  # fallbacks per cause (its message without the numbers)
+        self._thread = threading.Thread(target=self._run, name="touch-worker", daemon=True)
+        self._thread.start()
+
+    @property
+    def active(self) -> bool:
+        """True while the adapter acts (the status line's ``touch on``)."""
+        return self._state == "acting"
+
+    @property
+    def max_age_s(self) -> float:
+        """Corrections older than this (s, since their observation) are dropped."""
+        return self.stats.max_age_s
+
+    @property
+    def busy(self) -> bool:
+        """True while a refresh is running."""
+        with self._cv:
+            return self._busy
+
+    # ------------------------------------------------------------------ the control loop's side
+    def refresh_if_due(self, step: int, obs: Mapping[str, np.ndarray], now: float) -> None:
+        """Control step ``step``, observation ``obs`` taken at host time ``now``: request a refresh from it when one is
+        due (``touch_every`` steps after the previous request) and the worker is free; never waits."""
+        if self._last_request is None or step - self._last_request >= self.every:
+            if self.request(step, obs, now):
+                self._last_request, self._delayed = step, False
+            elif not self._delayed:
+                self.stats.delayed_refreshes += 1
+                self._delayed = True
+
+    def request(self, seq: int, obs: Mapping[str, np.ndarray], now: float) -> bool:
+        """Ask for a refresh from observation ``seq`` (taken at host time ``now``); False while the previous refresh
+        is still running (nothing queued)."""
+        with self._cv:
+            if self._busy or self._stop:
+                return False
+            self._request, self._busy = (seq, now, {k: np.asarray(obs[k]) for k in self._groups}), True
+            self._cv.notify_all()
+            return True
+
+    def correction(self, step: int, now: float) -> np.ndarray | None:
+        """The correction to act with at control step ``step`` (host time ``now``): the newest finished one if it is
+        usable and younger than ``max_age_s``, else None (the student alone). Counts the step, and logs when the
+        fallback starts (warning, with the cause) and ends (info)."""
+        result = self._latest  # one reference read: the worker replaces it whole
+        cause, error = None, None
+        if result is None:
+            cause = "no touch correction yet"
+        elif result.correction is None:
+            cause, error = result.cause, result.error
+        elif now - result.t_obs > self.max_age_s:
+            cause = (f"the newest touch correction is {1e3 * (now - result.t_obs):.0f} ms old (> "
+                     f"{1e3 * self.max_age_s:.0f} ms): the touch worker is behind")
+        if cause is None:
+            self.stats.adapter_steps += 1
+            if self._state == "starting":
+                log.info("step %d: first touch correction; the adapter acts", step)
+            elif self._state == "fallback":
+                log.info("step %d: touch is back; the adapter acts again after %.2f s as the student alone", step,
+                         now - self._fallback_since)
+            self._state = "acting"
+            return result.correction  # type: ignore[union-attr]
+        self.stats.fallback_steps += 1
+        if self._state == "acting" or (self._state == "starting" and result is not None):
+            self._enter_fallback(f"step {step}", cause, error, now)
+        return None
+
+    def warm_up(self, obs: Mapping[str, np.ndarray], timeout_s: float = WARM_UP_S) -> float | None:
+        """Before the clock starts: refresh until the first correction is computed or ``timeout_s`` has passed
+        (the sensors need history first; the first encoder call allocates). Returns how long it took (s), or None
+        (warning logged: the run starts in the fallback). The warm-up's refreshes are not counted in the stats."""
+        start = time.monotonic()
+        result: _Result | None = None
+        attempt = 0
+        while time.monotonic() - start < timeout_s:
+            attempt += 1
+            if not self.request(-attempt, obs, time.monotonic()):
+                break  # still busy with an earlier attempt that outlived its wait
+            result = self._wait(-attempt, start + timeout_s - time.monotonic())
+            if result is not None and result.correction is not None:
+                break
+            time.sleep(0.1)  # the sensors' windows are not ready yet: try again
+        with self._cv:
+            self.stats.refreshes = self.stats.failed_refreshes = 0
+            self.stats.refresh_s.clear()
+        if result is not None and result.correction is not None:
+            return time.monotonic() - start  # the loop's first step logs that the adapter acts
+        cause = "no touch window within the warm-up" if result is None else result.cause
+        self._enter_fallback("before the start", f"{cause}; waited {timeout_s:.0f} s",
+                             None if result is None else result.error, time.monotonic())
+        return None
+
+    def _enter_fallback(self, when: str, cause: str | None, error: BaseException | None, now: float) -> None:
+        """Start acting as the student alone: one warning naming the cause. A cause that keeps coming back (its
+        message up to the numbers: a worker slower than the limit, a flaky stream) warns again only every
+        ``REPEAT_WARN_EVERY``-th time and is logged at info in between."""
+        self.stats.fallbacks += 1
+        self.stats.last_cause = cause
+        self._state, self._fallback_since = "fallback", now
+        kind = re.sub(r"\d+(\.\d+)?", "#", cause or "")
+        self._causes[kind] += 1
+        n = self._causes[kind]
+        level = logging.WARNING if n == 1 or n % REPEAT_WARN_EVERY == 0 else logging.INFO
+        again = "" if n == 1 else f" ({n} times so far)"
+        log.log(level, "%s: touch unavailable (%s)%s; acting as the student alone until it is back", when, cause,
+                again, exc_info=error)
+
+    def close(self) -> None:
+        """Stop the thread without waiting for a refresh in progress (it ends after its current step: reading the
+        windows or encoding them). Called by the control loop while the motors may still be on: never blocks."""
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+
+    def join(self, timeout_s: float) -> bool:
+        """After :meth:`close`, once the hand is off: wait for a refresh in progress to end (a torch call still running
+        on a daemon thread when the interpreter exits aborts the process). False (logged) if it did not."""
+        self._thread.join(timeout=timeout_s)
+        if self._thread.is_alive():
+            log.warning("touch worker still busy %.1f s after the run; leaving it behind", timeout_s)
+            return False
+        return True
+
+    # ------------------------------------------------------------------ the worker's side
+    def _wait(self, seq: int, timeout: float) -> _Result | None:
+        with self._cv:
+            self._cv.wait_for(lambda: self._latest is not None and self._latest.seq == seq, timeout=max(timeout, 0))
+            return self._latest if self._latest is not None and self._latest.seq == seq else None
+
+    def _refresh(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """One correction (Z,) from every fingertip's window now and ``obs``; raises when touch is unusable."""
+        import torch
+
+        from adapters.bundle import TouchUnavailable
+
+        names = tuple(self.policy.windows)
+        serial_only = not {"image", "audio"} & set(names)  # an emulated camera and microphones render on request
+        windows = {}
+        for finger in self.policy.fingers:
+            reader = self.readers.get(finger)
+            if reader is None:
+                raise TouchUnavailable(f"no Digit 360 on {finger}")
+            windows[finger] = adapter_inputs(reader.window(serial_only=serial_only), names, finger)
+        if self._stop:  # closed meanwhile: do not start encoding
+            raise TouchUnavailable("the run ended")
+        batched = {k: v[None] for k, v in obs.items()}  # (1, ...)
+        with torch.inference_mode():
+            correction = np.asarray(self.policy.correction(windows, batched), dtype=np.float32)[0]  # (Z,)
+        if not np.all(np.isfinite(correction)):  # the policy checks too; nothing non-finite reaches the actor
+            raise TouchUnavailable("non-finite touch correction")
+        return correction
+
+    def _run(self) -> None:
+        import torch
+
+        from adapters.bundle import TouchUnavailable
+        from rotation.hardware.digit360 import SensorStale
+        from rotation.hardware.digit360_window import WindowNotReady
+
+        torch.set_num_threads(1)  # this thread's intra-op pool: the control loop and the drivers keep their core
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._request is not None or self._stop)
+                if self._stop:
+                    return
+                seq, t_obs, obs = self._request  # type: ignore[misc]
+                self._request = None
+            start = time.monotonic()
+            try:
+                result = _Result(seq, t_obs, self._refresh(obs))
+            except (SensorStale, WindowNotReady, TouchUnavailable) as err:  # the expected ways touch goes missing
+                result = _Result(seq, t_obs, None, f"{type(err).__name__}: {err}")
+            except Exception as err:  # a reader's or the encoder's bug must not stop the hand: fall back, say why
+                result = _Result(seq, t_obs, None, f"the touch refresh raised {type(err).__name__}: {err}", err)
+            with self._cv:
+                self.stats.refresh_s.append(time.monotonic() - start)
+                if result.correction is None:
+                    self.stats.failed_refreshes += 1
+                else:
+                    self.stats.refreshes += 1
+                self._latest = result
+                self._busy = False
+                self._cv.notify_all()
+            self._report_if_slow()
+
+    def _report_if_slow(self) -> None:
+        """Warn once when the recent refreshes take longer than the refresh period (the adapter then sees touch
+        less often than it was trained with; the loop is not slowed down)."""
+        recent = self.stats.refresh_s[-SLOW_REFRESHES:]
+        if self._slow_reported or len(recent) < SLOW_REFRESHES or min(recent) <= self.refresh_period_s:
+            return
+        self._slow_reported = True
+        log.warning("touch refreshes take %.0f-%.0f ms, longer than the adapter's refresh period (%d steps, %.0f ms): "
+                    "its correction is refreshed less often than in training (a busy or slow machine; an adapter "
+                    "reading fewer windows is cheaper)", 1e3 * min(recent), 1e3 * max(recent), self.every,
+                    1e3 * self.refresh_period_s)

@@ -1,0 +1,119 @@
+"""Benchmark: one control step of the student with the tactile adapter on the CPU, from raw fingertip windows.
+
+A touch step is what the policy does when its touch correction is refreshed: the four fingertips' raw windows as
+the Digit 360 reader gives them (image frames uint8 (2, 224, 224, 3), audio int16 (2, 27000), IMU (224, 3) g,
+pressure (224, 1) hPa; random values, the cost does not depend on them) go through the encoder's preprocessing
+(the audio filterbank included) and the frozen tinier Sparsh-X encoder in one batch of four, then the adapter,
+then the student acts with the corrected latent. Between refreshes (``touch_every`` steps) the policy is the
+student with a held correction.
+
+Figures (medians over ``iters`` timed calls after 2 untimed ones, ``threads`` torch threads, torch.inference_mode):
+
+- ``step_ms``: a touch step with every modality (image, audio, IMU, pressure); the target is under 50 ms on 2 cores;
+- ``step_img_ms``: the same with the image-only adapter;
+- ``student_ms``: a step of the student alone (what the steps between refreshes cost);
+- ``amortized_ms``: the mean step cost at the adapter's refresh period, (step + (touch_every - 1) x student) /
+  touch_every.
+
+The last line printed is a JSON object with every figure.
+
+    python scripts/bench_adapter.py
+    python scripts/bench_adapter.py --threads 1 --iters 30 --adapter runs/adapter/bundle
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from rotation.configs import script_main
+
+
+@dataclass
+class Config:
+    """Benchmark settings."""
+
+    adapter: str = ""
+    """An adapter bundle to time (its student, encoder and modalities); empty: fresh adapters for the shipped
+    student and encoder (the cost is the same as a trained one's)."""
+    encoder: str = "sparshx-tinier-sim"
+    """Encoder of the fresh adapters."""
+    threads: int = 2
+    """torch intra-op threads."""
+    iters: int = 20
+    """Timed calls per figure."""
+    touch_every: int = 8
+    """Refresh period for ``amortized_ms`` (a given adapter bundle's own period overrides it)."""
+    seed: int = 0
+    """Seed of the random windows and observations."""
+
+
+def raw_windows(fingers: tuple[str, ...], rng: np.random.Generator) -> dict[str, dict[str, np.ndarray]]:
+    """One batch-of-one raw window per fingertip, shaped as rotation.hardware.digit360's ``window()`` returns it."""
+    return {f: {"image": rng.integers(0, 256, (1, 2, 224, 224, 3), dtype=np.uint8),
+                "audio_wave": rng.integers(-2000, 2000, (1, 2, 27000), dtype=np.int16),
+                "imu": rng.normal(0.0, 0.05, (1, 224, 3)).astype(np.float32) + np.float32([0, 0, 1]),
+                "pressure": (1000.0 + rng.gamma(2.0, 5.0, (1, 224, 1))).astype(np.float32)} for f in fingers}
+
+
+def _median_ms(fn, iters: int) -> float:
+    for _ in range(2):
+        fn()
+    times = []
+    for _ in range(iters):
+        t = time.perf_counter()
+        fn()
+        times.append(1e3 * (time.perf_counter() - t))
+    return statistics.median(times)
+
+
+def run(cfg: Config) -> dict:
+    from adapters.bundle import build_adapted, load_adapter
+
+    if cfg.threads < 1 or cfg.iters < 1 or cfg.touch_every < 1:
+        raise ValueError(f"threads, iters and touch_every must be >= 1, got {cfg}")
+    torch.set_num_threads(cfg.threads)
+    load_before = os.getloadavg()[0]
+    rng = np.random.default_rng(cfg.seed)
+    if cfg.adapter:
+        policies = {"step_ms": load_adapter(cfg.adapter)}
+    else:
+        policies = {"step_ms": build_adapted("student", cfg.encoder, ("img", "mic", "imu", "pressure")),
+                    "step_img_ms": build_adapted("student", cfg.encoder, ("img",))}
+    first = next(iter(policies.values()))
+    touch_every = first.touch_every if cfg.adapter else cfg.touch_every
+    obs = {k: rng.normal(0.0, 0.3, (1, *shape)).astype(np.float32) for k, shape in first.config.obs_groups.items()}
+    result: dict = {}
+    with torch.inference_mode():
+        for name, policy in policies.items():
+            raw = raw_windows(policy.fingers, rng)
+            windows = {f: {k: v for k, v in w.items() if k.replace("_wave", "") in policy.windows}
+                       for f, w in raw.items()}
+
+            def touch_step(policy=policy, windows=windows) -> None:
+                policy.act_batch(obs, correction=policy.correction(windows, obs))
+
+            result[name] = round(_median_ms(touch_step, cfg.iters), 2)
+            print(f"touch step, {'+'.join(policy.adapter_config.modalities)}, 4 fingertips, {cfg.threads} thread(s): "
+                  f"{result[name]:.1f} ms (median of {cfg.iters})")
+        result["student_ms"] = round(_median_ms(lambda: first.act_batch(obs), cfg.iters), 3)
+    result["touch_every"] = touch_every
+    result["amortized_ms"] = round((result["step_ms"] + (touch_every - 1) * result["student_ms"]) / touch_every, 2)
+    result["threads"] = cfg.threads
+    result["loadavg_1min_before"] = round(load_before, 2)
+    print(json.dumps(result))
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main(Config, run, __doc__, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

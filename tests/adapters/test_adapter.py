@@ -1,0 +1,194 @@
+"""The tactile adapter: exactly the student at initialization, gradients only into the adapter, a tiny fine-tuning
+run that reduces the latent error, bundle round trip and mismatch errors, evaluation with touch."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from adapters import finetune
+from adapters.bundle import TouchUnavailable, build_adapted, load_adapter
+from adapters.model import AdapterNetConfig, TouchAdapter
+from envs.config import EnvConfig
+from envs.core import RotateCupVec
+from rotation.evaluate import job
+from rotation.evaluate.rollout import run_episodes
+from rotation.policy.bundle import BundleError, load_bundle
+
+ENCODER = "sparshx-tinier-sim"
+
+
+@pytest.fixture(scope="module")
+def env_obs():
+    """A touch-enabled env after a few steps of the shipped student (fingertips in contact)."""
+    student = load_bundle("student")
+    env = RotateCupVec(EnvConfig(tactile=True), num_envs=2, seed=5, nthread=1)
+    obs = env.reset(seed=5)
+    for _ in range(12):
+        obs, *_ = env.step(student.act_batch({k: obs[k] for k in student.config.obs_groups}))
+    yield env, obs
+    env.close()
+
+
+def _windows(policy, obs):
+    return {f: {w: obs["tactile"][f][w] for w in policy.windows} for f in policy.fingers}
+
+
+def test_zero_init_acts_exactly_like_the_student(env_obs):
+    env, obs = env_obs
+    policy = build_adapted("student", ENCODER, ("img", "pressure"), seed=3)
+    groups = {k: obs[k] for k in policy.config.obs_groups}
+    corr = policy.correction(_windows(policy, obs), groups)
+    assert corr.shape == (2, policy.config.latent_dim) and np.all(corr == 0.0)
+    student = load_bundle("student")
+    assert np.array_equal(policy.act_batch(groups, correction=corr), student.act_batch(groups))
+    assert np.array_equal(policy.act_batch(groups), student.act_batch(groups))
+    one = {k: v[0] for k, v in groups.items()}
+    assert np.array_equal(policy.act(one, correction=corr[0]), student.act(one))
+
+
+def test_gradients_reach_only_the_adapter(env_obs):
+    env, obs = env_obs
+    policy = build_adapted("student", ENCODER, ("img",), seed=0)
+    groups = {k: obs[k] for k in policy.config.obs_groups}
+    tokens = policy.tokens(_windows(policy, obs))
+    z = policy.student_latent(groups)
+    loss = (z + policy.adapter(tokens, z) - 1.0).pow(2).mean()
+    loss.backward()
+    grads = {n for n, p in policy.adapter.named_parameters() if p.grad is not None and p.grad.abs().sum() > 0}
+    assert "zero.weight" in grads and "zero.bias" in grads  # the zero layer learns first (the rest sees 0 gradient)
+    for module in (policy.encoder, policy.student.net):
+        assert all(not p.requires_grad and p.grad is None for p in module.parameters())
+    assert not tokens["index"]["img"].requires_grad
+
+
+def test_missing_or_bad_touch_is_touch_unavailable(env_obs):
+    env, obs = env_obs
+    policy = build_adapted("student", ENCODER, ("img", "pressure"))
+    groups = {k: obs[k] for k in policy.config.obs_groups}
+    windows = _windows(policy, obs)
+    with pytest.raises(TouchUnavailable, match="thumb"):
+        policy.correction({f: w for f, w in windows.items() if f != "thumb"}, groups)
+    with pytest.raises(TouchUnavailable, match="pressure"):
+        policy.correction({f: {"image": w["image"]} for f, w in windows.items()}, groups)
+    bad = {f: dict(w) for f, w in windows.items()}
+    bad["ring"]["pressure"] = np.full_like(bad["ring"]["pressure"], np.nan)
+    with pytest.raises(TouchUnavailable, match="non-finite"):
+        policy.correction(bad, groups)
+
+
+def test_adapter_network_checks_its_inputs():
+    with pytest.raises(ValueError, match="samples"):
+        AdapterNetConfig(samples=(), groups=(("img", 196),), width=96)
+    with pytest.raises(ValueError, match="multiple"):
+        AdapterNetConfig(samples=("index",), groups=(("img", 196),), width=90, pool_heads=4)
+    net = TouchAdapter(AdapterNetConfig(samples=("index", "thumb"), groups=(("img", 4),), width=8, latent_dim=3,
+                                        hidden=(16,)))
+    with pytest.raises(ValueError, match="thumb"):
+        net({"index": {"img": torch.zeros(2, 4, 8)}}, torch.zeros(2, 3))
+    assert torch.equal(net({s: {"img": torch.randn(2, 4, 8)} for s in ("index", "thumb")}, torch.zeros(2, 3)),
+                       torch.zeros(2, 3))
+
+
+def _tiny_cfg(out, **kw) -> finetune.Config:
+    base = dict(out=out, modalities="pressure", total_steps=384, num_envs=2, touch_every=2, student_steps=64,
+                updates=16, batch_size=32, buffer_size=512, lr=1e-3, checkpoint_every=192, log_every=8,
+                progress=False, torch_threads=1, nthread=1, seed=0)
+    return finetune.Config(**{**base, **kw})
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("adapter") / "run"
+    return out, finetune.run(_tiny_cfg(out))
+
+
+def test_tiny_finetuning_reduces_the_latent_error(tiny_run):
+    out, result = tiny_run
+    hist = result.history
+    assert len(hist) >= 4
+    # the error of the adapted latent, measured on each refresh's fresh samples before training on them, against
+    # the student's own error on the same samples: the adapter must take a clear share of it away
+    late = hist[len(hist) // 2:]
+    adapted = np.mean([h["latent_mse"] for h in late])
+    student = np.mean([h["student_mse"] for h in late])
+    assert adapted < 0.8 * student, (adapted, student)
+    rows = [json.loads(line) for line in (out / "curves.jsonl").read_text().splitlines()]
+    assert [r["env_steps"] for r in rows] == [h["env_steps"] for h in hist]
+
+
+def test_bundle_round_trip_and_as_a_policy(tiny_run):
+    out, result = tiny_run
+    policy = load_adapter(result.bundle_dir)
+    assert policy.adapter_config.modalities == ("pressure",) and policy.touch_every == 2
+    assert policy.adapter_config.card["trained_by"] == "rotate finetune-adapter"
+    assert any(p.abs().sum() > 0 for p in policy.adapter.zero.parameters())  # trained: no longer the zero map
+    same = load_bundle(result.bundle_dir)  # `--policy NAME=PATH` takes an adapter bundle
+    assert type(same).__name__ == "AdaptedPolicy" and same.config.touch_encoder == ENCODER
+
+
+def test_finetune_resume_is_exact(tiny_run, tmp_path):
+    out, result = tiny_run
+    part = tmp_path / "part"
+    finetune.run(_tiny_cfg(part, total_steps=192))
+    resumed = finetune.run(_tiny_cfg(part, total_steps=384, resume=True))
+    a, b = load_adapter(result.bundle_dir), load_adapter(resumed.bundle_dir)
+    for (name, x), y in zip(a.adapter.state_dict().items(), b.adapter.state_dict().values(), strict=True):
+        assert torch.equal(x, y), name
+
+
+def test_mismatched_student_or_encoder_is_refused(tiny_run, tmp_path):
+    out, result = tiny_run
+    student = tmp_path / "student"
+    shutil.copytree(_shipped("student"), student)
+    policy = build_adapted(str(student), ENCODER, ("img",))
+    policy.save(tmp_path / "adapter")
+    assert load_adapter(tmp_path / "adapter").config.adapter == str(tmp_path / "adapter")
+    weights = student / "model.safetensors"
+    data = bytearray(weights.read_bytes())
+    original = bytes(data)
+    data[-1] ^= 1  # another student (one weight bit differs)
+    weights.write_bytes(bytes(data))
+    with pytest.raises(BundleError, match="retrain the adapter for this student"):
+        load_adapter(tmp_path / "adapter")
+    weights.write_bytes(original)
+    cfg = json.loads((tmp_path / "adapter" / "config.json").read_text())
+    cfg["encoder"] = str(tmp_path / "nowhere.safetensors")
+    (tmp_path / "adapter" / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(BundleError, match="encoder"):
+        load_adapter(tmp_path / "adapter")
+
+
+def _shipped(name):
+    from rotation.policy.bundle import resolve_bundle
+
+    return resolve_bundle(name)
+
+
+def test_evaluate_with_an_adapter(tiny_run, tmp_path):
+    out, result = tiny_run
+    cfg = job.Config(policies={"student": "student", "adapter": str(result.bundle_dir)}, episodes=2, episode_steps=8,
+                     out=tmp_path / "eval", num_envs=2, nthread=1, progress=False, seed=100)
+    rows = job.run(cfg)
+    assert [r["policy"] for r in rows] == ["student", "adapter"]
+    # the touch sensors change nothing for a policy that does not read them: the same student episodes
+    plain = job.run(job.Config(policies={"student": "student"}, episodes=2, episode_steps=8, out=tmp_path / "plain",
+                               num_envs=2, nthread=1, progress=False, seed=100))
+    assert {k: v for k, v in plain[0].items()} == {k: v for k, v in rows[0].items()}
+    with pytest.raises(ValueError, match="cpu"):
+        job.run(job.Config(policies={"adapter": str(result.bundle_dir)}, backend="warp", episodes=1,
+                           out=tmp_path / "w", progress=False))
+
+
+def test_rollout_refuses_touch_policy_without_touch(tiny_run):
+    out, result = tiny_run
+    env = RotateCupVec(EnvConfig(episode_steps=4), num_envs=1, seed=0, nthread=1)
+    try:
+        with pytest.raises(ValueError, match="tactile"):
+            run_episodes(load_adapter(result.bundle_dir), env, 1, 0)
+    finally:
+        env.close()

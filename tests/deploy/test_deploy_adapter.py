@@ -1,0 +1,293 @@
+"""`rotate deploy --policy ADAPTER`: a student + tactile adapter on the emulated hand, touch refreshed on its own
+thread, and the documented fallback to the student alone (stalled stream, non-finite embeddings, a worker error, a
+stale correction) with one warning and an info line when touch is back; a real hand without the sensors the
+adapter reads is refused before the motors go on.
+
+The adapters here are fresh (zero correction: they act exactly like their student), which is enough for the
+runtime; the counters in the summary show that the adapter path really ran. They read pressure only, the cheapest
+encoder input, so that the runs stay short on a loaded machine.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from adapters.bundle import TouchUnavailable, build_adapted
+from rotation.cli import main
+from rotation.deploy.job import Config, run
+from rotation.deploy.sensors import SIM_WINDOWS
+from rotation.deploy.touch import TouchWorker, adapter_inputs, touch_sensors
+from rotation.hardware.digit360 import SensorStale
+from rotation.policy import bundle as bundle_module
+
+ENCODER = "sparshx-tinier-sim"
+FINGERS = ("index", "middle", "ring", "thumb")
+
+
+@pytest.fixture(scope="module")
+def adapter_dir(tmp_path_factory, policy) -> str:
+    """A fresh pressure-only adapter bundle for the deploy tests' student, refreshed every 4 steps."""
+    path = tmp_path_factory.mktemp("adapter") / "pressure"
+    build_adapted(policy, ENCODER, ("pressure",), touch_every=4).save(path)
+    return str(path)
+
+
+def summary_of(out: str) -> dict:
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def assert_done_or_rate_fault(summary: dict) -> None:
+    """Done, or (a cold, loaded 2-core machine) the documented rate fault; never another fault."""
+    rate_fault = summary["fault"] is not None and "could not hold 20 Hz" in summary["fault"]
+    assert (summary["exit_code"] == 0 and summary["fault"] is None) or (rate_fault and summary["exit_code"] == 1), \
+        summary["fault"]
+    assert summary["motors_off"] and summary["motors_off_witness"] == "emulator"
+
+
+def touch_warnings(caplog) -> list[logging.LogRecord]:
+    return [r for r in caplog.records if r.name == "rotation.deploy.touch" and r.levelno == logging.WARNING
+            and "touch unavailable" in r.getMessage()]
+
+
+# ------------------------------------------------------------------------------------------ end to end
+def test_adapter_policy_on_the_emulated_hand_starts_its_sensors_and_acts(adapter_dir, capsys, caplog, hand_hook,
+                                                                         digit360_emulators):
+    caplog.set_level(logging.INFO, logger="rotation")
+    code = main(["deploy", "--hand", "sim-allegro", "--policy", adapter_dir, "--duration", "2.5",
+                 "--status-every-s", "0.5"])
+    out, err = capsys.readouterr()
+    summary = summary_of(out)
+    assert_done_or_rate_fault(summary)
+    assert code == summary["exit_code"]
+    assert sorted(digit360_emulators) == sorted(FINGERS)  # started by deploy itself, no --digit360 given
+    assert "starting emulated Digit 360 fingertips (--digit360 sim)" in caplog.text
+    touch = summary["touch"]
+    assert touch["refreshes"] > 0 and touch["adapter_steps"] > 0, touch
+    assert touch["adapter_steps"] + touch["fallback_steps"] == summary["steps"]
+    assert touch["refresh_ms_p50"] > 0 and touch["touch_every"] == 4 and touch["max_age_ms"] >= 600
+    assert "| touch on |" in err  # the status line
+    assert not hand_hook.opened.emulator.servo_on
+
+
+def test_a_stalled_fingertip_falls_back_to_the_student_and_comes_back(adapter_dir, caplog, hand_hook,
+                                                                      digit360_emulators, monkeypatch):
+    caplog.set_level(logging.INFO, logger="rotation")
+    real_correction = TouchWorker.correction
+
+    def correction(self, step, now):  # at step 10 the thumb's stream stops for 0.6 s
+        if step == 10:
+            digit360_emulators["thumb"].faults.pause_s = 0.6
+        return real_correction(self, step, now)
+
+    monkeypatch.setattr(TouchWorker, "correction", correction)
+    summary = run(Config(hand="sim-allegro", policy=adapter_dir, duration=3.0))
+    assert_done_or_rate_fault(summary)
+    touch = summary["touch"]
+    assert touch["fallback_steps"] > 0 and touch["failed_refreshes"] > 0, touch
+    warnings = touch_warnings(caplog)
+    stale = [r for r in warnings if "SensorStale: digit360-thumb" in r.getMessage()]
+    assert len(stale) == 1, [r.getMessage() for r in warnings]  # ONE warning for the stall, naming the finger
+    assert "touch is back; the adapter acts again" in caplog.text
+    assert touch["adapter_steps"] > 10  # before and after the stall
+    assert summary["held_steps"] <= summary["steps"] // 2  # the loop went on through the stall
+
+
+def test_non_finite_embeddings_and_worker_errors_fall_back(adapter_dir, caplog, hand_hook, monkeypatch):
+    """Refreshes 2, 5 and 8 (0: the warm-up) give NaN, raise TouchUnavailable, raise a bug-level error: each falls
+    back with one warning naming it (the bug with its traceback), and the adapter acts again after each."""
+    caplog.set_level(logging.INFO, logger="rotation")
+    real_load = bundle_module.load_bundle
+
+    def load(name):
+        policy = real_load(name)
+        real_correction, calls = policy.correction, itertools.count()
+
+        def correction(windows, obs):
+            n = next(calls)
+            if n == 5:
+                raise TouchUnavailable("non-finite touch embeddings")
+            if n == 8:
+                raise RuntimeError("boom in the encoder")
+            return real_correction(windows, obs) * (np.nan if n == 2 else 1.0)
+
+        policy.correction = correction
+        return policy
+
+    monkeypatch.setattr(bundle_module, "load_bundle", load)
+    summary = run(Config(hand="sim-allegro", policy=adapter_dir, duration=3.0))
+    assert_done_or_rate_fault(summary)
+    messages = [r.getMessage() for r in touch_warnings(caplog)]
+    for cause in ("non-finite touch correction", "non-finite touch embeddings", "RuntimeError: boom in the encoder"):
+        assert sum(cause in m for m in messages) == 1, (cause, messages)
+    bug = next(r for r in touch_warnings(caplog) if "boom" in r.getMessage())
+    assert bug.exc_info is not None  # logged with the exception
+    assert caplog.text.count("touch is back") >= 3
+    touch = summary["touch"]
+    assert touch["fallbacks"] >= 3 and touch["failed_refreshes"] >= 3 and touch["adapter_steps"] > 0
+
+
+def test_real_hand_without_the_adapters_sensors_is_refused_before_the_motors(adapter_dir, capsys, hand_hook):
+    """`--hand allegro` (the real-hand path) with an adapter and no --digit360: bad options, nothing started."""
+    from rotation.sim_hardware.allegro_emulator import AllegroEmulator
+
+    with AllegroEmulator(channel="deploy-adapter-bus") as emu:
+        code = main(["deploy", "--hand", "allegro", "--can", "virtual:deploy-adapter-bus", "--policy", adapter_dir,
+                     "--duration", "1"])
+        err = capsys.readouterr().err
+        assert code == 2 and "no --digit360 was given" in err and "index, middle, ring, thumb" in err
+        assert hand_hook.opened is None and not emu.servo_on  # the hand was never started
+        with pytest.raises(ValueError, match="thumb"):  # a sensor on every fingertip it reads
+            run(Config(hand="allegro", can="virtual:deploy-adapter-bus", policy=adapter_dir,
+                       digit360="index=/dev/null,middle=/dev/null,ring=/dev/null"))
+        assert hand_hook.opened is None and not emu.servo_on
+
+
+# ------------------------------------------------------------------------------------------ pieces
+def fake_policy(windows=("pressure",), touch_every: int = 2) -> SimpleNamespace:
+    return SimpleNamespace(fingers=("index", "thumb"), windows=windows, touch_every=touch_every,
+                           config=SimpleNamespace(obs_groups={"proprio": (3, 32)}))
+
+
+def test_touch_sensors_are_checked_before_the_start(caplog):
+    caplog.set_level(logging.INFO, logger="rotation")
+    policy = fake_policy()
+    assert touch_sensors(policy, "a", {}, emulated=True) == {"index": "sim", "thumb": "sim"}
+    assert "starting emulated Digit 360 fingertips" in caplog.text
+    with pytest.raises(ValueError, match="no --digit360 was given.*index, thumb"):
+        touch_sensors(policy, "a", {}, emulated=False)
+    with pytest.raises(ValueError, match="Digit 360 for each of thumb"):
+        touch_sensors(policy, "a", {"index": "D360-A"}, emulated=False)
+    specs = {"index": "D360-A", "thumb": "/dev/ttyACM3"}
+    assert touch_sensors(policy, "a", specs, emulated=False) == specs  # pressure: every sensor streams it
+    with pytest.raises(ValueError, match="index=D360-A gives imu, pressure, not image"):
+        touch_sensors(fake_policy(("image", "pressure")), "a", specs, emulated=False)  # no camera opened
+    sim = {"index": "sim", "thumb": "sim"}
+    assert touch_sensors(fake_policy(SIM_WINDOWS), "a", sim, emulated=True) == sim
+
+
+def test_adapter_inputs_match_the_envs_tactile_group():
+    rng = np.random.default_rng(0)
+    window = {"image": rng.integers(0, 256, (6, 224, 224), dtype=np.uint8),
+              "audio": rng.integers(-99, 99, (2, 27000), dtype=np.int16),
+              "imu": np.zeros((224, 3), np.float32), "pressure": np.zeros((224, 1), np.float32), "t_end": 1.0}
+    out = adapter_inputs(window, SIM_WINDOWS, "index")
+    assert out["image"].dtype == np.float32 and out["image"].shape == (1, 6, 224, 224)
+    np.testing.assert_array_equal(out["image"][0], window["image"] / np.float32(255.0))  # the env's [0, 1]
+    assert out["audio_wave"].dtype == np.int16 and out["audio_wave"].shape == (1, 2, 27000)
+    assert set(out) == {"image", "audio_wave", "imu", "pressure"}
+    with pytest.raises(TouchUnavailable, match="index: its window has no image"):
+        adapter_inputs({"pressure": window["pressure"]}, ("image", "pressure"), "index")
+
+
+class FakeReader:
+    """A fingertip whose window is pressure at rest, or SensorStale while ``stale``."""
+
+    def __init__(self) -> None:
+        self.stale = False
+
+    def window(self, serial_only: bool = False) -> dict:
+        if self.stale:
+            raise SensorStale("digit360-thumb: newest IMU/pressure sample is 0.200 s old")
+        return {"imu": np.zeros((224, 3), np.float32), "pressure": np.full((224, 1), 1013.0, np.float32)}
+
+
+class FakeAdapter:
+    """Checks the batch of one; returns 0.5 everywhere, or raises ``fail``; sleeps ``delay_s`` first."""
+
+    def __init__(self) -> None:
+        self.fail: BaseException | None = None
+        self.delay_s = 0.0
+        self.calls = 0
+
+    def __call__(self, windows: dict, obs: dict) -> np.ndarray:
+        self.calls += 1
+        assert set(windows) == {"index", "thumb"} and windows["thumb"]["pressure"].shape == (1, 224, 1)
+        assert obs["proprio"].shape == (1, 3, 32)
+        time.sleep(self.delay_s)
+        if self.fail is not None:
+            raise self.fail
+        return np.full((1, 8), 0.5, np.float32)
+
+
+def settle(worker: TouchWorker) -> None:
+    deadline = time.monotonic() + 5.0
+    while worker.busy and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert not worker.busy
+
+
+def test_touch_worker_holds_refreshes_and_falls_back_once_per_cause(caplog):
+    """Driven step by step on a made-up clock (20 Hz, refresh every 2 steps, stale after 1 s)."""
+    caplog.set_level(logging.INFO, logger="rotation")
+    policy, adapter, thumb = fake_policy(), FakeAdapter(), FakeReader()
+    policy.correction = adapter
+    worker = TouchWorker(policy, {"index": FakeReader(), "thumb": thumb}, control_period_s=0.05)
+    obs = {"proprio": np.zeros((3, 32), np.float32)}
+    assert worker.max_age_s == pytest.approx(1.0)  # 3 refresh periods (0.3 s), at least 1 s
+
+    def step(k: int) -> np.ndarray | None:
+        corr = worker.correction(k, 0.05 * k)
+        worker.refresh_if_due(k, obs, 0.05 * k)
+        settle(worker)
+        return corr
+
+    try:
+        assert step(0) is None and not touch_warnings(caplog)  # no correction yet: the student, no warning
+        assert np.all(step(1) == 0.5) and worker.active and adapter.calls == 1  # refreshed at 0; held at 1
+        assert np.all(step(2) == 0.5) and adapter.calls == 2  # refreshed again at 2 (every 2 steps)
+        thumb.stale = True
+        assert np.all(step(3) == 0.5)  # the refresh of step 2 was fine; the stall shows at the refresh of step 4
+        assert step(4) is not None and step(5) is None and step(6) is None and step(7) is None
+        assert not worker.active and len(touch_warnings(caplog)) == 1  # one warning, not one per step
+        assert "SensorStale: digit360-thumb" in touch_warnings(caplog)[0].getMessage()
+        thumb.stale = False
+        assert step(8) is None and np.all(step(9) == 0.5) and worker.active
+        assert "step 9: touch is back" in caplog.text
+        # a correction older than the limit is dropped (the worker stopped refreshing: no request for 2 s)
+        assert worker.correction(50, 0.05 * 50) is None
+        assert "ms old (> 1000 ms): the touch worker is behind" in touch_warnings(caplog)[-1].getMessage()
+        assert step(51) is None and np.all(step(52) == 0.5)
+        n_warnings = len(touch_warnings(caplog))
+        assert worker.correction(200, 10.0) is None  # the same cause again: at info, counted
+        assert len(touch_warnings(caplog)) == n_warnings and "(2 times so far)" in caplog.text
+        # a bug in the refresh: falls back, logged with the exception
+        adapter.fail = RuntimeError("boom")
+        step(53), step(54), step(55)
+        assert worker.correction(56, 0.05 * 56) is None
+        bug = touch_warnings(caplog)[-1]
+        assert "RuntimeError: boom" in bug.getMessage() and bug.exc_info is not None
+        adapter.fail = None
+        stats = worker.stats  # refreshed at 0, 2, 8, 51; failed at 4, 6 (stalled) and 53, 55 (the bug)
+        assert (stats.fallbacks, stats.refreshes, stats.failed_refreshes) == (4, 4, 4)
+        assert stats.adapter_steps + stats.fallback_steps == 18  # every correction() call: steps 0-9, 50-56, 200
+    finally:
+        worker.close()
+
+
+def test_a_busy_touch_worker_never_blocks_the_loop():
+    policy, adapter = fake_policy(), FakeAdapter()
+    policy.correction = adapter
+    adapter.delay_s = 0.3  # a refresh longer than the refresh period (2 steps)
+    worker = TouchWorker(policy, {"index": FakeReader(), "thumb": FakeReader()}, control_period_s=0.05)
+    obs = {"proprio": np.zeros((3, 32), np.float32)}
+    try:
+        start = time.monotonic()
+        for k in range(6):  # refreshes due at 0, 2, 4: the worker is busy with the first one
+            worker.correction(k, 0.05 * k)
+            worker.refresh_if_due(k, obs, 0.05 * k)
+        assert time.monotonic() - start < 0.1  # neither call waited for the 0.3 s refresh
+        assert worker.busy and worker.stats.delayed_refreshes == 1  # counted once, started when the worker is free
+        settle(worker)
+        worker.refresh_if_due(6, obs, 0.3)
+        assert worker.busy
+        settle(worker)
+        assert adapter.calls == 2 and worker.stats.refreshes == 2
+    finally:
+        worker.close()
