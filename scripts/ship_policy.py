@@ -20,7 +20,7 @@ from rotation.configs import script_main
 from rotation.policy.bundle import load_bundle
 
 PACKAGE_POLICIES = Path(__file__).resolve().parents[1] / "rotation" / "policies"
-METRICS = ("rotation_rate", "rotation_total", "ttf", "vertical_drift", "lin_vel", "torque")
+METRICS = ("net_rotation_rate", "rotation_rate", "ttf", "upright", "vertical_drift", "lin_vel", "torque")
 
 
 @dataclass
@@ -33,6 +33,8 @@ class Config:
     """The exact command(s) that trained it, as run (several runs joined with ' && ')."""
     evaluation: Path | None = None
     """results.json of an evaluation that includes this policy (its rows go into the card)."""
+    label: str = ""
+    """The policy's label in that evaluation (default: the shipped name)."""
     wall_time_s: float | None = None
     """Total training wall time (s) across resumes; default: the bundle card's own figure."""
     notes: str = ""
@@ -71,9 +73,10 @@ def run(cfg: Config) -> Path:
              f"- files: config.json, {weights} ({(dest / weights).stat().st_size / 1e6:.2f} MB)",
              ""]
     if cfg.evaluation is not None:
-        rows = [r for r in json.loads(Path(cfg.evaluation).read_text())["rows"] if r["policy"] == cfg.name]
+        label = cfg.label or cfg.name
+        rows = [r for r in json.loads(Path(cfg.evaluation).read_text())["rows"] if r["policy"] == label]
         if not rows:
-            raise ValueError(f"{cfg.evaluation} has no rows for policy {cfg.name!r}")
+            raise ValueError(f"{cfg.evaluation} has no rows for policy {label!r}")
         lines += [f"## Evaluation ({rows[0]['episodes']} episodes per condition, `{cfg.evaluation}`)", "",
                   "| condition | " + " | ".join(METRICS) + " |", "|---|" + "---|" * len(METRICS)]
         lines += ["| " + r["condition"] + " | " + " | ".join(f"{r[m]:.3f}" for m in METRICS) + " |" for r in rows]

@@ -3,9 +3,12 @@
 1. loads the shipped teacher and student bundles (trained by `rotate train-teacher` / `rotate train-student`,
    model cards beside them in rotation/policies/),
 2. evaluates both on the cup under nominal conditions, reduced friction and added mass (same seeds for both),
-3. renders a video of the student rotating the cup,
-4. dry-runs deploy on the emulated Allegro hand (the real CAN driver against a MuJoCo-backed emulator),
-5. writes OUT/README.md with the table, plots, video and deploy summary.
+3. with a shipped tactile adapter (rotation/policies/adapter): evaluates student vs student + adapter with the
+   simulated Digit 360 fingertips on (``adapter_conditions``; touch costs tens of ms per fingertip, so fewer),
+4. renders a video of the student rotating the cup,
+5. dry-runs deploy on the emulated Allegro hand (the real CAN driver against a MuJoCo-backed emulator) with the
+   adapter when one is shipped (the emulated Digit 360 fingertips start with it), else the student,
+6. writes OUT/README.md with the tables, plots, video and deploy summary.
 
     rotate demo --out demo_out
     rotate demo --out demo_out --episodes 16 --conditions nominal friction_0.35 mass_+0.2kg
@@ -25,7 +28,7 @@ from rotation.evaluate import finished
 from rotation.evaluate import job as evaluate_job
 from rotation.evaluate.suites import get_suite
 from rotation.jobs import view as view_job
-from rotation.policy.bundle import load_bundle
+from rotation.policy.bundle import load_bundle, shipped_bundles
 
 
 @dataclass
@@ -38,6 +41,8 @@ class Config:
     """Conditions of the `perturbations` suite to run (see `rotate evaluate --help`)."""
     seed: int = 0
     """Evaluation seed (episode j of every condition is seeded seed + j)."""
+    adapter_conditions: tuple[str, ...] = ("friction_0.5+mass_+0.1kg",)
+    """Conditions of the student vs adapter evaluation (when an adapter is shipped); none skips it."""
     video_steps: int = 300
     """Policy steps in the student video (20 per second)."""
     deploy_seconds: float = 5.0
@@ -52,6 +57,11 @@ class Config:
             get_suite("perturbations", self.conditions)
         except ValueError as err:  # it lists the suite's conditions
             raise ValueError(f"conditions: {err}") from None
+        if self.adapter_conditions:
+            try:
+                get_suite("perturbations", self.adapter_conditions)
+            except ValueError as err:
+                raise ValueError(f"adapter_conditions: {err}") from None
         check_seed("seed", self.seed)
         check_int("video_steps", self.video_steps, 1, 100_000)
         check_number("deploy_seconds", self.deploy_seconds, 0.0, 3600.0, unit="s")
@@ -83,6 +93,24 @@ def run(cfg: Config) -> dict[str, Any]:
         print(f"[demo] the earlier demo evaluation (other policies or settings) is kept in {kept}")
     rows = evaluate_job.run(eval_cfg)
 
+    adapter = "adapter" in shipped_bundles()
+    adapter_dir = cfg.out / "evaluation_adapter"
+    if adapter and cfg.adapter_conditions:
+        print("[demo] evaluating student vs student + tactile adapter (simulated Digit 360 on)")
+        adapter_cfg = evaluate_job.Config(
+            policies={"student": "student", "adapter": "adapter"}, suite="perturbations",
+            conditions=cfg.adapter_conditions, episodes=cfg.episodes, num_envs=cfg.episodes, seed=cfg.seed,
+            out=adapter_dir, torch_threads=2)
+        try:
+            finished.check_out(adapter_dir, finished.identity(adapter_cfg, evaluate_job.policy_paths(adapter_cfg)),
+                               False)
+        except ValueError:  # an earlier demo's adapter evaluation (another adapter or settings): kept aside
+            if adapter_dir.exists():
+                kept = adapter_dir.with_name(f"evaluation_adapter.{time.strftime('%Y%m%d-%H%M%S')}")
+                adapter_dir.rename(kept)
+                print(f"[demo] the earlier adapter evaluation is kept in {kept}")
+        evaluate_job.run(adapter_cfg)
+
     print("[demo] rendering the student rotating the cup")
     video = view_job.run(view_job.Config(out=cfg.out / "student_cup.mp4", object="cup", policy="student",
                                          steps=cfg.video_steps, seed=cfg.seed, width=400, height=400))
@@ -93,7 +121,7 @@ def run(cfg: Config) -> dict[str, Any]:
         from rotation.deploy import job as deploy_job
 
         deploy_summary = deploy_job.run(deploy_job.Config(
-            hand="sim-allegro", policy="student", duration=cfg.deploy_seconds,
+            hand="sim-allegro", policy="adapter" if adapter else "student", duration=cfg.deploy_seconds,
             record=str(cfg.out / "deploy_session.h5"), overwrite=True))
     exit_code = int(deploy_summary["exit_code"]) if deploy_summary is not None else 0
 
@@ -103,11 +131,19 @@ def run(cfg: Config) -> dict[str, Any]:
                if not line.startswith("# ")], "",
              "Plots: " + ", ".join(f"[{p.stem}](evaluation/plots/{p.name})"
                                    for p in sorted((eval_dir / "plots").glob("*.png"))), "",
-             "## Student rotating the cup", "", f"[{video.name}]({video.name})", ""]
+             ]
+    if (adapter_dir / "results.md").is_file() and adapter and cfg.adapter_conditions:
+        lines += ["## Student vs student + tactile adapter", "",
+                  *[line for line in (adapter_dir / "results.md").read_text().strip().splitlines()
+                    if not line.startswith("# ")], "",
+                  "Bar charts: [bars](evaluation_adapter/plots/bars.png); the adapter's model card: "
+                  "rotation/policies/adapter/MODEL_CARD.md", ""]
+    lines += ["## Student rotating the cup", "", f"[{video.name}]({video.name})", ""]
     if deploy_summary is not None:
         outcome = ("completed" if exit_code == 0 else
                    f"**FAILED** (exit status {exit_code}): {deploy_summary.get('fault') or 'motors not confirmed off'}")
-        lines += ["## Deploy dry run (emulated Allegro over CAN)", "", f"Result: {outcome}", "", "```",
+        who = "student + tactile adapter, emulated Digit 360 fingertips" if adapter else "student"
+        lines += [f"## Deploy dry run (emulated Allegro over CAN; {who})", "", f"Result: {outcome}", "", "```",
                   json.dumps(deploy_summary, indent=2, default=str), "```", ""]
     report = cfg.out / "README.md"
     report.write_text("\n".join(lines))

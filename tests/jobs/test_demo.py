@@ -67,3 +67,28 @@ def test_an_earlier_demo_evaluation_of_other_policies_is_kept_aside(tmp_path, st
     kept = [p for p in (tmp_path / "demo").iterdir() if p.name.startswith("evaluation.")]
     assert len(kept) == 1 and (kept[0] / "results.json").read_text() == '{"rows": []}\n'
     assert "kept in" in capsys.readouterr().out
+
+
+def test_demo_with_a_shipped_adapter_evaluates_and_deploys_it(tmp_path, stand_ins, monkeypatch):
+    """With rotation/policies/adapter shipped, the demo adds a student vs adapter evaluation with touch and dry-runs
+    deploy with the adapter (its emulated fingertips start with it); without one it deploys the student."""
+    stand_ins.update(exit_code=0, fault=None, motors_off=True)
+    evaluated, deployed = [], []
+    evaluate = demo.evaluate_job.run
+
+    def record_evaluate(cfg):
+        evaluated.append(dict(cfg.policies))
+        return evaluate(cfg)
+
+    monkeypatch.setattr(demo.evaluate_job, "run", record_evaluate)
+    monkeypatch.setattr(deploy_job, "run", lambda cfg: deployed.append(cfg.policy) or dict(stand_ins))
+    monkeypatch.setattr(demo, "shipped_bundles", lambda: ["adapter", "student", "teacher"])
+    assert main(["demo", "--out", str(tmp_path / "with"), "--deploy-seconds", "1"]) == 0
+    assert evaluated == [{"teacher": "teacher", "student": "student"}, {"student": "student", "adapter": "adapter"}]
+    assert deployed == ["adapter"]
+    report = (tmp_path / "with" / "README.md").read_text()
+    assert "## Student vs student + tactile adapter" in report and "tactile adapter, emulated Digit 360" in report
+    monkeypatch.setattr(demo, "shipped_bundles", lambda: ["student", "teacher"])
+    evaluated.clear()
+    assert main(["demo", "--out", str(tmp_path / "without"), "--deploy-seconds", "1"]) == 0
+    assert len(evaluated) == 1 and deployed == ["adapter", "student"]
