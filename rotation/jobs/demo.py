@@ -6,8 +6,8 @@
 3. with a shipped tactile adapter (rotation/policies/adapter): evaluates student vs student + adapter with the
    simulated Digit 360 fingertips on (``adapter_conditions``; touch costs tens of ms per fingertip, so fewer),
 4. renders a video of the student rotating the cup,
-5. dry-runs deploy on the emulated Allegro hand (the real CAN driver against a MuJoCo-backed emulator) with the
-   adapter when one is shipped (the emulated Digit 360 fingertips start with it), else the student,
+5. dry-runs deploy with the student on the emulated Allegro hand (the real CAN driver against a MuJoCo-backed
+   emulator). Not with the shipped adapter: on the emulated hand it does not turn the cup yet (docs/adapter.md),
 6. writes OUT/README.md with the tables, plots, video and deploy summary.
 
     rotate demo --out demo_out
@@ -121,7 +121,7 @@ def run(cfg: Config) -> dict[str, Any]:
         from rotation.deploy import job as deploy_job
 
         deploy_summary = deploy_job.run(deploy_job.Config(
-            hand="sim-allegro", policy="adapter" if adapter else "student", duration=cfg.deploy_seconds,
+            hand="sim-allegro", policy="student", duration=cfg.deploy_seconds,
             record=str(cfg.out / "deploy_session.h5"), overwrite=True))
     exit_code = int(deploy_summary["exit_code"]) if deploy_summary is not None else 0
 
@@ -142,8 +142,7 @@ def run(cfg: Config) -> dict[str, Any]:
     if deploy_summary is not None:
         outcome = ("completed" if exit_code == 0 else
                    f"**FAILED** (exit status {exit_code}): {deploy_summary.get('fault') or 'motors not confirmed off'}")
-        who = "student + tactile adapter, emulated Digit 360 fingertips" if adapter else "student"
-        lines += [f"## Deploy dry run (emulated Allegro over CAN; {who})", "", f"Result: {outcome}", "", "```",
+        lines += ["## Deploy dry run (emulated Allegro over CAN; student)", "", f"Result: {outcome}", "", "```",
                   json.dumps(deploy_summary, indent=2, default=str), "```", ""]
     report = cfg.out / "README.md"
     report.write_text("\n".join(lines))
