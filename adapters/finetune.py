@@ -58,6 +58,7 @@ from rotation.train.runs import (
     config_differences,
     refuse_differences,
     save_atomically,
+    summary_writer,
     with_fallback,
 )
 
@@ -301,7 +302,7 @@ class Job:
         save_config(self.cfg, self.out / "config.json")
         curves = CurveLog(self.out / "curves.jsonl", key=key)
         curves.trim(trim_to)
-        return curves, _summary_writer(self.out / "tb", purge_step=trim_to)
+        return curves, summary_writer(self.out / "tb", purge_step=trim_to)
 
     @property
     def wall_time_s(self) -> float:
@@ -359,12 +360,6 @@ def _save_checkpoint(out: Path, adapter: torch.nn.Module, optim: torch.optim.Opt
     save_atomically(lambda tmp: torch.save({"adapter": state, "optim": optim.state_dict(), "iteration": iteration,
                                             "student_sha256": student_sha, "wall_time_s": wall_time_s}, tmp),
                     out / f"ckpt_{iteration:09d}.pt")
-
-
-def _summary_writer(log_dir: Path, purge_step: int):
-    from torch.utils.tensorboard import SummaryWriter
-
-    return SummaryWriter(log_dir=str(log_dir), purge_step=purge_step or None)
 
 
 _TB_TAGS = {"latent_mse": "adapter/latent_mse", "student_mse": "adapter/student_latent_mse",

@@ -57,7 +57,6 @@ from rotation.tactile.runtime import (
     init_processes,
     resolve_device,
     step_seed,
-    summary_writer,
     use_bf16,
 )
 from rotation.tactile.ssl import (
@@ -72,6 +71,7 @@ from rotation.tactile.ssl import (
     teacher_temperature,
     warmup_cosine,
 )
+from rotation.train.runs import summary_writer
 
 __all__ = ["Config", "SkinObjectiveConfig", "build", "load_config", "objective", "run", "train"]
 WORKER_ENV = "ROTATE_PRETRAIN_WORKER"

@@ -74,9 +74,9 @@ from rotation.tactile.runtime import (
     autocast,
     check_device,
     resolve_device,
-    summary_writer,
     use_bf16,
 )
+from rotation.train.runs import summary_writer
 
 VARIANTS = ("pretrained", "e2e", "image_only")
 """Sparsh-X's variants (Sparsh-skin has no image tokens: pretrained and e2e)."""

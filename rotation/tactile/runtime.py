@@ -6,7 +6,6 @@ from __future__ import annotations
 import contextlib
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -106,10 +105,3 @@ def step_seed(seed: int, step: int, rank: int = 0, stream: int = 0) -> int:
     that a resumed run reproduces exactly."""
     return int(np.random.SeedSequence([int(seed), int(step), int(rank), int(stream)]).generate_state(2, np.uint64)[0]
                >> np.uint64(1))
-
-
-def summary_writer(log_dir: Path, purge_step: int):
-    """TensorBoard writer; ``purge_step`` drops points a crashed run logged after its last checkpoint."""
-    from torch.utils.tensorboard import SummaryWriter
-
-    return SummaryWriter(log_dir=str(log_dir), purge_step=purge_step or None)

@@ -145,3 +145,11 @@ class CurveLog:
         if text != self.path.read_text():
             save_atomically(lambda tmp: tmp.write_text(text), self.path)
         return len(rows) - len(keep)
+
+
+def summary_writer(log_dir: Path, purge_step: int):
+    """TensorBoard writer; ``purge_step`` drops points a crashed run logged after its last checkpoint, so curves stay
+    continuous on resume."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(log_dir=str(log_dir), purge_step=purge_step or None)

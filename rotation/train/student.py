@@ -55,6 +55,7 @@ from rotation.train.runs import (
     config_differences,
     refuse_differences,
     save_atomically,
+    summary_writer,
     with_fallback,
 )
 
@@ -239,7 +240,7 @@ def run(cfg: Config) -> Result:
 
     tracker = EpisodeTracker(n, cfg.env.control_dt, cfg.env.episode_steps)
     keys = set(teacher.config.obs_groups) | set(student.config.obs_groups)
-    writer = _summary_writer(out / "tb", purge_step=start_iter * n)
+    writer = summary_writer(out / "tb", purge_step=start_iter * n)
     history: list[dict[str, float]] = []
     mse_sum, mse_count, episodes = 0.0, 0, []
     bar = tqdm(total=total_iters * n, initial=start_iter * n, unit="step", disable=not cfg.progress,
@@ -347,13 +348,6 @@ def _save_checkpoint(out: Path, student: PolicyBundle, optim: torch.optim.Optimi
     save_atomically(lambda tmp: torch.save({"student": state, "optim": optim.state_dict(), "iteration": iteration,
                                             "teacher_digest": teacher_digest}, tmp), path)
     return path
-
-
-def _summary_writer(log_dir: Path, purge_step: int):
-    from torch.utils.tensorboard import SummaryWriter
-
-    # purge_step drops points a crashed run logged after its last checkpoint, so curves stay continuous on resume
-    return SummaryWriter(log_dir=str(log_dir), purge_step=purge_step or None)
 
 
 _TB_TAGS = {
