@@ -59,6 +59,9 @@ class RandomizationConfig:
     """Center-of-mass offset per axis (m) in the object frame."""
     friction: tuple[float, float] = (0.3, 3.0)
     """Sliding friction coefficient, the same on hand and object (Hora)."""
+    friction_log: bool = False
+    """Draw the friction log-uniformly in ``friction`` (as many episodes per factor of 2 at the slippery end as at
+    the grippy end) instead of uniformly; without randomization the nominal value stays the range's middle."""
     kp: tuple[float, float] = (2.9, 3.1)
     """Per-joint proportional gain (N m / rad), resampled at every reset."""
     kd: tuple[float, float] = (0.09, 0.11)

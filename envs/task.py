@@ -64,8 +64,10 @@ def sample_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str, Array]:
     if rc.enabled:
         bucket = xp.clip(to_int(xp, u[:, 0] * len(rc.scales)), None, len(rc.scales) - 1)
         scale = scales[bucket] + (2 * u[:, 1] - 1) * rc.scale_jitter
+        friction = (rc.friction[0] * (rc.friction[1] / rc.friction[0]) ** u[:, 6] if rc.friction_log
+                    else lerp(rc.friction, u[:, 6]))
         p = dict(scale=scale, bucket=bucket, mass=lerp(rc.mass, u[:, 2]), com=lerp(rc.com, u[:, 3:6]),
-                 friction=lerp(rc.friction, u[:, 6]), kp=lerp(rc.kp, u[:, 7:23]), kd=lerp(rc.kd, u[:, 23:39]))
+                 friction=friction, kp=lerp(rc.kp, u[:, 7:23]), kd=lerp(rc.kd, u[:, 23:39]))
     else:
         bucket = to_int(xp, zero) + len(rc.scales) // 2
         p = dict(scale=scales[bucket], bucket=bucket, mass=zero + float(np.mean(rc.mass)), com=u[:, 3:6] * 0.0,

@@ -312,7 +312,7 @@ def run(cfg: Config) -> dict[str, Any]:
     from rotation.deploy.policy import check_deployable
     from rotation.deploy.recording import DeployRecorder
     from rotation.deploy.sensors import open_digit360, open_skin
-    from rotation.deploy.touch import reads_touch, touch_sensors
+    from rotation.deploy.touch import reads_touch, touch_sensors, wait_for_touch
     from rotation.hardware.realtime import set_realtime_priority
     from rotation.policy.bundle import load_bundle
 
@@ -360,6 +360,11 @@ def run(cfg: Config) -> dict[str, Any]:
             sched = set_realtime_priority(cfg.rt_priority)
             physics = emulated_physics(setup)  # emulation: the hand's world, which the emulated fingertips sense
             readers = open_digit360(digit_specs, stack, physics)  # before the hand: the hand leaves first on exit
+            if touch:  # the windows fill while the motors are off (a hand holding its pose meanwhile lets go)
+                took = wait_for_touch(bundle, readers)
+                if took is not None:
+                    log.info("touch: every fingertip's windows ready %.0f ms after the sensors opened, before the "
+                             "motors go on", 1e3 * took)
             skin, skin_baseline = open_skin(parse_skin(cfg.skin, setup.emulated), stack)
             # motors on, holding the current pose; the stack switches them off
             opened = open_hand(setup, stack, created=created.append, physics=physics)

@@ -40,7 +40,7 @@ from rotation.deploy.hands import OpenedHand
 from rotation.deploy.policy import PolicyFault, PolicyState, PolicyWorker, action_problem
 from rotation.deploy.recording import DeployRecorder
 from rotation.deploy.sensors import DigitDrain, SkinDrain
-from rotation.deploy.touch import STALE_REFRESHES, WARM_UP_S, TouchWorker, reads_touch
+from rotation.deploy.touch import STALE_REFRESHES, TouchWorker, reads_touch
 from rotation.hardware.hand import HandFault
 from rotation.policy.bundle import PolicyBundle
 
@@ -78,9 +78,6 @@ class LoopConfig:
     touch_stale_refreshes: float = STALE_REFRESHES
     """A touch-reading policy drops a correction older than this many refresh periods (``touch_every`` control
     periods; at least rotation.deploy.touch.MIN_STALE_S) and acts as its student alone until a fresh one arrives."""
-    touch_warm_up_s: float = WARM_UP_S
-    """Longest wait (s), before the clock starts, for the first touch correction (else the run starts in the
-    fallback)."""
     max_degraded_fraction: float = 0.5
     """A run in which more than this fraction of the control slots were late, held or skipped did not run the
     policy at its rate: ``rotate deploy`` reports it as a fault (exit status 1), not as done."""
@@ -264,14 +261,13 @@ class ControlLoop:
         worker = PolicyWorker(self._act)
         touch = self.touch = (TouchWorker(self.bundle, self.readers, self.period, cfg.touch_stale_refreshes)
                               if reads_touch(self.bundle) else None)
-        try:  # before the clock starts; the hand holds its start pose meanwhile
+        try:  # before the clock starts; the hand holds its start pose meanwhile (keep it short: the grasp slips)
             log.info("policy warm-up: first inference took %.0f ms",
                      1e3 * worker.warm_up((policy.observation(), None)))
-            if touch is not None:
-                took = touch.warm_up(policy.observation(), cfg.touch_warm_up_s)
-                if took is not None:
-                    log.info("touch warm-up: first correction after %.0f ms (refreshed every %d steps, dropped when "
-                             "older than %.0f ms)", 1e3 * took, touch.every, 1e3 * touch.max_age_s)
+            if touch is not None:  # the sensors' windows were made ready before the motors went on (job.run)
+                log.info("touch: first correction asked for at step 0, then every %d steps (dropped when older "
+                         "than %.0f ms); the student acts alone until it arrives", touch.every,
+                         1e3 * touch.max_age_s)
         except BaseException:
             worker.close(join_timeout_s=0.0)
             if touch is not None:

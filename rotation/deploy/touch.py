@@ -22,6 +22,13 @@ older than ``max_age_s`` (the worker is behind or hung; ``STALE_REFRESHES`` refr
 that keeps coming back is warned about again every ``REPEAT_WARN_EVERY``-th time, at info in between). Touch never
 stops the hand.
 
+Start-up (:func:`wait_for_touch`): the sensors open, and their windows fill, BEFORE the motors go on: a hand that
+only holds its start pose while the windows fill loses its grasp within a few hundred ms (measured on the emulated
+hand: the fingertips had left the cup before the first correction, and the adapter never saw a grasp again). The
+encoder runs once on those first windows (its first call allocates). Once the hand is on, the loop starts at once;
+the first refresh is asked for at step 0 and the student acts alone until it arrives (a few steps; logged at info,
+counted in ``fallback_steps``), as it does whenever touch is unusable.
+
 Which sensors a touch-reading policy needs (:func:`touch_sensors`) is checked before anything starts: on an emulated
 hand without ``--digit360`` the emulated fingertips are started for it; on a real hand every fingertip the adapter
 reads must be named by ``--digit360`` and stream every window it reads, else it is a ValueError (motors never on).
@@ -59,8 +66,8 @@ SLOW_REFRESHES = 5
 REPEAT_WARN_EVERY = 20
 """A fallback cause that comes back is warned about again every this many times (info in between)."""
 WARM_UP_S = 5.0
-"""Longest wait (s) before the clock starts for the first correction (the sensors' windows need about 1.2 s of
-history after they open); without one by then the run starts in the fallback."""
+"""Longest wait (s), before the motors go on, for every fingertip's windows (they need about 1.2 s of history after
+the sensors open); without them by then the run starts as the student alone until they come."""
 
 
 def reads_touch(policy: Any) -> bool:
@@ -116,6 +123,47 @@ def adapter_inputs(window: Mapping[str, Any], names: tuple[str, ...], finger: st
     return out
 
 
+def wait_for_touch(policy: Any, readers: Mapping[str, Any], timeout_s: float = WARM_UP_S,
+                   poll_s: float = 0.05) -> float | None:
+    """Before the motors go on: wait until every fingertip the adapter reads gives its windows, then run the encoder
+    once on them (its first call allocates). Returns the wait (s), or None after ``timeout_s`` (a warning names the
+    fingertips and the cause; the run then starts as the student alone until touch comes). Never raises for a
+    sensor that is not ready or stalled."""
+    from adapters.bundle import TouchUnavailable
+    from rotation.hardware.digit360 import SensorStale
+    from rotation.hardware.digit360_window import WindowNotReady
+
+    names = tuple(policy.windows)
+    serial_only = not {"image", "audio"} & set(names)
+    start = time.monotonic()
+    waiting: dict[str, str] = {}
+    while True:
+        windows, waiting = {}, {}
+        for finger in policy.fingers:
+            reader = readers.get(finger)
+            if reader is None:
+                waiting[finger] = "no sensor"
+                continue
+            try:
+                windows[finger] = adapter_inputs(reader.window(serial_only=serial_only), names, finger)
+            except (WindowNotReady, SensorStale, TouchUnavailable) as err:
+                waiting[finger] = str(err)
+        if not waiting:
+            try:
+                policy.tokens(windows)  # the encoder's first call (allocation) happens here, not in the run
+            except TouchUnavailable as err:  # non-finite first windows: the run's refreshes decide
+                log.warning("touch: the first windows gave no embeddings (%s); the run starts as the student alone "
+                            "until touch is usable", err)
+                return None
+            return time.monotonic() - start
+        if time.monotonic() - start >= timeout_s:
+            break
+        time.sleep(poll_s)
+    log.warning("touch: no windows within %.0f s before the start (%s); the run starts as the student alone "
+                "until they come", timeout_s, "; ".join(f"{f}: {why}" for f, why in waiting.items()))
+    return None
+
+
 @dataclass
 class TouchStats:
     """What the touch side did in one run (the summary's ``touch``)."""
@@ -125,7 +173,7 @@ class TouchStats:
     max_age_s: float
     """Staleness limit (s): older corrections were dropped."""
     refreshes: int = 0
-    """Corrections computed (the warm-up's not counted)."""
+    """Corrections computed."""
     failed_refreshes: int = 0
     """Refreshes without a correction (stalled stream, missing window, non-finite embeddings, worker error)."""
     delayed_refreshes: int = 0
@@ -134,6 +182,8 @@ class TouchStats:
     """Steps acted with a correction."""
     fallback_steps: int = 0
     """Steps acted as the student alone (touch unusable, or no correction yet)."""
+    first_correction_step: int | None = None
+    """Control step at which the adapter first acted (the student alone before it); None if it never did."""
     fallbacks: int = 0
     """Times the fallback started (each logged: a warning the first time per cause)."""
     refresh_s: list[float] = field(default_factory=list)
@@ -146,7 +196,8 @@ class TouchStats:
         return {"touch_every": self.touch_every, "max_age_ms": 1e3 * self.max_age_s, "refreshes": self.refreshes,
                 "failed_refreshes": self.failed_refreshes, "delayed_refreshes": self.delayed_refreshes,
                 "adapter_steps": self.adapter_steps, "fallback_steps": self.fallback_steps,
-                "fallbacks": self.fallbacks, "refresh_ms_p50": statistics.median(ms) if ms else None,
+                "fallbacks": self.fallbacks, "first_correction_step": self.first_correction_step,
+                "refresh_ms_p50": statistics.median(ms) if ms else None,
                 "refresh_ms_max": max(ms) if ms else None, "last_fallback_cause": self.last_cause}
 
 
@@ -248,7 +299,10 @@ class TouchWorker:
                      f"{1e3 * self.max_age_s:.0f} ms): the touch worker is behind")
         if cause is None:
             self.stats.adapter_steps += 1
-            if self._state == "starting":
+            if self.stats.first_correction_step is None:
+                self.stats.first_correction_step = step
+                log.info("step %d: first touch correction; the adapter acts (the student alone before it)", step)
+            elif self._state == "starting":
                 log.info("step %d: first touch correction; the adapter acts", step)
             elif self._state == "fallback":
                 log.info("step %d: touch is back; the adapter acts again after %.2f s as the student alone", step,
@@ -258,31 +312,6 @@ class TouchWorker:
         self.stats.fallback_steps += 1
         if self._state == "acting" or (self._state == "starting" and result is not None):
             self._enter_fallback(f"step {step}", cause, error, now)
-        return None
-
-    def warm_up(self, obs: Mapping[str, np.ndarray], timeout_s: float = WARM_UP_S) -> float | None:
-        """Before the clock starts: refresh until the first correction is computed or ``timeout_s`` has passed
-        (the sensors need history first; the first encoder call allocates). Returns how long it took (s), or None
-        (warning logged: the run starts in the fallback). The warm-up's refreshes are not counted in the stats."""
-        start = time.monotonic()
-        result: _Result | None = None
-        attempt = 0
-        while time.monotonic() - start < timeout_s:
-            attempt += 1
-            if not self.request(-attempt, obs, time.monotonic()):
-                break  # still busy with an earlier attempt that outlived its wait
-            result = self._wait(-attempt, start + timeout_s - time.monotonic())
-            if result is not None and result.correction is not None:
-                break
-            time.sleep(0.1)  # the sensors' windows are not ready yet: try again
-        with self._cv:
-            self.stats.refreshes = self.stats.failed_refreshes = 0
-            self.stats.refresh_s.clear()
-        if result is not None and result.correction is not None:
-            return time.monotonic() - start  # the loop's first step logs that the adapter acts
-        cause = "no touch window within the warm-up" if result is None else result.cause
-        self._enter_fallback("before the start", f"{cause}; waited {timeout_s:.0f} s",
-                             None if result is None else result.error, time.monotonic())
         return None
 
     def _enter_fallback(self, when: str, cause: str | None, error: BaseException | None, now: float) -> None:

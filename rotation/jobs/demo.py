@@ -6,8 +6,8 @@
 3. with a shipped tactile adapter (rotation/policies/adapter): evaluates student vs student + adapter with the
    simulated Digit 360 fingertips on (``adapter_conditions``; touch costs tens of ms per fingertip, so fewer),
 4. renders a video of the student rotating the cup,
-5. dry-runs deploy with the student on the emulated Allegro hand (the real CAN driver against a MuJoCo-backed
-   emulator). Not with the shipped adapter: on the emulated hand it does not turn the cup yet (docs/adapter.md),
+5. dry-runs deploy on the emulated Allegro hand (the real CAN driver against a MuJoCo-backed emulator) with the
+   shipped adapter, which starts the emulated Digit 360 fingertips itself (the student when no adapter is shipped),
 6. writes OUT/README.md with the tables, plots, video and deploy summary.
 
     rotate demo --out demo_out
@@ -117,11 +117,12 @@ def run(cfg: Config) -> dict[str, Any]:
 
     deploy_summary = None
     if cfg.deploy_seconds > 0:
-        print("[demo] deploy dry run on the emulated Allegro hand")
+        deploy_policy = "adapter" if adapter else "student"
+        print(f"[demo] deploy dry run on the emulated Allegro hand ({deploy_policy})")
         from rotation.deploy import job as deploy_job
 
         deploy_summary = deploy_job.run(deploy_job.Config(
-            hand="sim-allegro", policy="student", duration=cfg.deploy_seconds,
+            hand="sim-allegro", policy=deploy_policy, duration=cfg.deploy_seconds,
             record=str(cfg.out / "deploy_session.h5"), overwrite=True))
     exit_code = int(deploy_summary["exit_code"]) if deploy_summary is not None else 0
 
@@ -142,7 +143,8 @@ def run(cfg: Config) -> dict[str, Any]:
     if deploy_summary is not None:
         outcome = ("completed" if exit_code == 0 else
                    f"**FAILED** (exit status {exit_code}): {deploy_summary.get('fault') or 'motors not confirmed off'}")
-        lines += ["## Deploy dry run (emulated Allegro over CAN; student)", "", f"Result: {outcome}", "", "```",
+        lines += [f"## Deploy dry run (emulated Allegro over CAN; {deploy_policy})", "", f"Result: {outcome}", "",
+                  "```",
                   json.dumps(deploy_summary, indent=2, default=str), "```", ""]
     report = cfg.out / "README.md"
     report.write_text("\n".join(lines))

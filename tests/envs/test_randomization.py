@@ -152,3 +152,23 @@ def test_observation_noise_is_bounded_by_the_config():
     assert np.abs(noise).max() <= 0.02 + 1e-5  # U(-0.02, 0.02) rad, plus float32 rounding
     assert np.abs(noise).max() > 0.015  # 128 draws: the noise is really there
     np.testing.assert_allclose(obs["proprio"][:, -1, 16:], core.targets, rtol=1e-6)  # targets are not noisy
+
+
+def test_log_uniform_friction_maps_the_same_draws_onto_a_log_scale():
+    """friction_log: the same per-env draw u gives lo * (hi / lo) ** u instead of lo + (hi - lo) * u; the other
+    parameters are unchanged, and the nominal friction (randomization off) stays the range's middle."""
+    lo, hi = 0.075, 3.0
+    base = RandomizationConfig(friction=(lo, hi))
+    lin = RotateCupVec(EnvConfig(randomization=base), num_envs=N, seed=5, nthread=1)
+    log = RotateCupVec(EnvConfig(randomization=RandomizationConfig(friction=(lo, hi), friction_log=True)),
+                       num_envs=N, seed=5, nthread=1)
+    lin.reset(seed=5), log.reset(seed=5)
+    u = (lin.params["friction"] - lo) / (hi - lo)
+    np.testing.assert_allclose(log.params["friction"], lo * (hi / lo) ** u, rtol=1e-12)
+    np.testing.assert_allclose(fields(log)["friction"][:, 0], log.params["friction"], rtol=1e-15)
+    for key in ("mass", "com", "scale", "kp"):
+        np.testing.assert_array_equal(log.params[key], lin.params[key])
+    off = RotateCupVec(EnvConfig(randomization=RandomizationConfig(enabled=False, friction=(lo, hi),
+                                                                   friction_log=True)), num_envs=2, seed=5, nthread=1)
+    off.reset(seed=5)
+    np.testing.assert_allclose(off.params["friction"], (lo + hi) / 2, rtol=1e-15)

@@ -70,8 +70,8 @@ def test_an_earlier_demo_evaluation_of_other_policies_is_kept_aside(tmp_path, st
 
 
 def test_demo_with_a_shipped_adapter_evaluates_it(tmp_path, stand_ins, monkeypatch):
-    """With rotation/policies/adapter shipped, the demo adds a student vs adapter evaluation with touch; the deploy
-    dry run stays with the student (the adapter does not turn the emulated hand's cup yet, docs/adapter.md)."""
+    """With rotation/policies/adapter shipped, the demo adds a student vs adapter evaluation with touch and dry-runs
+    deploy with the adapter (its emulated fingertips start with it); without one, both stay with the student."""
     stand_ins.update(exit_code=0, fault=None, motors_off=True)
     evaluated, deployed = [], []
     evaluate = demo.evaluate_job.run
@@ -85,10 +85,11 @@ def test_demo_with_a_shipped_adapter_evaluates_it(tmp_path, stand_ins, monkeypat
     monkeypatch.setattr(demo, "shipped_bundles", lambda: ["adapter", "student", "teacher"])
     assert main(["demo", "--out", str(tmp_path / "with"), "--deploy-seconds", "1"]) == 0
     assert evaluated == [{"teacher": "teacher", "student": "student"}, {"student": "student", "adapter": "adapter"}]
-    assert deployed == ["student"]
+    assert deployed == ["adapter"]
     report = (tmp_path / "with" / "README.md").read_text()
     assert "## Student vs student + tactile adapter" in report
+    assert "## Deploy dry run (emulated Allegro over CAN; adapter)" in report
     monkeypatch.setattr(demo, "shipped_bundles", lambda: ["student", "teacher"])
     evaluated.clear()
     assert main(["demo", "--out", str(tmp_path / "without"), "--deploy-seconds", "1"]) == 0
-    assert len(evaluated) == 1 and deployed == ["student", "student"]
+    assert len(evaluated) == 1 and deployed == ["adapter", "student"]
