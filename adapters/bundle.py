@@ -14,11 +14,17 @@ touch::
 
     policy = load_adapter("adapter")                       # shipped, or a directory
     corr = policy.correction(windows, obs)                 # {finger: {image, audio, imu, pressure}} -> (N, Z)
+    corr = policy.correction(policy.env_windows(obs), obs) # the same from an env observation
     actions = policy.act_batch(obs, correction=corr)       # z = phi(history) + corr; corr None = the student
 
 The correction is refreshed every ``touch_every`` control steps and held in between (touch tells friction and
 mass, which change slowly; rendering and encoding four fingertips every step would cost more than the step).
 Without a correction (no touch yet, a stalled sensor, non-finite embeddings) the policy is exactly its student.
+
+Two kinds of touch, decided by the encoder (``AdaptedPolicy.sensor``): Sparsh-X reads one sample per Digit 360
+fingertip (the env's `tactile` group, the deploy readers); Sparsh-skin reads one sample for the whole hand,
+``{SKIN_SAMPLE: {"skin": (N, 10, 368, 6)}}`` (the env's `skin` group of the Xela hand). Simulation (fine-tuning,
+evaluate, view) takes either; deploy and recorded sessions take Digit 360 adapters only.
 """
 
 from __future__ import annotations
@@ -50,6 +56,8 @@ SHIPPED_ADAPTERS = Path(__file__).resolve().parent.parent / "rotation" / "polici
 
 MODALITY_WINDOWS = {"img": "image", "mic": "audio", "imu": "imu", "pressure": "pressure"}
 """Sparsh-X token group -> the window (env `tactile` group, dataset, sensor) it is computed from."""
+SKIN_SAMPLE = "hand"
+"""The one sensor sample of a skin adapter (Sparsh-skin): the whole hand's Xela skin, the env's `skin` group."""
 
 
 class TouchUnavailable(RuntimeError):
@@ -182,8 +190,28 @@ class AdaptedPolicy:
 
     @property
     def windows(self) -> tuple[str, ...]:
-        """Window names per fingertip it needs (image, audio, imu, pressure)."""
+        """Window names per sample it needs (image, audio, imu, pressure; skin)."""
         return tuple(MODALITY_WINDOWS.get(m, m) for m in self.adapter_config.modalities)
+
+    @property
+    def sensor(self) -> str:
+        """'digit360' (Sparsh-X, one sample per fingertip) or 'skin' (Sparsh-skin, one sample for the hand)."""
+        return kind_of(self.encoder) if kind_of(self.encoder) == "skin" else "digit360"
+
+    @property
+    def env_needs(self) -> dict[str, Any]:
+        """The EnvConfig fields a simulated env needs for this adapter's touch (the Digit 360 hand with its
+        simulated fingertips, or the Xela hand with its skin)."""
+        return {"hand": "xela", "skin": True} if self.sensor == "skin" else {"tactile": True}
+
+    def env_windows(self, obs: Mapping[str, Any], idx: np.ndarray | None = None) -> dict[str, dict[str, Any]]:
+        """The sensor samples of an env observation (of the envs ``idx``, default all), as :meth:`correction` takes
+        them; a `tactile` group renders only what is read here."""
+        if self.sensor == "skin":
+            skin = obs["skin"] if idx is None else obs["skin"][idx]
+            return {SKIN_SAMPLE: {"skin": skin}}
+        tactile = obs["tactile"] if idx is None else obs["tactile"][idx]
+        return {f: {w: tactile[f][w] for w in self.windows} for f in self.fingers}
 
     def tokens(self, windows: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, torch.Tensor]]:
         """{finger: {window: (N, ...)}} -> {finger: {group: (N, N_g, D)}} from the frozen encoder (one batched call);
@@ -257,14 +285,16 @@ class AdaptedPolicy:
 def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch_every: int = 4,
                   hidden: tuple[int, ...] = (256, 128), with_latent: bool = True, seed: int = 0,
                   device: str = "cpu") -> AdaptedPolicy:
-    """A fresh adapter (zero correction) for ``student`` reading ``encoder`` restricted to ``modalities``."""
+    """A fresh adapter (zero correction) for ``student`` reading ``encoder`` restricted to ``modalities``: a
+    Sparsh-X encoder reads the four fingertips, a Sparsh-skin encoder the whole hand (one sample)."""
     from envs.constants import FINGERS
 
     student_bundle = load_bundle(student)
     enc = frozen_encoder(encoder, modalities, device)
     interface = enc.token_interface
+    samples = (SKIN_SAMPLE,) if kind_of(enc) == "skin" else tuple(FINGERS)
     torch.manual_seed(seed)
-    net = AdapterNetConfig(samples=tuple(FINGERS), groups=tuple(interface.groups), width=interface.width,
+    net = AdapterNetConfig(samples=samples, groups=tuple(interface.groups), width=interface.width,
                            latent_dim=student_bundle.config.latent_dim, hidden=tuple(hidden), with_latent=with_latent)
     cfg = AdapterConfig(student=student, student_sha256=file_digest(student_weights(student)), encoder=encoder,
                         encoder_sha256=file_digest(encoder_weights(encoder)), modalities=tuple(interface.names),

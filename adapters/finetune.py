@@ -83,7 +83,8 @@ class Config:
     encoder: str = "sparshx-tinier-sim"
     """The frozen touch encoder: a shipped name (rotation/tactile/pretrained) or a checkpoint / pretrain run."""
     modalities: str = "img,mic,imu,pressure"
-    """Encoder token groups the adapter reads (comma-separated subset; e.g. 'img' for the image-only ablation)."""
+    """Encoder token groups the adapter reads (comma-separated subset; e.g. 'img' for the image-only ablation);
+    'skin' with a Sparsh-skin encoder (the Xela hand's skin; the env then becomes the Xela hand with its skin)."""
     out: Path = Path("runs/adapter")
     """Run directory: config.json, checkpoints, TensorBoard logs (tb/), curves.jsonl and the adapter bundle."""
     total_steps: int = 60_000
@@ -115,7 +116,7 @@ class Config:
     overwrite: bool = False
     """Delete an earlier run's outputs in `out` and start over."""
     env: EnvConfig = field(default_factory=lambda: EnvConfig(tactile=True, randomization=hard_randomization()))
-    """The training env (tactile is forced on)."""
+    """The training env (the touch the adapter reads is forced on: tactile, or for skin the Xela hand's skin)."""
     nthread: int = 0
     """MuJoCo threads of the batched env (0 = one per core)."""
     torch_threads: int = 2
@@ -146,7 +147,7 @@ class Config:
         for name in ("student", "teacher", "encoder"):
             if not getattr(self, name):
                 raise ValueError(f"{name}: give a shipped name or a path")
-        parse_groups(self.modalities, "sparshx")
+        groups = parse_groups(self.modalities, self.touch_kind)
         check_int("total_steps", self.total_steps, 1, 10**12)
         check_int("num_envs", self.num_envs, 1, 4096)
         check_int("touch_every", self.touch_every, 1, 1000)
@@ -162,21 +163,32 @@ class Config:
         check_seed("seed", self.seed)
         check_int("nthread", self.nthread, 0, 1024, "(0 = one per CPU core)")
         check_int("torch_threads", self.torch_threads, 1, 1024)
-        if not self.env.tactile:
-            self.env = dataclasses.replace(self.env, tactile=True)
+        needs = {"hand": "xela", "skin": True, "tactile": False} if self.touch_kind == "skin" else {"tactile": True}
+        if any(getattr(self.env, k) != v for k, v in needs.items()):
+            self.env = dataclasses.replace(self.env, **needs)
         if self.resume and self.overwrite:
             raise ValueError("--resume continues the run in --out and --overwrite deletes it: give one of them")
         self.sessions = tuple(Path(p) for p in self.sessions)
         check_int("epochs", self.epochs, 1, 10**6)
         check_int("sample_every", self.sample_every, 1, 10**6)
         check_number("val_fraction", self.val_fraction, 0.0, 1.0, high_open=True)
+        if self.sessions and self.touch_kind == "skin":
+            raise ValueError("--sessions trains Digit 360 adapters (imu, pressure); recorded skin sessions lack the "
+                             "taxel positions the skin encoder reads (docs/skin.md): train a skin adapter in "
+                             "simulation")
         if self.sessions:
-            windows = [MODALITY_WINDOWS[m] for m in parse_groups(self.modalities, "sparshx")]
+            windows = [MODALITY_WINDOWS[m] for m in groups]
             bad = [w for w in windows if w not in RECORDED_WINDOWS]
             if bad:
                 raise ValueError(f"modalities: recorded sessions hold the Digit 360 {' and '.join(RECORDED_WINDOWS)} "
                                  f"streams (deploy records no images or audio), not {', '.join(bad)}: give "
                                  "--modalities pressure, imu or imu,pressure with --sessions")
+
+
+    @property
+    def touch_kind(self) -> str:
+        """The encoder kind the modalities name: 'skin' for Sparsh-skin's one group, else 'sparshx'."""
+        return "skin" if [t.strip() for t in self.modalities.split(",") if t.strip()] == ["skin"] else "sparshx"
 
 
 @dataclass
@@ -258,7 +270,7 @@ class Job:
         teacher = load_bundle(cfg.teacher)
         if teacher.config.latent_source != "privileged":
             raise ValueError(f"--teacher {cfg.teacher}: needs a teacher bundle (latent_source 'privileged')")
-        modalities = parse_groups(cfg.modalities, "sparshx")
+        modalities = parse_groups(cfg.modalities, cfg.touch_kind)
         policy = build_adapted(cfg.student, cfg.encoder, modalities, touch_every=cfg.touch_every, hidden=cfg.hidden,
                                seed=cfg.seed)
         if teacher.config.latent_dim != policy.config.latent_dim:

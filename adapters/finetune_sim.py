@@ -1,8 +1,9 @@
 """The simulation path of `rotate finetune-adapter` (adapters.finetune; its module docstring describes it).
 
-DAgger over the batched env with simulated Digit 360 fingertips: every ``touch_every`` control steps the windows of
-every env are encoded once into the TokenBuffer and ``updates`` Adam steps draw minibatches from it; checkpoint
-intervals start from fresh resets and an empty buffer, so a resumed run is bit-identical.
+DAgger over the batched env with simulated touch (Digit 360 fingertips, or the Xela hand's skin): every
+``touch_every`` control steps the windows of every env are encoded once into the TokenBuffer and ``updates`` Adam
+steps draw minibatches from it; checkpoint intervals start from fresh resets and an empty buffer, so a resumed run
+is bit-identical.
 """
 
 from __future__ import annotations
@@ -66,9 +67,8 @@ def train_in_sim(job: Job) -> Result:
                 with torch.no_grad():
                     z_teacher = teacher.net.extractor.z(t_obs)
                     z_student = policy.student_latent(groups)
-                windows = {f: {w: obs["tactile"][f][w] for w in policy.windows} for f in policy.fingers}
                 try:
-                    tokens = policy.tokens(windows)
+                    tokens = policy.tokens(policy.env_windows(obs))
                 except TouchUnavailable as err:  # cannot happen in simulation unless the renderer breaks
                     raise RuntimeError(f"simulated touch unusable: {err}") from None
                 buffer.add(tokens, z_student, z_teacher)

@@ -80,8 +80,13 @@ def touch_sensors(policy: Any, name: str, specs: dict[str, str], emulated: bool)
 
     Emulated hand without ``--digit360``: emulated fingertips on every finger ('sim', logged). Otherwise every
     fingertip the adapter reads must be named and its sensor must give every window the adapter reads; ValueError
-    (naming the fingers or windows, and the fix) when not, before anything is started.
+    (naming the fingers or windows, and the fix) when not, before anything is started. A skin adapter (Sparsh-skin)
+    is refused the same way: deploy reads Digit 360 fingertips only.
     """
+    if getattr(policy, "sensor", "digit360") != "digit360":
+        raise ValueError(f"policy {name!r} reads the Xela skin; deploy runs Digit 360 adapters only (a skin adapter "
+                         "needs the taxel positions from the joint angles, which deploy does not compute yet: "
+                         "docs/skin.md). Deploy its student alone (--policy student) with --skin to record the skin")
     if not specs and emulated:
         log.info("policy %s reads touch (%s from %s): starting emulated Digit 360 fingertips (--digit360 sim)",
                  name, ", ".join(policy.windows), ", ".join(policy.fingers))

@@ -25,7 +25,7 @@ import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from tqdm import tqdm
@@ -225,20 +225,32 @@ def load_policies(cfg: Config) -> dict[str, PolicyBundle]:
     if len(timing) > 1:
         raise ValueError(f"the policies were trained at different control rates / action scales {sorted(timing)}; "
                          "evaluate them in separate runs")
+    needs = {name: bundles[name].env_needs for name in touch}
+    if len({tuple(sorted(n.items())) for n in needs.values()}) > 1:
+        raise ValueError(f"--policy {', '.join(touch)} read different touch ({needs}): a Digit 360 adapter runs on "
+                         "the Digit 360 hand, a skin adapter on the Xela hand; evaluate them in separate runs")
     return bundles
 
 
-def env_config(cfg: Config, bundle: PolicyBundle, perturb: Perturbation, tactile: bool = False) -> EnvConfig:
+def touch_env(bundles: dict[str, PolicyBundle]) -> dict[str, Any]:
+    """The EnvConfig fields the touch-reading policies need (every policy of the run then meets that env: a skin
+    adapter's run puts all of them on the Xela hand); {} when none reads touch."""
+    return next((b.env_needs for b in bundles.values() if reads_touch(b)), {})
+
+
+def env_config(cfg: Config, bundle: PolicyBundle, perturb: Perturbation, touch: dict[str, Any] | None = None
+               ) -> EnvConfig:
     """The env of one condition; control rate and action scale come from the bundle, not from this config.
-    ``tactile``: simulate the Digit 360 fingertips (a policy reads touch); it changes no other policy's episodes."""
+    ``touch``: the fields a touch-reading policy needs (:func:`touch_env`): the simulated Digit 360 fingertips
+    change no other policy's episodes; the Xela hand with its skin is another hand for all of them."""
     rand = RandomizationConfig() if cfg.randomize else RandomizationConfig(enabled=False)
     return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, episode_steps=cfg.episode_steps,
                      control_hz=bundle.config.control_hz, action_scale=bundle.config.action_scale,
-                     randomization=rand, perturb=perturb, tactile=tactile)
+                     randomization=rand, perturb=perturb, **(touch or {}))
 
 
 def reads_touch(bundle: PolicyBundle) -> bool:
-    """True for a policy with a tactile adapter (it needs the env's `tactile` group)."""
+    """True for a policy with a tactile adapter (it needs the env's `tactile` or `skin` group)."""
     return bool(getattr(bundle, "touch_every", 0))
 
 
@@ -289,8 +301,7 @@ def run(cfg: Config) -> list[dict]:
 def _run_condition(cfg: Config, cond: Condition, bundles: dict[str, PolicyBundle], first: PolicyBundle, out: Path,
                    bar: tqdm) -> list[dict]:
     """Every policy under one condition (same env, same seeds): one row per policy; the video if asked for."""
-    tactile = any(reads_touch(b) for b in bundles.values())
-    env = make_vec(cfg.backend, env_config(cfg, first, cond.perturb, tactile),
+    env = make_vec(cfg.backend, env_config(cfg, first, cond.perturb, touch_env(bundles)),
                    num_envs=min(cfg.num_envs, cfg.episodes), seed=cfg.seed, nthread=cfg.nthread or None,
                    device=cfg.warp_device)
     recorder = None

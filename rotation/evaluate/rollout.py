@@ -28,8 +28,8 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     n = env.num_envs
     touch_every = getattr(bundle, "touch_every", 0)  # a tactile adapter (adapters.bundle.AdaptedPolicy)
-    if touch_every and not env.cfg.tactile:
-        raise ValueError("this policy reads touch: evaluate it in an env with tactile=True (the cpu backend)")
+    if touch_every and any(getattr(env.cfg, k) != v for k, v in bundle.env_needs.items()):
+        raise ValueError(f"this policy reads touch: evaluate it in an env with {bundle.env_needs} (the cpu backend)")
     tracker = EpisodeTracker(n, env.cfg.control_dt, env.cfg.episode_steps)
     results: list[EpisodeMetrics | None] = [None] * episodes
     for first in range(0, episodes, n):
@@ -48,7 +48,7 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
             groups = {key: obs[key][idx] for key in bundle.config.obs_groups}
             if correction is not None:
                 if k % touch_every == 0:  # refresh the touch correction, hold it in between
-                    correction[idx] = touch_correction(bundle, obs["tactile"][idx], groups)
+                    correction[idx] = touch_correction(bundle, obs, groups, idx)
                 actions[idx] = bundle.act_batch(groups, correction=correction[idx])
             else:
                 actions[idx] = bundle.act_batch(groups)
@@ -68,13 +68,12 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
     return results  # type: ignore[return-value]
 
 
-def touch_correction(policy, tactile, groups: dict[str, np.ndarray]) -> np.ndarray:
-    """The adapter's (N, Z) correction from the env's `tactile` group (rendered here, for these envs only); zero
-    (the student alone) when touch is unusable, as on the robot."""
+def touch_correction(policy, obs, groups: dict[str, np.ndarray], idx: np.ndarray | None = None) -> np.ndarray:
+    """The adapter's (N, Z) correction from the env observation's touch (the `tactile` group, rendered here for the
+    envs ``idx`` only, or the `skin` group); zero (the student alone) when touch is unusable, as on the robot."""
     from adapters.bundle import TouchUnavailable
 
-    windows = {f: {w: tactile[f][w] for w in policy.windows} for f in policy.fingers}
     try:
-        return policy.correction(windows, groups)
+        return policy.correction(policy.env_windows(obs, idx), groups)
     except TouchUnavailable:
         return np.zeros((len(next(iter(groups.values()))), policy.config.latent_dim), dtype=np.float32)

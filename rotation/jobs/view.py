@@ -82,8 +82,8 @@ def env_config(cfg: Config, bundle) -> EnvConfig:
     rc = RandomizationConfig() if cfg.randomize else RandomizationConfig(enabled=False)
     timing = {} if bundle is None else dict(control_hz=bundle.config.control_hz,
                                             action_scale=bundle.config.action_scale)
-    touch = bool(getattr(bundle, "touch_every", 0))  # a tactile adapter reads the simulated Digit 360
-    return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, randomization=rc, tactile=touch, **timing)
+    touch = bundle.env_needs if getattr(bundle, "touch_every", 0) else {}  # a tactile adapter: its simulated touch
+    return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, randomization=rc, **touch, **timing)
 
 
 def _actor(cfg: Config, bundle):
@@ -100,7 +100,7 @@ def _actor(cfg: Config, bundle):
         def act(obs):
             groups = {key: obs[key] for key in bundle.config.obs_groups}
             if state["k"] % bundle.touch_every == 0:
-                state["correction"] = touch_correction(bundle, obs["tactile"], groups)
+                state["correction"] = touch_correction(bundle, obs, groups)
             state["k"] += 1
             return bundle.act_batch(groups, correction=state["correction"])
 

@@ -68,6 +68,9 @@ class Config:
     """Output directory (checkpoints, TensorBoard logs, config, final bundle)."""
     object: str = "cup"
     """Training object (envs.objects): the upright cup with a handle, scaled per env."""
+    hand: Literal["digit360", "xela"] = "digit360"
+    """Hand variant (envs.config.EnvConfig.hand): Digit 360 fingertips, or stock fingertips with the Xela skin pads
+    (a teacher for a skin adapter; the skin itself is not simulated while the teacher trains)."""
     num_envs: int = 256
     """Simulations stepped together in one process."""
     total_steps: int = 30_000_000
@@ -189,7 +192,7 @@ class Config:
 
     def env_config(self) -> EnvConfig:
         rc = RandomizationConfig() if self.randomize else RandomizationConfig(enabled=False)
-        return EnvConfig(object=self.object, episode_steps=self.episode_steps, randomization=rc,
+        return EnvConfig(object=self.object, hand=self.hand, episode_steps=self.episode_steps, randomization=rc,
                          grasp_cache=self.grasp_cache)
 
 

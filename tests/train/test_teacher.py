@@ -280,3 +280,16 @@ def test_bad_options_are_refused_on_construction(tmp_path):
 def test_cuda_without_a_gpu_is_an_error_not_a_cpu_run(tmp_path):
     with pytest.raises(ValueError, match=r"device 'cuda': no CUDA GPU is available to torch here; use --device cpu"):
         _cfg(tmp_path, device="cuda")
+
+
+def test_teacher_trains_on_either_hand(tmp_path):
+    """--hand xela trains a teacher on the Xela hand (its own grasp caches), the hand a skin adapter runs on."""
+    xela = teacher.Config(out=tmp_path / "x", hand="xela").env_config()
+    assert xela.hand == "xela" and not xela.skin
+    assert teacher.Config(out=tmp_path / "d").env_config().hand == "digit360"
+    env = RotateCupVec(xela, num_envs=1, seed=0, nthread=1)
+    try:
+        env.reset(seed=0)
+        assert env.cfg.hand == "xela"
+    finally:
+        env.close()
