@@ -70,9 +70,10 @@ def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, prefix: 
         if dataclasses.is_dataclass(tp):
             add_dataclass_arguments(parser, tp, prefix=dest + ".")
             continue
-        help_text = docs.get(f.name, "")
         kw: dict[str, Any] = dict(dest=dest, default=argparse.SUPPRESS)
         show = "" if default is None and optional else f" (default: {default})"
+        help_text = docs.get(f.name, "").replace("%", "%%")  # argparse %-formats help: a literal '%' must be doubled
+        show = show.replace("%", "%%")
         origin = typing.get_origin(tp)
         if tp is bool:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, help=help_text + show, **kw)

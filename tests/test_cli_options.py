@@ -316,3 +316,14 @@ def test_a_file_system_fault_is_one_line_and_status_1(monkeypatch, capsys):
     assert cli.main(["grasps"]) == 1
     err = capsys.readouterr().err
     assert err.strip() == ("rotate grasps: error: [Errno 28] No space left on device: 'grasps/grasps_cup.npz'")
+
+
+@pytest.mark.parametrize("command", list(cli.COMMANDS))
+def test_every_help_prints(command, capsys):
+    """`rotate COMMAND --help` prints its help and exits 0: a '%' in an option's docstring once made
+    `rotate pretrain --help` end in a traceback (argparse %-formats help strings)."""
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main([command, "--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: rotate") and "--help" in out

@@ -307,8 +307,6 @@ class TouchWorker:
             if self.stats.first_correction_step is None:
                 self.stats.first_correction_step = step
                 log.info("step %d: first touch correction; the adapter acts (the student alone before it)", step)
-            elif self._state == "starting":
-                log.info("step %d: first touch correction; the adapter acts", step)
             elif self._state == "fallback":
                 log.info("step %d: touch is back; the adapter acts again after %.2f s as the student alone", step,
                          now - self._fallback_since)
@@ -351,11 +349,6 @@ class TouchWorker:
         return True
 
     # ------------------------------------------------------------------ the worker's side
-    def _wait(self, seq: int, timeout: float) -> _Result | None:
-        with self._cv:
-            self._cv.wait_for(lambda: self._latest is not None and self._latest.seq == seq, timeout=max(timeout, 0))
-            return self._latest if self._latest is not None and self._latest.seq == seq else None
-
     def _refresh(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """One correction (Z,) from every fingertip's window now and ``obs``; raises when touch is unusable."""
         import torch
