@@ -302,8 +302,9 @@ def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch
     return AdaptedPolicy(cfg, student_bundle, enc, TouchAdapter(net).to(device))
 
 
-def load_adapter(name_or_path: str | Path, device: str = "cpu") -> AdaptedPolicy:
-    """Load an adapter bundle (a directory or a shipped name), resolving and checking its student and encoder."""
+def read_adapter(name_or_path: str | Path) -> tuple[Path, AdapterConfig, dict[str, torch.Tensor]]:
+    """An adapter bundle's directory, config and weights, without resolving its student or encoder (what
+    ``finetune-adapter --init-from`` starts from); :func:`load_adapter` is the checked way to use one."""
     path = Path(name_or_path)
     if not path.is_dir() and (SHIPPED_ADAPTERS / str(name_or_path)).is_dir():
         path = SHIPPED_ADAPTERS / str(name_or_path)
@@ -314,6 +315,16 @@ def load_adapter(name_or_path: str | Path, device: str = "cpu") -> AdaptedPolicy
         cfg = from_jsonable(AdapterConfig, json.loads((path / CONFIG_FILE).read_text()))
     except (TypeError, ValueError, KeyError) as err:
         raise BundleError(f"{path / CONFIG_FILE}: {err}") from None
+    try:
+        weights = load_file(str(path / WEIGHTS_FILE))
+    except (SafetensorError, OSError) as err:
+        raise BundleError(f"{path / WEIGHTS_FILE}: {str(err).splitlines()[0]}") from None
+    return path, cfg, weights
+
+
+def load_adapter(name_or_path: str | Path, device: str = "cpu") -> AdaptedPolicy:
+    """Load an adapter bundle (a directory or a shipped name), resolving and checking its student and encoder."""
+    path, cfg, state = read_adapter(name_or_path)
     for what, ref, want, weights in (("student", cfg.student, cfg.student_sha256, student_weights),
                                      ("encoder", cfg.encoder, cfg.encoder_sha256, encoder_weights)):
         try:
@@ -327,7 +338,7 @@ def load_adapter(name_or_path: str | Path, device: str = "cpu") -> AdaptedPolicy
     encoder = frozen_encoder(cfg.encoder, cfg.modalities, device)
     adapter = TouchAdapter(cfg.net)
     try:
-        adapter.load_state_dict(load_file(str(path / WEIGHTS_FILE)), strict=True)
-    except (SafetensorError, RuntimeError, OSError) as err:
+        adapter.load_state_dict(state, strict=True)
+    except RuntimeError as err:
         raise BundleError(f"{path / WEIGHTS_FILE}: {str(err).splitlines()[0]}") from None
     return AdaptedPolicy(cfg, student, encoder, adapter.to(device), path=str(path))

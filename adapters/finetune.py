@@ -42,7 +42,7 @@ from typing import Any, Literal
 
 import torch
 
-from adapters.bundle import MODALITY_WINDOWS, build_adapted, file_digest, student_weights
+from adapters.bundle import MODALITY_WINDOWS, build_adapted, file_digest, read_adapter, student_weights
 from adapters.real_data import RECORDED_WINDOWS
 from envs.config import EnvConfig, RandomizationConfig
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
@@ -115,6 +115,10 @@ class Config:
     """Continue from the latest checkpoint in `out` (the saved config must match, except total_steps)."""
     overwrite: bool = False
     """Delete an earlier run's outputs in `out` and start over."""
+    init_from: str = ""
+    """An adapter bundle (directory or shipped name) whose adapter weights this run starts from instead of zeros,
+    e.g. to carry a trained adapter over to a student fine-tuned with `rotate finetune-student` (same phi, new
+    actor). Its encoder, modalities and sizes must be this run's; it may name another student."""
     env: EnvConfig = field(default_factory=lambda: EnvConfig(tactile=True, randomization=hard_randomization()))
     """The training env (the touch the adapter reads is forced on: tactile, or for skin the Xela hand's skin)."""
     nthread: int = 0
@@ -279,6 +283,8 @@ class Job:
         if not cfg.sessions and policy.student.config.control_hz != cfg.env.control_hz:
             raise ValueError(f"env: control_hz {cfg.env.control_hz} differs from the student's "
                              f"{policy.student.config.control_hz}")
+        if cfg.init_from:
+            _init_adapter(policy, cfg)
         student_sha = file_digest(student_weights(cfg.student))
         job = cls(cfg, out, checkpoints, teacher, policy, torch.optim.Adam(policy.adapter.parameters(), lr=cfg.lr),
                   student_sha)
@@ -341,6 +347,21 @@ class Job:
             raise Interrupted(signum, message)
         print(f"finetune-adapter: {done}; adapter bundle at {bundle_dir}")
         return Result(bundle_dir, history)
+
+
+def _init_adapter(policy: Any, cfg: Config) -> None:
+    """Start ``policy``'s adapter from the weights of the adapter bundle ``cfg.init_from``."""
+    try:
+        path, init_cfg, weights = read_adapter(cfg.init_from)
+    except ValueError as err:
+        raise ValueError(f"init_from: {err}") from None
+    want = policy.adapter_config
+    if init_cfg.encoder_sha256 != want.encoder_sha256 or init_cfg.net != want.net:
+        raise ValueError(f"init_from: adapter {path} reads encoder {init_cfg.encoder!r} ({init_cfg.encoder_sha256}) "
+                         f"with modalities {list(init_cfg.modalities)} and network {to_jsonable(init_cfg.net)}; this "
+                         f"run has {want.encoder!r} ({want.encoder_sha256}), {list(want.modalities)}, "
+                         f"{to_jsonable(want.net)}")
+    policy.adapter.load_state_dict(weights, strict=True)
 
 
 def run(cfg: Config) -> Result:

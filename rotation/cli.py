@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "view": ("rotation.jobs.view", "render an object/grasp (PNG) or a rollout (MP4) headless"),
     "train-teacher": ("rotation.train.teacher", "train the privileged teacher with PPO on the batched env"),
     "train-student": ("rotation.train.student", "distill the proprioceptive student from a frozen teacher"),
+    "finetune-student": ("rotation.train.finetune_student",
+                         "fine-tune a distilled student's actor with PPO on its own latent estimate"),
     "evaluate": ("rotation.evaluate.job", "compare policies under friction, mass and CoM perturbations"),
     "demo": ("rotation.jobs.demo", "the end-to-end demo on the shipped defaults"),
     "hand-info": ("rotation.jobs.hand_info", "print a hand's firmware, serial, temperatures and joint positions"),

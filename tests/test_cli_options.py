@@ -43,6 +43,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "*:added_mass": {"zero": "no added mass: the nominal object"},
     "grasps:noise": {"zero": "grasps exactly at the canonical pose"},
     "train-teacher:critic_warmup": {"zero": "0 = the actor trains from the first update"},
+    "finetune-student:critic_warmup": {"zero": "0 = the actor trains from the first update"},
     "deploy:duration": {"zero": "0 runs until Ctrl-C / SIGTERM (documented)"},
     "finetune-adapter:val_fraction": {"zero": "no held-out sessions: train on every session"},
     "deploy:rt_priority": {"zero": "0 leaves the scheduling alone"},

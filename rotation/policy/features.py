@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import torch
 from gymnasium import spaces
+from stable_baselines3.common.policies import MultiInputActorCriticPolicy
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
@@ -144,3 +145,39 @@ class StudentExtractor(LatentExtractor):
         student.proprio_norm.load_state_dict(teacher.proprio_norm.state_dict())
         student.hist_norm.load_state_dict(teacher.proprio_norm.state_dict())
         return student
+
+
+class StudentPPOPolicy(MultiInputActorCriticPolicy):
+    """SB3 policy for PPO fine-tuning of a distilled student (`rotate finetune-student`): asymmetric actor-critic.
+
+    The actor is the student's acting path: features from :class:`StudentExtractor` (z estimated by phi over
+    ``proprio_hist``), then the actor MLP. phi and its history normalization are frozen, so the latent stays an
+    estimate of the teacher's z (what a tactile adapter corrects toward); only the actor MLP, the action head, the
+    actor's proprio normalization and the action std learn. The critic reads the privileged groups through its own
+    :class:`PrivilegedExtractor` (a fresh env-factor encoder of ``critic_encoder`` sizes): values need not be
+    guessed from history, only actions must.
+    """
+
+    def __init__(self, *args, critic_encoder: EnvFactorEncoderConfig | None = None, **kwargs) -> None:
+        self.critic_encoder = critic_encoder or EnvFactorEncoderConfig()
+        kwargs["share_features_extractor"] = False
+        super().__init__(*args, **kwargs)
+        actor = self.pi_features_extractor
+        if not isinstance(actor, StudentExtractor):
+            raise ValueError(f"StudentPPOPolicy needs features_extractor_class=StudentExtractor, got "
+                             f"{type(actor).__name__}")
+        for p in actor.adaptation.parameters():
+            p.requires_grad_(False)
+        actor.hist_norm.frozen = True
+
+    def _build(self, lr_schedule) -> None:
+        actor = self.pi_features_extractor
+        self.vf_features_extractor = PrivilegedExtractor(self.observation_space, self.critic_encoder,
+                                                         norm_clip=actor.proprio_norm.cfg.clip)
+        if self.vf_features_extractor.features_dim != actor.features_dim:
+            raise ValueError(f"critic latent size {self.critic_encoder.latent_dim} differs from the student's "
+                             f"{actor.latent_dim}")
+        super()._build(lr_schedule)
+
+    def _get_constructor_parameters(self) -> dict:
+        return super()._get_constructor_parameters() | {"critic_encoder": self.critic_encoder}

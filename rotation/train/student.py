@@ -101,8 +101,8 @@ class Config:
     without it a folder holding a run is refused unless --resume continues it."""
     backend: Literal["cpu", "warp"] = "cpu"
     """Physics backend: 'cpu' (MuJoCo on mujoco.batch threads) or 'warp' (MuJoCo Warp worlds on --device, the
-    [warp] extra; observations pass through the host each step). The simulated Digit 360 touch runs on the cpu
-    backend only."""
+    [warp] extra; observations, actions, resets and episode statistics stay on the device, one host read per log
+    point). The simulated Digit 360 touch runs on the cpu backend only."""
 
     def __post_init__(self) -> None:
         check_types(self)
@@ -148,6 +148,77 @@ def _file_digest(path: Path) -> str:
 
 def _obs_tensors(obs: dict[str, np.ndarray], keys: set[str], device: str) -> dict[str, torch.Tensor]:
     return {k: torch.as_tensor(obs[k], device=device) for k in keys}
+
+
+class HostRollout:
+    """The student's env on the cpu backend: numpy physics, tensors for the networks, episodes tracked on the host."""
+
+    def __init__(self, cfg: Config, keys: set[str]) -> None:
+        self.env = make_vec("cpu", cfg.env, num_envs=cfg.num_envs, seed=cfg.seed, nthread=cfg.nthread or None)
+        self.keys, self.device = keys, cfg.device
+        self.tracker = EpisodeTracker(cfg.num_envs, cfg.env.control_dt, cfg.env.episode_steps)
+        self.episodes: list = []
+
+    def reset(self, seed: int) -> dict[str, torch.Tensor]:
+        self.obs = self.env.reset(seed=seed)
+        self.tracker.begin(self.obs)
+        return _obs_tensors(self.obs, self.keys, self.device)
+
+    def step(self, actions: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Step, track the episodes that end, reset their envs; the next observation."""
+        obs, reward, terminated, truncated, info = self.env.step(actions.cpu().numpy())
+        self.episodes += self.tracker.step(reward, terminated, truncated, info)
+        done = np.flatnonzero(terminated | truncated)
+        if len(done):
+            obs = self.env.reset(ids=done)
+            self.tracker.begin(obs, done)
+        self.obs = obs
+        return _obs_tensors(obs, self.keys, self.device)
+
+    def collect(self) -> dict[str, float]:
+        """Means of the episodes that ended since the last call ({} when none did)."""
+        if not self.episodes:
+            return {}
+        s, self.episodes = summarize(self.episodes), []
+        return {"ep_reward": s["reward"], "ep_length": s["length"], "rotation_rate": s["rotation_rate"],
+                "ttf": s["ttf"]}
+
+    def close(self) -> None:
+        self.env.close()
+
+
+class DeviceRollout:
+    """The student's env on the warp backend: worlds, observations, actions, resets and episode sums all stay on
+    the device (rotation.train.teacher_warp.DeviceEpisodeStats); the host reads only the log points."""
+
+    def __init__(self, cfg: Config, keys: set[str]) -> None:
+        from rotation.sim_warp.core import RotateCupWarp, WarpConfig
+        from rotation.train.teacher_warp import DeviceEpisodeStats
+
+        self.env = RotateCupWarp(cfg.env, num_envs=cfg.num_envs, seed=cfg.seed, warp_cfg=WarpConfig(device=cfg.device))
+        self.keys = keys
+        self.stats = DeviceEpisodeStats(cfg.num_envs, cfg.env, self.env.torch_device)
+
+    def reset(self, seed: int) -> dict[str, torch.Tensor]:
+        obs = self.env.reset(seed=seed)
+        self.stats.ep = {}  # the episodes in progress were cut by the reset
+        return {k: obs[k] for k in self.keys}
+
+    def step(self, actions: torch.Tensor) -> dict[str, torch.Tensor]:
+        _, reward, terminated, truncated, info = self.env.step(actions)
+        self.stats.step(reward, terminated, truncated, info)
+        self.env.reset_done(terminated | truncated)
+        obs = self.env._observe()
+        return {k: obs[k] for k in self.keys}
+
+    def collect(self) -> dict[str, float]:
+        s = self.stats.collect()
+        if not s:
+            return {}
+        return {"ep_reward": s["r"], "ep_length": s["l"], "rotation_rate": s["rotation_rate"], "ttf": s["ttf"]}
+
+    def close(self) -> None:
+        self.env.close()
 
 
 def _latest_checkpoint(out: Path) -> Path | None:
@@ -227,8 +298,9 @@ def run(cfg: Config) -> Result:
             raise ValueError(f"--resume: {ckpt_path} does not fit this student ({type(err).__name__}: "
                              f"{str(err).splitlines()[0]})") from None
         start_iter = int(ckpt["iteration"])
-    env = make_vec(cfg.backend, cfg.env, num_envs=n, seed=cfg.seed, nthread=cfg.nthread or None,
-                   device=cfg.device)  # checks the grasp cache
+    keys = set(teacher.config.obs_groups) | set(student.config.obs_groups)
+    rollout_cls = DeviceRollout if cfg.backend == "warp" else HostRollout
+    env = rollout_cls(cfg, keys)  # checks the grasp cache
     # every check passed: only now is anything in `out` written or deleted
     if cfg.overwrite:
         removed = clear_outputs(out, (*RUN_OUTPUTS, *checkpoints))
@@ -238,15 +310,13 @@ def run(cfg: Config) -> Result:
     curves = CurveLog(out / "curves.jsonl", key="env_steps")
     curves.trim(start_iter * n)  # points a crashed or interrupted run logged after its last checkpoint
 
-    tracker = EpisodeTracker(n, cfg.env.control_dt, cfg.env.episode_steps)
-    keys = set(teacher.config.obs_groups) | set(student.config.obs_groups)
     writer = summary_writer(out / "tb", purge_step=start_iter * n)
     history: list[dict[str, float]] = []
-    mse_sum, mse_count, episodes = 0.0, 0, []
+    mse_sum, mse_count = 0.0, 0
     bar = tqdm(total=total_iters * n, initial=start_iter * n, unit="step", disable=not cfg.progress,
                desc="train-student", dynamic_ncols=True)
     t_log = time.perf_counter()
-    obs: dict[str, np.ndarray] = {}
+    t_obs: dict[str, torch.Tensor] = {}
     done_iters, flushed, signum = start_iter, 0, None
     stop = StopSignals()
     try:
@@ -254,9 +324,7 @@ def run(cfg: Config) -> Result:
         for it in range(start_iter, total_iters):
             if it == start_iter or it % interval == 0:
                 # each checkpoint interval starts from fresh resets (what makes resume exact)
-                obs = env.reset(seed=cfg.seed + it * n)
-                tracker.begin(obs)
-            t_obs = _obs_tensors(obs, keys, cfg.device)
+                t_obs = env.reset(seed=cfg.seed + it * n)
             with torch.no_grad():
                 z_teacher = teacher.net.extractor.z(t_obs)  # (N, Z)
             z_student = ext.z(t_obs)  # (N, Z), updates the history normalization (train mode)
@@ -267,12 +335,7 @@ def run(cfg: Config) -> Result:
             # act with phi's estimate (DAgger: the student visits its own states)
             with torch.no_grad():
                 actions = student.net.mean(t_obs, z_student.detach()).clamp(-1.0, 1.0)  # (N, 16)
-            obs, reward, terminated, truncated, info = env.step(actions.cpu().numpy())
-            episodes += tracker.step(reward, terminated, truncated, info)
-            done = np.flatnonzero(terminated | truncated)
-            if len(done):
-                obs = env.reset(ids=done)
-                tracker.begin(obs, done)
+            t_obs = env.step(actions)
 
             mse_sum, mse_count = mse_sum + loss.item(), mse_count + 1
             bar.update(n)
@@ -281,14 +344,11 @@ def run(cfg: Config) -> Result:
                 point: dict[str, float] = {"iteration": it + 1, "env_steps": step, "latent_mse": mse_sum / mse_count}
                 now = time.perf_counter()
                 point["steps_per_s"] = mse_count * n / max(now - t_log, 1e-9)
-                if episodes:
-                    s = summarize(episodes)
-                    point.update(ep_reward=s["reward"], ep_length=s["length"], rotation_rate=s["rotation_rate"],
-                                 ttf=s["ttf"])
+                point.update(env.collect())
                 _log(writer, point)
                 history.append(point)
                 bar.set_postfix(latent_mse=f"{point['latent_mse']:.4f}")
-                mse_sum, mse_count, episodes, t_log = 0.0, 0, [], now
+                mse_sum, mse_count, t_log = 0.0, 0, now
             done_iters = it + 1
             if (it + 1) % interval == 0 or it + 1 == total_iters or stop.requested:
                 _save_checkpoint(out, student, optim, it + 1, teacher_digest)

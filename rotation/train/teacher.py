@@ -46,8 +46,8 @@ from envs.validation import check_int, check_number, check_output_dir, check_see
 from rotation.configs import check_device, save_config, to_jsonable
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.bundle import PolicyBundle, load_bundle
-from rotation.policy.features import PrivilegedExtractor, policy_kwargs
-from rotation.policy.networks import RunningNorm
+from rotation.policy.features import PrivilegedExtractor, StudentExtractor, StudentPPOPolicy, policy_kwargs
+from rotation.policy.networks import EnvFactorEncoderConfig, RunningNorm
 from rotation.train.overlap import RolloutPrefetch
 from rotation.train.runs import (
     CurveLog,
@@ -110,7 +110,8 @@ class Config:
     checkpoint_every: int = 1_000_000
     """Save a checkpoint every this many env steps."""
     resume: Path | None = None
-    """Checkpoint (.zip) to continue from; the step count continues from it."""
+    """Checkpoint to continue from (cpu backend: checkpoints/last.zip; warp: checkpoints/last.pt); the step count
+    continues from it."""
     randomize: bool = True
     """Domain randomization on (Hora's ranges); off trains on nominal physics (an easy setting for tests)."""
     episode_steps: int = 400
@@ -140,15 +141,31 @@ class Config:
     and rsl_rl PPO resident on --device, the [warp] extra; on the command line it starts from the GPU recipe
     rotation.train.teacher_warp.GPU_RECIPE: 8192 worlds, horizon 8, 5 epochs, lr 5e-3, device cuda, which the
     options given win over). The simulated Digit 360 touch runs on the cpu backend only."""
+    student: str = ""
+    """A distilled student bundle (directory or shipped name) to fine-tune with PPO instead of training a teacher
+    (what `rotate finetune-student` sets): its actor learns on its own latent estimate, phi stays frozen, the critic
+    reads the privileged groups (rotation.policy.features.StudentPPOPolicy). Empty = train a teacher."""
 
     def __post_init__(self) -> None:
         check_types(self)
-        if self.backend == "warp" and (self.resume is not None or self.init_from is not None):
-            raise ValueError("backend 'warp' cannot --resume or --init-from yet; start a new run (or use the cpu "
-                             "backend)")
+        if self.student:
+            if self.init_from is not None or self.backend == "warp":
+                raise ValueError("student: a student fine-tune starts from its bundle on the cpu backend; it takes "
+                                 "neither --init-from nor --backend warp")
+            self.student = str(self.student)
+            try:
+                student = load_bundle(self.student)
+            except ValueError as err:  # a missing or broken bundle (BundleError)
+                raise ValueError(f"student: {err}") from None
+            if student.config.latent_source != "adaptation":
+                raise ValueError(f"student: {self.student} is not a student bundle (latent source "
+                                 f"{student.config.latent_source!r}, want 'adaptation')")
         self.out = Path(self.out)
         if self.resume is not None:
             self.resume = Path(self.resume)
+        if self.resume is not None and self.backend == "warp" and self.resume.suffix == ".zip":
+            raise ValueError(f"resume: {self.resume} is a cpu-backend checkpoint; the warp backend resumes from its "
+                             "checkpoints/last.pt (--init-from BUNDLE starts a warp run from any teacher bundle)")
         if self.init_from is not None:
             self.init_from = Path(self.init_from)
             if not (self.init_from / "config.json").is_file():
@@ -211,6 +228,13 @@ def config_from_args(args) -> Config:
 
 TEACHER_GROUPS = ("proprio", "priv")
 """Observation groups the teacher reads (rotation.policy.features.PrivilegedExtractor)."""
+STUDENT_RL_GROUPS = ("proprio", "proprio_hist", "priv")
+"""Observation groups of a student fine-tune: the actor reads proprio and its history, the critic proprio and priv."""
+
+
+def obs_groups(cfg: Config) -> tuple[str, ...]:
+    """The observation groups a run's rollouts keep."""
+    return STUDENT_RL_GROUPS if cfg.student else TEACHER_GROUPS
 
 
 class KLSchedule:
@@ -256,9 +280,9 @@ class AdaptiveKLPPO(RolloutPrefetch, PPO):
         self.logger.record("train/adaptive_lr", self.lr_schedule.lr)
 
     def _train_critic_only(self) -> None:
-        critic = ("mlp_extractor.value_net.", "value_net.")
+        critic = ("mlp_extractor.value_net.", "value_net.", "vf_features_extractor.")
         frozen = [p for n, p in self.policy.named_parameters() if not n.startswith(critic) and p.requires_grad]
-        norms = [m for m in self.policy.modules() if isinstance(m, RunningNorm)]
+        norms = [m for m in self.policy.modules() if isinstance(m, RunningNorm) and not m.frozen]
         for p in frozen:
             p.requires_grad_(False)
         try:
@@ -361,9 +385,11 @@ def load_checkpoint(path: str | Path, env: RotateCupSB3VecEnv | None = None, dev
         raise ValueError(f"{path} cannot be loaded as a train-teacher checkpoint ({type(err).__name__}: "
                          f"{str(err).splitlines()[0] if str(err) else ''})") from None
     extractor = getattr(model.policy, "features_extractor", None)
-    if not isinstance(extractor, PrivilegedExtractor):
+    if not (isinstance(extractor, PrivilegedExtractor)
+            or (isinstance(model.policy, StudentPPOPolicy) and isinstance(extractor, StudentExtractor))):
         raise ValueError(f"{path} holds a {type(model.policy).__name__} with a {type(extractor).__name__} features "
-                         "extractor, not the teacher's privileged policy (PrivilegedExtractor)")
+                         "extractor, not the teacher's privileged policy (PrivilegedExtractor) or a student "
+                         "fine-tune (StudentPPOPolicy)")
     return model
 
 
@@ -406,7 +432,8 @@ def bundle_from_checkpoint(path: str | Path, card: dict | None = None) -> Policy
     model = load_checkpoint(path)
     run_cfg = path.parent.parent / "config.json"
     train_config = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}
-    info = {"role": "teacher", "object": train_config.get("object", "cup"), "steps": int(model.num_timesteps),
+    role = "student" if isinstance(model.policy, StudentPPOPolicy) else "teacher"
+    info = {"role": role, "object": train_config.get("object", "cup"), "steps": int(model.num_timesteps),
             "seed": train_config.get("seed"), "checkpoint": path.name, "train_config": train_config}
     return PolicyBundle.from_sb3(model, card=info | (card or {}))
 
@@ -416,6 +443,8 @@ def build_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
         if not Path(cfg.resume).is_file():
             raise ValueError(f"--resume {cfg.resume}: no such checkpoint")
         return AdaptiveKLPPO.load(cfg.resume, env=env, device=cfg.device)
+    if cfg.student:
+        return build_student_model(cfg, env)
     model = AdaptiveKLPPO(
         "MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps, batch_size=cfg.batch_size,
         n_epochs=cfg.n_epochs, gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_range=cfg.clip_range,
@@ -429,6 +458,36 @@ def build_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
     if cfg.init_from is not None:
         init_actor(model, cfg.init_from)
         model.critic_warmup = cfg.critic_warmup
+    return model
+
+
+def build_student_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
+    """PPO over a student bundle's acting path (StudentPPOPolicy): phi frozen, a fresh privileged critic that trains
+    alone for ``critic_warmup`` updates first."""
+    student = load_bundle(cfg.student)
+    scfg = student.config
+    if list(scfg.actor_hidden) != list(cfg.net_arch):
+        raise ValueError(f"net_arch {list(cfg.net_arch)} differs from the student's actor {list(scfg.actor_hidden)}; "
+                         "give --net-arch " + " ".join(map(str, scfg.actor_hidden)))
+    kwargs = policy_kwargs(norm_clip=scfg.norm_clip)
+    kwargs.update(features_extractor_class=StudentExtractor,
+                  features_extractor_kwargs=dict(adaptation=scfg.adaptation, norm_clip=scfg.norm_clip),
+                  net_arch=dict(pi=list(cfg.net_arch), vf=list(cfg.net_arch)), log_std_init=cfg.log_std_init,
+                  critic_encoder=EnvFactorEncoderConfig(latent_dim=scfg.latent_dim))
+    model = AdaptiveKLPPO(
+        StudentPPOPolicy, env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps, batch_size=cfg.batch_size,
+        n_epochs=cfg.n_epochs, gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_range=cfg.clip_range,
+        ent_coef=cfg.ent_coef, vf_coef=cfg.vf_coef, max_grad_norm=cfg.max_grad_norm, policy_kwargs=kwargs,
+        tensorboard_log=str(cfg.out / "tb"), seed=cfg.seed, device=cfg.device, verbose=0,
+    )
+    model.lr_schedule = KLSchedule(cfg.learning_rate, cfg.target_kl)
+    policy = model.policy
+    policy.pi_features_extractor.load_state_dict(student.net.extractor.state_dict())
+    policy.mlp_extractor.policy_net.load_state_dict(student.net.actor.state_dict())
+    policy.action_net.load_state_dict(student.net.action_mean.state_dict())
+    # the critic's proprio statistics start from the student's (they stay fixed while the critic warms up)
+    policy.vf_features_extractor.proprio_norm.load_state_dict(student.net.extractor.proprio_norm.state_dict())
+    model.critic_warmup = cfg.critic_warmup
     return model
 
 
@@ -450,6 +509,10 @@ def init_actor(model: AdaptiveKLPPO, path: Path) -> None:
 
 RUN_OUTPUTS = ("config.json", "checkpoints", "bundle", "curves.jsonl", "tb")
 """What a run writes into `out` (what --overwrite deletes)."""
+
+
+def _role(cfg: Config) -> str:
+    return "student" if cfg.student else "teacher"
 
 
 def _run_dir_of(checkpoint: Path) -> Path | None:
@@ -482,7 +545,7 @@ def run(cfg: Config) -> PolicyBundle:
     torch.manual_seed(cfg.seed)
     env_cfg = cfg.env_config()
     env = RotateCupSB3VecEnv(env_cfg, cfg.num_envs, seed=cfg.seed, reward_scale=cfg.reward_scale,
-                             obs_groups=TEACHER_GROUPS)
+                             obs_groups=obs_groups(cfg))
     try:
         resumed_from = None
         if cfg.resume is not None:
@@ -498,12 +561,12 @@ def run(cfg: Config) -> PolicyBundle:
         if cfg.overwrite and not resuming_here:
             removed = clear_outputs(out, RUN_OUTPUTS)
             if removed:
-                print(f"teacher: --overwrite deleted {', '.join(removed)} in {out}")
+                print(f"{_role(cfg)}: --overwrite deleted {', '.join(removed)} in {out}")
         out.mkdir(parents=True, exist_ok=True)
         save_config(cfg, out / "config.json")
         curves = CurveLog(out / "curves.jsonl")
         if resuming_here and (dropped := curves.trim(model.num_timesteps)):
-            print(f"teacher: dropped {dropped} curve rows logged after step {model.num_timesteps} (not in the "
+            print(f"{_role(cfg)}: dropped {dropped} curve rows logged after step {model.num_timesteps} (not in the "
                   "checkpoint resumed from)")
         return _train(cfg, model, env, env_cfg, curves, resumed_from)
     finally:
@@ -521,7 +584,7 @@ def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: 
         if remaining > 0:
             try:
                 model.learn(remaining, callback=CallbackList([stats, ckpt]), progress_bar=cfg.progress,
-                            reset_num_timesteps=cfg.resume is None, tb_log_name="teacher")
+                            reset_num_timesteps=cfg.resume is None, tb_log_name=_role(cfg))
             except KeyboardInterrupt as err:  # a second signal, or Ctrl-C where no handler could be installed
                 signum = getattr(err, "signum", signal.SIGINT)
         signum = signum or stop.signum
@@ -531,11 +594,13 @@ def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: 
         ckpt.num_timesteps = model.num_timesteps
         ckpt.save()
         steps = int(model.num_timesteps)
-        card = {"role": "teacher", "object": cfg.object, "steps": steps, "seed": cfg.seed,
+        card = {"role": _role(cfg), "object": cfg.object, "steps": steps, "seed": cfg.seed,
                 "wall_time_s": round(wall, 1), "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out),
                                                                                        "resume": str(cfg.resume)}}
         if resumed_from is not None:
             card["resumed_from"] = str(resumed_from)
+        if cfg.student:  # what the fine-tune started from: the distilled student's own card (teacher, distillation)
+            card["finetuned_from"] = {"bundle": cfg.student, "card": load_bundle(cfg.student).config.card}
         if signum:
             card["interrupted"] = f"stopped by {SIGNAL_NAMES.get(signum, signum)} at {steps} of {cfg.total_steps} steps"
         bundle = PolicyBundle.from_sb3(model, control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale,
@@ -543,9 +608,9 @@ def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: 
         bundle.save(cfg.out / "bundle")
     last = cfg.out / "checkpoints" / "last.zip"
     if signum:
-        message = (f"teacher: interrupted by {SIGNAL_NAMES.get(signum, signum)} at {steps} of {cfg.total_steps} "
+        message = (f"{_role(cfg)}: interrupted by {SIGNAL_NAMES.get(signum, signum)} at {steps} of {cfg.total_steps} "
                    f"steps; saved {last} and the bundle {cfg.out / 'bundle'}; continue with --resume {last}")
         print(message)
         raise Interrupted(signum, message)
-    print(f"teacher: {steps} steps in {wall:.0f} s; bundle at {cfg.out / 'bundle'}")
+    print(f"{_role(cfg)}: {steps} steps in {wall:.0f} s; bundle at {cfg.out / 'bundle'}")
     return bundle

@@ -11,11 +11,19 @@ load exactly like one trained by stable-baselines3, with the same TensorBoard ta
 
     rotate train-teacher --backend warp --out runs/teacher_gpu          # the GPU recipe (GPU_RECIPE) by default
     rotate train-teacher --backend warp --device cpu --num-envs 8 ...   # Warp's CPU device (tests, slow)
+    rotate train-teacher --backend warp --out runs/teacher_gpu --resume runs/teacher_gpu/checkpoints/last.pt
+    rotate train-teacher --backend warp --out runs/teacher_gpu2 --init-from runs/teacher/bundle   # warm start
+
+`--resume` continues a run from `checkpoints/last.pt` (actor, critic, optimizer, learning rate, step count) with the
+same options but its length and speed; the worlds restart from fresh resets seeded with seed + steps, as on the cpu
+backend. `--init-from BUNDLE` copies a teacher bundle's acting path (from either backend) into a fresh run; the fresh
+critic trains alone for `--critic-warmup` updates, with the learning rate held, before the actor moves.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import signal
 import time
@@ -27,12 +35,20 @@ from torch import nn
 from tqdm import tqdm
 
 from envs.config import EnvConfig
+from rotation.configs import to_jsonable
 from rotation.evaluate.metrics import UPRIGHT_TILT
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
-from rotation.policy.bundle import ActorNet, BundleConfig, PolicyBundle
+from rotation.policy.bundle import ActorNet, BundleConfig, PolicyBundle, load_bundle
 from rotation.policy.features import PrivilegedExtractor
 from rotation.policy.networks import EnvFactorEncoderConfig, mlp
-from rotation.train.runs import CurveLog, save_atomically
+from rotation.train.runs import (
+    CurveLog,
+    DamagedCheckpoint,
+    config_differences,
+    refuse_differences,
+    save_atomically,
+    summary_writer,
+)
 
 GPU_RECIPE: dict[str, Any] = {
     "num_envs": 8192,  # Hora: 16,384 worlds; MuJoCo Playground's LEAP rotation: 8,192
@@ -96,6 +112,7 @@ class TeacherActor(_Feedforward, nn.Module):
         self.net = net
         self.log_std = nn.Parameter(torch.full((net.action_mean.out_features,), float(log_std_init)))
         self._mean: torch.Tensor | None = None
+        self.learn_normalization = True  # off while a fresh critic warms up (the actor stays as it was)
         for m in net.modules():  # the statistics move in update_normalization, once per rollout
             if hasattr(m, "frozen"):
                 m.frozen = True
@@ -129,7 +146,8 @@ class TeacherActor(_Feedforward, nn.Module):
         return torch.distributions.kl_divergence(p, q).sum(-1)
 
     def update_normalization(self, obs) -> None:
-        self.net.extractor.proprio_norm.update(obs["proprio"])
+        if self.learn_normalization:
+            self.net.extractor.proprio_norm.update(obs["proprio"])
 
 
 class TeacherCritic(_Feedforward, nn.Module):
@@ -272,6 +290,49 @@ class WarpPPO:
             alg.compute_returns(self.obs)
         return alg.update()
 
+    def critic_only(self) -> dict[str, float]:
+        """One iteration that trains only the critic: the actor's weights, log std and normalization stay, and so
+        does the learning rate (the adaptive rule would read the actor's zero KL as a reason to raise it)."""
+        actor = self.alg.actor
+        params = [p for p in actor.parameters() if p.requires_grad]
+        lr = self.alg.learning_rate
+        for p in params:
+            p.requires_grad_(False)
+        actor.learn_normalization = False
+        try:
+            return self.iteration()
+        finally:
+            for p in params:
+                p.requires_grad_(True)
+            actor.learn_normalization = True
+            self.alg.learning_rate = lr
+            for group in self.alg.optimizer.param_groups:
+                group["lr"] = lr
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """Continue from a checkpoint's actor, critic, optimizer and learning rate."""
+        try:
+            self.alg.actor.load_state_dict(state["actor"])
+            self.alg.critic.load_state_dict(state["critic"])
+            self.alg.optimizer.load_state_dict(state["optimizer"])
+        except (RuntimeError, ValueError, KeyError) as err:
+            raise ValueError(f"the checkpoint's networks do not fit this run's (--net-arch {list(self.cfg.net_arch)}):"
+                             f" {str(err).splitlines()[0]}") from None
+        self.alg.learning_rate = float(state["learning_rate"])
+        for group in self.alg.optimizer.param_groups:
+            group["lr"] = self.alg.learning_rate
+
+    def init_actor(self, bundle: PolicyBundle) -> None:
+        """Copy a teacher bundle's acting path (normalization, encoder, actor MLP, action head) into the actor."""
+        dev = self.env.torch_device
+        try:
+            self.actor.net.load_state_dict({k: v.to(dev) for k, v in bundle.net.state_dict().items()})
+        except RuntimeError as err:
+            raise ValueError(f"--init-from: the bundle's networks do not fit this run's (--net-arch "
+                             f"{list(self.cfg.net_arch)}): {str(err).splitlines()[0]}") from None
+        # the critic's proprio statistics start from the bundle's too (they are fixed in the critic)
+        self.critic.extractor.proprio_norm.load_state_dict(bundle.net.extractor.proprio_norm.state_dict())
+
     def bundle(self, card: dict[str, Any]) -> PolicyBundle:
         """The acting path as a policy bundle on the CPU (the format the CPU teacher writes)."""
         bundle = PolicyBundle(dataclasses.replace(self.config, card=card), ActorNet(self.config))
@@ -284,42 +345,69 @@ def train(cfg) -> PolicyBundle:
     from rotation.configs import save_config
     from rotation.sim_warp.core import RotateCupWarp, WarpConfig
     from rotation.train.runs import check_run_dir, clear_outputs
-    from rotation.train.teacher import RUN_OUTPUTS
+    from rotation.train.teacher import RESUMABLE_CHANGES, RUN_OUTPUTS
 
-    if cfg.resume is not None or cfg.init_from is not None:
-        raise ValueError("--resume / --init-from: not supported on the warp backend yet; start a new run")
     _require_rsl_rl()
     out = cfg.out
-    check_run_dir(out, RUN_OUTPUTS, overwrite=cfg.overwrite, resuming_here=False,
-                  resume_hint="--overwrite replaces it (the warp backend cannot resume yet)")
+    resume_dir = None
+    if cfg.resume is not None:
+        resume_dir = cfg.resume.parent.parent if cfg.resume.parent.name == "checkpoints" else None
+    resuming_here = resume_dir is not None and resume_dir.resolve() == out.resolve()
+    check_run_dir(out, RUN_OUTPUTS, overwrite=cfg.overwrite, resuming_here=resuming_here,
+                  resume_hint=f"pass --resume {out / 'checkpoints' / 'last.pt'} to continue it")
     n, horizon = cfg.num_envs, cfg.n_steps
     if (n * horizon) % cfg.batch_size:
         raise ValueError(f"batch_size {cfg.batch_size} must divide num_envs x n_steps = {n * horizon} on the warp "
                          "backend (rsl_rl splits each rollout into equal minibatches)")
-    torch.manual_seed(cfg.seed)
+    state, init = None, None
+    if cfg.resume is not None:
+        saved = resume_dir / "config.json" if resume_dir is not None else None
+        if saved is not None and saved.is_file():
+            differences = config_differences(json.loads(saved.read_text()), to_jsonable(cfg), RESUMABLE_CHANGES)
+            refuse_differences(differences, str(saved), RESUMABLE_CHANGES)
+        state = load_checkpoint(cfg.resume)
+    if cfg.init_from is not None:
+        init = load_bundle(cfg.init_from)
+        if init.config.latent_source != "privileged":
+            raise ValueError(f"--init-from {cfg.init_from}: needs a teacher bundle (latent_source 'privileged'), got "
+                             f"{init.config.latent_source!r}")
+    steps = int(state["steps"]) if state is not None else 0
+    torch.manual_seed(cfg.seed + steps)
     env_cfg = cfg.env_config()
-    env = RotateCupWarp(env_cfg, n, seed=cfg.seed, warp_cfg=WarpConfig(device=cfg.device))
-    if cfg.overwrite:
+    # a resumed run's worlds restart from fresh, reproducible resets (as the cpu backend's do)
+    env = RotateCupWarp(env_cfg, n, seed=cfg.seed + steps, warp_cfg=WarpConfig(device=cfg.device))
+    learner = WarpPPO(cfg, env, env_cfg)
+    warmup = 0
+    if state is not None:
+        learner.load_state(state)
+    elif init is not None:
+        learner.init_actor(init)
+        warmup = cfg.critic_warmup
+    # every check passed: only now is anything in `out` written or deleted
+    if cfg.overwrite and not resuming_here:
         removed = clear_outputs(out, RUN_OUTPUTS)
         if removed:
             print(f"teacher: --overwrite deleted {', '.join(removed)} in {out}")
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.json")
-    learner = WarpPPO(cfg, env, env_cfg)
     curves = CurveLog(out / "curves.jsonl")
-    from torch.utils.tensorboard import SummaryWriter
-
-    writer = SummaryWriter(log_dir=str(out / "tb" / "teacher_1"))
-    iterations = math.ceil(cfg.total_steps / (n * horizon))
-    steps, next_ckpt, rows, signum = 0, cfg.checkpoint_every, [], None
-    bar = tqdm(total=iterations * n * horizon, unit="step", disable=not cfg.progress, desc="train-teacher (warp)",
-               dynamic_ncols=True)
+    if resuming_here and (dropped := curves.trim(steps)):
+        print(f"teacher: dropped {dropped} curve rows logged after step {steps} (not in the checkpoint resumed from)")
+    writer = summary_writer(out / "tb" / "teacher_1", purge_step=steps)
+    iterations = max(0, math.ceil((cfg.total_steps - steps) / (n * horizon)))
+    next_ckpt, rows, signum = (steps // cfg.checkpoint_every + 1) * cfg.checkpoint_every, [], None
+    bar = tqdm(total=cfg.total_steps, initial=steps, unit="step", disable=not cfg.progress,
+               desc="train-teacher (warp)", dynamic_ncols=True)
     start = time.time()
     t_iter = time.perf_counter()
     try:
         with StopSignals() as stop:
             for _ in range(iterations):
-                losses = learner.iteration()
+                if warmup > 0:
+                    losses = learner.critic_only()
+                    warmup -= 1
+                else:
+                    losses = learner.iteration()
                 steps += n * horizon
                 bar.update(n * horizon)
                 now = time.perf_counter()
@@ -348,13 +436,18 @@ def train(cfg) -> PolicyBundle:
     card = {"role": "teacher", "object": cfg.object, "steps": steps, "seed": cfg.seed, "wall_time_s": round(wall, 1),
             "backend": "warp", "learner": "rsl_rl PPO (rotation.train.teacher_warp)",
             "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out), "resume": str(cfg.resume)}}
+    if state is not None:
+        card["resumed_from"] = str(cfg.resume)
+    if init is not None:
+        card["init_from"] = str(cfg.init_from)
     if signum:
         card["interrupted"] = f"stopped by {SIGNAL_NAMES.get(signum, signum)} at {steps} of {cfg.total_steps} steps"
     bundle = learner.bundle(card)
     bundle.save(out / "bundle")
     if signum:
         message = (f"teacher: interrupted by {SIGNAL_NAMES.get(signum, signum)} at {steps} of {cfg.total_steps} "
-                   f"steps; saved the bundle {out / 'bundle'}")
+                   f"steps; saved the bundle {out / 'bundle'}; continue with --resume "
+                   f"{out / 'checkpoints' / 'last.pt'}")
         print(message)
         raise Interrupted(signum, message)
     print(f"teacher: {steps} steps in {wall:.0f} s ({steps / max(wall, 1e-9):,.0f} steps/s) on the warp backend; "
@@ -378,9 +471,30 @@ def _log(writer, steps: int, episodes: dict[str, float], losses: dict[str, float
     return {"steps": steps, **episodes}
 
 
+CHECKPOINT_KEYS = ("actor", "critic", "optimizer", "learning_rate", "steps")
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """A warp-backend checkpoint (`checkpoints/last.pt`), checked: DamagedCheckpoint for a file that cannot be read,
+    ValueError for one of another program (a CPU run's .zip, say)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"--resume {path}: no such checkpoint" + (" (a directory; give checkpoints/last.pt)"
+                                                                   if path.is_dir() else ""))
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # pickle, zip and torch errors of a truncated or foreign file
+        raise DamagedCheckpoint(f"--resume {path} cannot be read as a warp-backend checkpoint "
+                                f"({type(err).__name__}); a cpu-backend run resumes from its .zip") from None
+    if not isinstance(state, dict) or not set(CHECKPOINT_KEYS) <= set(state):
+        raise ValueError(f"--resume {path} is not a warp-backend checkpoint (expected the entries "
+                         f"{list(CHECKPOINT_KEYS)})")
+    return state
+
+
 def _save_checkpoint(out: Path, alg, steps: int) -> Path:
-    """`checkpoints/last.pt`: actor, critic, optimizer, learning rate and steps (for inspection; not resumable
-    yet), written atomically."""
+    """`checkpoints/last.pt`: actor, critic, optimizer, learning rate and steps (what --resume continues from),
+    written atomically."""
     path = out / "checkpoints" / "last.pt"
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {"actor": alg.actor.state_dict(), "critic": alg.critic.state_dict(),

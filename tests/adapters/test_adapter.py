@@ -163,6 +163,27 @@ def test_mismatched_student_or_encoder_is_refused(tiny_run, tmp_path):
         load_adapter(tmp_path / "adapter")
 
 
+def test_init_from_carries_an_adapter_to_another_student(tiny_run, tmp_path):
+    """--init-from starts from a trained adapter's weights, also for a student other than the one it named (a
+    student fine-tuned by finetune-student keeps its phi); another network or modality set is refused."""
+    out, result = tiny_run
+    student = tmp_path / "student"
+    shutil.copytree(_shipped("student"), student)
+    weights = student / "model.safetensors"
+    data = bytearray(weights.read_bytes())
+    data[-1] ^= 1  # another student
+    weights.write_bytes(bytes(data))
+    job = finetune.Job.start_from(_tiny_cfg(tmp_path / "carried", student=str(student),
+                                            init_from=str(result.bundle_dir)))
+    trained = load_adapter(result.bundle_dir).adapter.state_dict()
+    for name, value in job.policy.adapter.state_dict().items():
+        assert torch.equal(value, trained[name]), name
+    with pytest.raises(ValueError, match="init_from: .*modalities"):
+        finetune.Job.start_from(_tiny_cfg(tmp_path / "other", modalities="imu", init_from=str(result.bundle_dir)))
+    with pytest.raises(ValueError, match="init_from: .*not an adapter bundle"):
+        finetune.Job.start_from(_tiny_cfg(tmp_path / "none", init_from=str(tmp_path)))
+
+
 def _shipped(name):
     from rotation.policy.bundle import resolve_bundle
 
