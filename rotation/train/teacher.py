@@ -130,6 +130,10 @@ class Config:
     whose checkpoint is gone (a bundle is all that was kept); --resume continues exactly."""
     critic_warmup: int = 20
     """With --init-from: PPO updates that train only the fresh critic before the actor moves."""
+    freeze_encoder: bool = False
+    """Keep the env-factor encoder fixed (weights as initialized or copied by --init-from), so z keeps its meaning:
+    a student's phi and a tactile adapter trained against the --init-from bundle's z stay valid for the continued
+    teacher. The actor, the critic and the normalization still learn."""
     overlap: bool = True
     """Collect the next rollout on a background thread while PPO updates on the last one (one update of policy
     lag, see rotation.train.overlap): on 2 cores the update no longer leaves a core idle."""
@@ -148,6 +152,9 @@ class Config:
 
     def __post_init__(self) -> None:
         check_types(self)
+        if self.freeze_encoder and (self.student or self.backend == "warp"):
+            raise ValueError("freeze_encoder: for a cpu-backend teacher (a student fine-tune keeps its phi frozen "
+                             "anyway)")
         if self.student:
             if self.init_from is not None or self.backend == "warp":
                 raise ValueError("student: a student fine-tune starts from its bundle on the cpu backend; it takes "
@@ -557,6 +564,9 @@ def run(cfg: Config) -> PolicyBundle:
         else:
             model = build_model(cfg, env)
         model.overlap = cfg.overlap
+        if cfg.freeze_encoder:  # (a resumed model is rebuilt with every parameter trainable)
+            for p in model.policy.features_extractor.encoder.parameters():
+                p.requires_grad_(False)
         # every check passed: only now is anything in `out` written or deleted
         if cfg.overwrite and not resuming_here:
             removed = clear_outputs(out, RUN_OUTPUTS)

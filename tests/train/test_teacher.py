@@ -93,6 +93,24 @@ def test_resume_continues_the_step_count(tmp_path):
     assert load_bundle(first.out / "bundle").config.card["steps"] == 4096
 
 
+def test_freeze_encoder_keeps_z_through_init_from_and_resume(tmp_path):
+    """A teacher continued with --freeze-encoder keeps the bundle's env-factor encoder bit for bit (so students and
+    adapters trained on its z stay valid), also across a resume; the actor moves."""
+    from rotation.policy.bundle import resolve_bundle
+
+    start = load_bundle("teacher").net.state_dict()
+    cfg = _cfg(tmp_path, total_steps=1024, init_from=resolve_bundle("teacher"), critic_warmup=1, freeze_encoder=True)
+    teacher.run(cfg)
+    teacher.run(_cfg(tmp_path, total_steps=2048, init_from=None, critic_warmup=1, freeze_encoder=True,
+                     resume=cfg.out / "checkpoints" / "last.zip"))
+    after = load_bundle(cfg.out / "bundle").net.state_dict()
+    encoder = [k for k in start if k.startswith("extractor.encoder.")]
+    assert encoder and all(torch.equal(start[k], after[k]) for k in encoder)
+    assert not torch.equal(start["actor.0.weight"], after["actor.0.weight"])
+    with pytest.raises(ValueError, match="freeze_encoder"):
+        teacher.Config(out=tmp_path / "x", backend="warp", freeze_encoder=True)
+
+
 def test_bad_config_is_refused(tmp_path):
     with pytest.raises(ValueError, match="batch_size"):
         teacher.run(_cfg(tmp_path, batch_size=100_000))
