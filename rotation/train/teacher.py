@@ -442,6 +442,9 @@ def bundle_from_checkpoint(path: str | Path, card: dict | None = None) -> Policy
     role = "student" if isinstance(model.policy, StudentPPOPolicy) else "teacher"
     info = {"role": role, "object": train_config.get("object", "cup"), "steps": int(model.num_timesteps),
             "seed": train_config.get("seed"), "checkpoint": path.name, "train_config": train_config}
+    if train_config.get("student"):  # a student fine-tune: what it started from, as the run's own bundle records it
+        info["finetuned_from"] = {"bundle": train_config["student"],
+                                  "card": load_bundle(train_config["student"]).config.card}
     return PolicyBundle.from_sb3(model, card=info | (card or {}))
 
 
