@@ -105,10 +105,11 @@ def test_the_reader_skips_bad_messages_and_reconnects():
                 time.sleep(0.02)
             counters = dict(reader.counters)
             t, v = reader.frames.snapshot()
+            after = reader.counters["frames"]  # frames keep arriving: the snapshot lies between the two counts
             reader.check_fresh()
     assert counters["skipped"] == 2, counters  # the garbage and the incomplete message; the status one ignored
     assert counters["connects"] >= 2 and counters["disconnects"] >= 1, counters  # the server dropped us: reconnected
-    assert counters["frames"] >= 60 and len(t) == counters["frames"] and np.all(np.diff(t) >= 0)
+    assert counters["frames"] >= 60 and counters["frames"] <= len(t) <= after and np.all(np.diff(t) >= 0)
     assert np.array_equal(v[0], frames[0]) and np.array_equal(v[4], frames[4])  # in order, our taxel order
     assert np.array_equal(v[40], frames[0])  # the first frame of the second connection
     with pytest.raises(xela.SensorStale, match="no frame for"):
