@@ -455,19 +455,25 @@ def build_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
         return AdaptiveKLPPO.load(cfg.resume, env=env, device=cfg.device)
     if cfg.student:
         return build_student_model(cfg, env)
-    model = AdaptiveKLPPO(
-        "MultiInputPolicy", env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps, batch_size=cfg.batch_size,
-        n_epochs=cfg.n_epochs, gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_range=cfg.clip_range,
-        ent_coef=cfg.ent_coef, vf_coef=cfg.vf_coef, max_grad_norm=cfg.max_grad_norm,
-        policy_kwargs=dict(policy_kwargs(), log_std_init=cfg.log_std_init,
-                           net_arch=dict(pi=list(cfg.net_arch), vf=list(cfg.net_arch))),
-        tensorboard_log=str(cfg.out / "tb"), seed=cfg.seed, device=cfg.device, verbose=0,
-    )
-    model.lr_schedule = KLSchedule(cfg.learning_rate, cfg.target_kl)
+    model = _new_ppo(cfg, env, "MultiInputPolicy", policy_kwargs())
     model.overlap = cfg.overlap
     if cfg.init_from is not None:
         init_actor(model, cfg.init_from)
         model.critic_warmup = cfg.critic_warmup
+    return model
+
+
+def _new_ppo(cfg: Config, env: RotateCupSB3VecEnv, policy: str | type, kwargs: dict) -> AdaptiveKLPPO:
+    """A fresh AdaptiveKLPPO with the run's PPO options; ``kwargs`` are the policy's, completed with the run's
+    log std and actor/critic sizes."""
+    kwargs = dict(kwargs, log_std_init=cfg.log_std_init, net_arch=dict(pi=list(cfg.net_arch), vf=list(cfg.net_arch)))
+    model = AdaptiveKLPPO(
+        policy, env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps, batch_size=cfg.batch_size,
+        n_epochs=cfg.n_epochs, gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_range=cfg.clip_range,
+        ent_coef=cfg.ent_coef, vf_coef=cfg.vf_coef, max_grad_norm=cfg.max_grad_norm, policy_kwargs=kwargs,
+        tensorboard_log=str(cfg.out / "tb"), seed=cfg.seed, device=cfg.device, verbose=0,
+    )
+    model.lr_schedule = KLSchedule(cfg.learning_rate, cfg.target_kl)
     return model
 
 
@@ -479,18 +485,10 @@ def build_student_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
     if list(scfg.actor_hidden) != list(cfg.net_arch):
         raise ValueError(f"net_arch {list(cfg.net_arch)} differs from the student's actor {list(scfg.actor_hidden)}; "
                          "give --net-arch " + " ".join(map(str, scfg.actor_hidden)))
-    kwargs = policy_kwargs(norm_clip=scfg.norm_clip)
-    kwargs.update(features_extractor_class=StudentExtractor,
+    kwargs = dict(policy_kwargs(norm_clip=scfg.norm_clip), features_extractor_class=StudentExtractor,
                   features_extractor_kwargs=dict(adaptation=scfg.adaptation, norm_clip=scfg.norm_clip),
-                  net_arch=dict(pi=list(cfg.net_arch), vf=list(cfg.net_arch)), log_std_init=cfg.log_std_init,
                   critic_encoder=EnvFactorEncoderConfig(latent_dim=scfg.latent_dim))
-    model = AdaptiveKLPPO(
-        StudentPPOPolicy, env, learning_rate=cfg.learning_rate, n_steps=cfg.n_steps, batch_size=cfg.batch_size,
-        n_epochs=cfg.n_epochs, gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_range=cfg.clip_range,
-        ent_coef=cfg.ent_coef, vf_coef=cfg.vf_coef, max_grad_norm=cfg.max_grad_norm, policy_kwargs=kwargs,
-        tensorboard_log=str(cfg.out / "tb"), seed=cfg.seed, device=cfg.device, verbose=0,
-    )
-    model.lr_schedule = KLSchedule(cfg.learning_rate, cfg.target_kl)
+    model = _new_ppo(cfg, env, StudentPPOPolicy, kwargs)
     policy = model.policy
     policy.pi_features_extractor.load_state_dict(student.net.extractor.state_dict())
     policy.mlp_extractor.policy_net.load_state_dict(student.net.actor.state_dict())
