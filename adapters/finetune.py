@@ -46,7 +46,7 @@ from adapters.bundle import MODALITY_WINDOWS, build_adapted, file_digest, read_a
 from adapters.real_data import RECORDED_WINDOWS
 from envs.config import EnvConfig, RandomizationConfig
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
-from rotation.configs import from_jsonable, save_config, to_jsonable
+from rotation.configs import config_resuming_in_out, from_jsonable, save_config, to_jsonable
 from rotation.interrupt import SIGNAL_NAMES, Interrupted
 from rotation.policy.bundle import load_bundle
 from rotation.tactile.encoders import parse_groups
@@ -112,7 +112,8 @@ class Config:
     seed: int = 0
     """Seed of the envs (as in train-student), of the adapter's initialization and of the minibatches."""
     resume: bool = False
-    """Continue from the latest checkpoint in `out` (the saved config must match, except total_steps)."""
+    """Continue from the latest checkpoint in `out`; options not given are the run's (its config.json), and given
+    ones must match it but the length and speed ones (total_steps, threads, progress)."""
     overwrite: bool = False
     """Delete an earlier run's outputs in `out` and start over."""
     init_from: str = ""
@@ -362,6 +363,11 @@ def _init_adapter(policy: Any, cfg: Config) -> None:
                          f"run has {want.encoder!r} ({want.encoder_sha256}), {list(want.modalities)}, "
                          f"{to_jsonable(want.net)}")
     policy.adapter.load_state_dict(weights, strict=True)
+
+
+def config_from_args(args) -> Config:
+    """The command line's config; with --resume, the options it leaves out are the run's in --out."""
+    return config_resuming_in_out(Config, args)
 
 
 def run(cfg: Config) -> Result:

@@ -173,6 +173,71 @@ def dataclass_from_args(cls: type, args: argparse.Namespace, prefix: str = "", *
     return cls(**values)
 
 
+def _leaf_fields(cls: type, prefix: str = "") -> dict[str, Any]:
+    """Option dest (dotted for nested configs) -> type, for every non-dataclass field of ``cls``."""
+    hints = typing.get_type_hints(cls)
+    leaves: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        tp, _ = _unwrap_optional(hints[f.name])
+        if dataclasses.is_dataclass(tp):
+            leaves.update(_leaf_fields(tp, prefix + f.name + "."))
+        else:
+            leaves[prefix + f.name] = tp
+    return leaves
+
+
+def _flat_json(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            flat.update(_flat_json(v, f"{prefix}{k}."))
+        else:
+            flat[prefix + k] = v
+    return flat
+
+
+def inherit_run_options(cls: type, args: argparse.Namespace, run_dir: Path | None,
+                        not_inherited: typing.Iterable[str] = ()) -> list[str]:
+    """A resume continues the run as it was: every option of ``cls`` the command line does not give takes the value
+    in ``run_dir/config.json`` (the run's saved config), so ``--resume`` alone is enough. Options the user gives
+    still win (a resume then compares them with the run's and refuses the ones that may not change). Fields in
+    ``not_inherited`` (top-level names) keep their defaults. Changes ``args`` in place; returns the inherited dests.
+
+    A missing or unreadable ``config.json`` inherits nothing: the job's own resume check reports it."""
+    if run_dir is None:
+        return []
+    try:
+        saved = json.loads((Path(run_dir) / "config.json").read_text())
+    except (OSError, ValueError):
+        return []
+    if not isinstance(saved, dict):
+        return []
+    leaves = _leaf_fields(cls)
+    skip = set(not_inherited)
+    ns = vars(args)
+    inherited = []
+    for dest, value in _flat_json(saved).items():
+        if dest not in leaves or dest in ns or dest.split(".")[0] in skip:
+            continue  # an option of an older version, one given on the command line, or one a resume must not take
+        if leaves[dest] is Path and value is not None:
+            value = Path(value)
+        ns[dest] = value
+        inherited.append(dest)
+    return inherited
+
+
+def config_resuming_in_out(cls: type, args: argparse.Namespace) -> Any:
+    """The config of a job whose boolean ``--resume`` continues the run in ``--out`` (train-student,
+    finetune-adapter): on a resume, the options the command line leaves out are the run's (:func:`inherit_run_options`).
+    """
+    if vars(args).get("resume"):
+        out = vars(args).get("out", next(f.default for f in dataclasses.fields(cls) if f.name == "out"))
+        inherit_run_options(cls, args, Path(out), not_inherited=("out", "resume", "overwrite"))
+    return dataclass_from_args(cls, args)
+
+
 def to_jsonable(obj: Any) -> Any:
     """Dataclasses, paths, tuples and numpy scalars -> plain JSON types."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):

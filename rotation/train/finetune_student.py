@@ -10,8 +10,7 @@ reads the privileged groups (rotation.policy.features.StudentPPOPolicy). The fre
 --critic-warmup updates before the actor moves.
 
     rotate finetune-student --student student --out runs/student_rl --total-steps 8000000
-    rotate finetune-student --student student --out runs/student_rl --resume runs/student_rl/checkpoints/last.zip \\
-        --total-steps 12000000
+    rotate finetune-student --resume runs/student_rl/checkpoints/last.zip --total-steps 12000000
 
 Everything else works as in `rotate train-teacher` (the same PPO, checkpoints, curves, TensorBoard, --resume,
 --overwrite, signals); the result in `out/bundle` is a student bundle (latent source 'adaptation') that evaluate,
@@ -58,6 +57,12 @@ class Config(teacher.Config):
         if not self.student:
             raise ValueError("student: give the student bundle to fine-tune (a directory or a shipped name)")
         super().__post_init__()
+
+
+def config_from_args(args) -> Config:
+    """As train-teacher's: a --resume takes the run's options (the student bundle included) the command line
+    leaves out."""
+    return teacher._config_from_args(Config, args)
 
 
 def run(cfg: Config) -> PolicyBundle:

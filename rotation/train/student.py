@@ -39,7 +39,7 @@ from tqdm import tqdm
 from envs.config import EnvConfig
 from envs.constants import HISTORY_STEPS, PROPRIO_DIM
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
-from rotation.configs import check_device, from_jsonable, save_config, to_jsonable
+from rotation.configs import check_device, config_resuming_in_out, from_jsonable, save_config, to_jsonable
 from rotation.evaluate.metrics import EpisodeTracker, summarize
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.bundle import PolicyBundle, load_bundle, resolve_bundle
@@ -83,7 +83,8 @@ class Config:
     seed: int = 0
     """Seed of the envs (env i of an interval starting at iteration t is seeded seed + t * num_envs + i) and of phi."""
     resume: bool = False
-    """Continue from the latest checkpoint in `out` (the saved config must match, except total_steps)."""
+    """Continue from the latest checkpoint in `out`; options not given are the run's (its config.json), and given
+    ones must match it but the length and speed ones (total_steps, threads, progress)."""
     adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
     """Sizes of the adaptation module phi."""
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -243,6 +244,11 @@ def _load_checkpoint(path: Path, device: str) -> dict[str, Any]:
     if not isinstance(ckpt, dict) or not keys <= set(ckpt):
         raise ValueError(f"{path} is not a train-student checkpoint (expected the entries {sorted(keys)})")
     return ckpt
+
+
+def config_from_args(args) -> Config:
+    """The command line's config; with --resume, the options it leaves out are the run's in --out."""
+    return config_resuming_in_out(Config, args)
 
 
 def run(cfg: Config) -> Result:

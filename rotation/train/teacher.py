@@ -11,13 +11,14 @@ the env a lighter pose penalty and a fall penalty (envs.config.RewardConfig says
 
     rotate train-teacher --out runs/teacher --total-steps 30000000
     rotate train-teacher --backend warp --out runs/teacher_gpu   # MuJoCo Warp + rsl_rl PPO on a GPU (docs/warp.md)
-    rotate train-teacher --out runs/teacher --resume runs/teacher/checkpoints/last.zip --total-steps 40000000
+    rotate train-teacher --resume runs/teacher/checkpoints/last.zip --total-steps 40000000   # the run's options
     tensorboard --logdir runs/teacher/tb
 
 Writes checkpoints (`checkpoints/step_*.zip`, `checkpoints/last.zip`), `config.json`, TensorBoard logs, the training
 curve `curves.jsonl` (flushed with each checkpoint) and the final policy bundle `bundle/` (weights + config, what
 evaluation and deploy load). An `--out` holding another run is refused unless `--resume` continues it or
-`--overwrite` replaces it; a resume refuses options that differ from the run's (but the length and speed ones) and
+`--overwrite` replaces it; a resume takes the run's options the command line leaves out (and its folder as
+`--out`), and refuses options that differ from the run's (but the length and speed ones) and
 falls back from a damaged checkpoint to the previous intact one. Ctrl-C / SIGTERM stop at the next step, save the
 checkpoint, curves and bundle, and exit with status 130 / 143.
 """
@@ -111,7 +112,7 @@ class Config:
     """Save a checkpoint every this many env steps."""
     resume: Path | None = None
     """Checkpoint to continue from (cpu backend: checkpoints/last.zip; warp: checkpoints/last.pt); the step count
-    continues from it."""
+    continues from it, and options not given are the run's (its config.json), --out its folder."""
     randomize: bool = True
     """Domain randomization on (Hora's ranges); off trains on nominal physics (an easy setting for tests)."""
     episode_steps: int = 400
@@ -223,9 +224,21 @@ class Config:
 def config_from_args(args) -> Config:
     """The Config of a command line; with --backend warp the GPU recipe replaces the defaults of the options the
     command line does not give (rotation.train.teacher_warp.GPU_RECIPE)."""
-    from rotation.configs import dataclass_from_args
+    return _config_from_args(Config, args)
 
-    cfg = dataclass_from_args(Config, args)
+
+def _config_from_args(cls: type[Config], args) -> Config:
+    """train-teacher's and finetune-student's config: a --resume takes the run's options the command line leaves
+    out, and the warp backend's GPU recipe fills the rest."""
+    from rotation.configs import dataclass_from_args, inherit_run_options
+
+    if getattr(args, "resume", None) is not None:
+        run_dir = _run_dir_of(Path(args.resume))
+        # --out defaults to the run resumed (where it is now); --init-from only starts runs
+        if "out" not in vars(args) and run_dir is not None:
+            args.out = run_dir
+        inherit_run_options(cls, args, run_dir, not_inherited=("out", "init_from", "overwrite", "resume"))
+    cfg = dataclass_from_args(cls, args)
     if cfg.backend == "warp":
         from rotation.train.teacher_warp import apply_gpu_recipe
 

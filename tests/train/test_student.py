@@ -115,6 +115,23 @@ def test_failed_resume_keeps_the_config(setup, tmp_path):
     assert (out / "config.json").read_bytes() == saved
 
 
+def test_resume_alone_takes_the_runs_options(setup, tmp_path):
+    """`--resume` without the run's options (nested env ones included) continues it as it was started."""
+    from rotation import cli
+
+    out = tmp_path / "run"
+    student.run(make_cfg(setup, out, total_steps=8 * 2, seed=7, lr=2e-3))
+    args = cli.build_parser("train-student").parse_args(["train-student", "--out", str(out), "--resume",
+                                                         "--total-steps", "32"])
+    cfg = student.config_from_args(args)
+    assert (cfg.teacher, cfg.num_envs, cfg.seed, cfg.lr, cfg.nthread) == (str(setup / "teacher"), 8, 7, 2e-3, 1)
+    assert (cfg.env.object, cfg.env.episode_steps, cfg.env.grasp_cache) == (
+        "cylinder", 40, str(setup / "grasps.npz"))
+    result = student.run(cfg)
+    assert result.history  # it ran on from the checkpoint
+    assert sorted(p.name for p in out.glob("ckpt_*.pt"))[-1] == "ckpt_000000004.pt"
+
+
 def test_damaged_latest_checkpoint_falls_back(setup, tmp_path, capsys):
     out = tmp_path / "run"
     student.run(make_cfg(setup, out, total_steps=8 * 4, checkpoint_every=8 * 2))

@@ -162,6 +162,36 @@ def test_overwrite_clears_the_old_run_first(tmp_path):
     assert (out / "notes.txt").read_text() == "the user's own file"  # only the run's outputs are deleted
 
 
+def test_resume_alone_takes_the_runs_options_and_folder(tmp_path):
+    """`rotate train-teacher --resume CKPT --total-steps N` continues the run as it was started: the options it
+    leaves out (here non-default ones) are the run's, --out is the checkpoint's run folder; a given option that
+    may not change is still refused."""
+    from rotation import cli
+
+    out = tmp_path / "run"
+    start = ["train-teacher", "--out", str(out), "--num-envs", "16", "--n-steps", "32", "--batch-size", "128",
+             "--n-epochs", "1", "--gamma", "0.95", "--total-steps", "512", "--checkpoint-every", "512",
+             "--episode-steps", "50", "--seed", "4", "--no-progress"]
+    assert cli.main(start) == 0
+    ckpt = out / "checkpoints" / "last.zip"
+    saved = json.loads((out / "config.json").read_text())
+    args = cli.build_parser("train-teacher").parse_args(["train-teacher", "--resume", str(ckpt),
+                                                         "--total-steps", "1024"])
+    cfg = teacher.config_from_args(args)
+    assert cfg.out == out and cfg.total_steps == 1024 and cfg.resume == ckpt
+    assert (cfg.num_envs, cfg.n_steps, cfg.batch_size, cfg.gamma, cfg.seed, cfg.episode_steps) == (
+        16, 32, 128, 0.95, 4, 50)
+    assert cli.main(["train-teacher", "--resume", str(ckpt), "--total-steps", "1024", "--no-progress"]) == 0
+    assert AdaptiveKLPPO.load(ckpt, device="cpu").num_timesteps == 1024
+    assert {k: v for k, v in json.loads((out / "config.json").read_text()).items()
+            if k not in ("total_steps", "resume", "progress")} == {
+        k: v for k, v in saved.items() if k not in ("total_steps", "resume", "progress")}
+    args = cli.build_parser("train-teacher").parse_args(["train-teacher", "--resume", str(ckpt), "--gamma", "0.9",
+                                                         "--total-steps", "2048"])
+    with pytest.raises(ValueError, match=r"gamma: 0\.95 -> 0\.9"):
+        teacher.run(teacher.config_from_args(args))
+
+
 def test_resume_with_other_ppo_options_is_refused_and_keeps_config(tmp_path):
     first = _cfg(tmp_path, total_steps=1024)
     teacher.run(first)
