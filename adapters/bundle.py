@@ -44,7 +44,15 @@ from torch import nn
 
 from adapters.model import AdapterNetConfig, TouchAdapter
 from rotation.configs import from_jsonable, to_jsonable
-from rotation.policy.bundle import BundleConfig, BundleError, PolicyBundle, load_bundle, resolve_bundle
+from rotation.policy.bundle import (
+    BundleConfig,
+    BundleError,
+    CorrectedActor,
+    PolicyBundle,
+    load_bundle,
+    resolve_bundle,
+    trace_single,
+)
 from rotation.tactile.encoders import ENCODERS, SHIPPED_ENCODERS, kind_of, load_encoder, shipped_encoders
 
 KIND = "adapter"
@@ -175,6 +183,10 @@ class AdaptedPolicy:
         student.net.eval().requires_grad_(False)  # frozen: only the adapter ever learns
         self.encoder = encoder
         self.adapter = adapter.eval()
+        self.corrected: nn.Module | None = None
+        """The student's acting path with a correction, traced for one observation (:meth:`prepare_realtime`)."""
+        self.traced_encoders: dict[tuple, nn.Module] | None = None
+        """After :meth:`prepare_realtime`: the encoder traced per input shapes (:meth:`_encode`)."""
         self.config: BundleConfig = replace(student.config, adapter=path or "(in memory)",
                                             touch_encoder=adapter_config.encoder, card=dict(adapter_config.card))
 
@@ -228,10 +240,25 @@ class AdaptedPolicy:
         inputs = {g: torch.cat([b[g] for b in batches]) for g in batches[0]}  # (F * N, ...)
         with torch.no_grad():
             try:
-                out = self.encoder(inputs)
+                out = self._encode(inputs)
             except ValueError as err:  # non-finite or malformed windows
                 raise TouchUnavailable(str(err)) from None
         return {f: {g: t[i * n:(i + 1) * n] for g, t in out.items()} for i, f in enumerate(self.fingers)}
+
+    def _encode(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The frozen encoder's tokens; after :meth:`prepare_realtime`, from the encoder traced for these input
+        shapes (traced on first use; the values are the eager encoder's, the finite check is done here since a
+        trace keeps no Python checks)."""
+        if self.traced_encoders is None:
+            return self.encoder(inputs)
+        bad = [g for g, x in inputs.items() if not bool(torch.isfinite(x).all())]
+        if bad:
+            raise ValueError(f"non-finite values (NaN or inf) in the touch input(s) {bad}")
+        key = tuple((g, tuple(x.shape)) for g, x in inputs.items())
+        traced = self.traced_encoders.get(key)
+        if traced is None:
+            traced = self.traced_encoders[key] = trace_single(self.encoder, (inputs,))
+        return traced(inputs)
 
     @torch.no_grad()
     def student_latent(self, obs: Mapping[str, Any]) -> torch.Tensor:
@@ -258,10 +285,26 @@ class AdaptedPolicy:
         z = self.student.net.extractor.z(t) + torch.as_tensor(correction, dtype=torch.float32)
         return self.student.net.mean(t, z).clamp(-1.0, 1.0).numpy()
 
+    def prepare_realtime(self) -> None:
+        """Trace the student's acting paths, with and without a correction, for single observations, and from the
+        first touch refresh on the encoder (deploy; see rotation.policy.bundle.trace_single); :meth:`act` and
+        :meth:`correction` then use them."""
+        self.traced_encoders = {}
+        self.student.prepare_realtime()
+        example = self.student._tensors(self.student.zero_observation(), batched=False)
+        self.corrected = trace_single(CorrectedActor(self.student.net),
+                                      (example, torch.zeros(1, self.student.config.latent_dim)))
+
+    @torch.no_grad()
     def act(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
         """One observation (no batch dim) -> (16,) action; ``correction`` (Z,) or (1, Z)."""
-        batched = {k: np.asarray(obs[k])[None] for k in self.config.obs_groups}
         corr = None if correction is None else np.asarray(correction, np.float32).reshape(1, -1)
+        if self.corrected is not None:
+            if corr is None:
+                return self.student.act(dict(obs))
+            tensors = self.student._tensors(dict(obs), batched=False)
+            return self.corrected(tensors, torch.as_tensor(corr))[0].numpy()
+        batched = {k: np.asarray(obs[k])[None] for k in self.config.obs_groups}
         return self.act_batch(batched, corr)[0]
 
     def latent(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:

@@ -351,6 +351,11 @@ def run(cfg: Config) -> dict[str, Any]:
         with contextlib.ExitStack() as stack:
             # the policy's small network gains nothing from more threads; they would compete with the drivers
             torch.set_num_threads(1)
+            # the network traced for one observation: it runs without taking the interpreter's lock op by op
+            # (PolicyBundle and AdaptedPolicy; any other object with act() acts as it is)
+            prepare = getattr(bundle, "prepare_realtime", None)
+            if prepare is not None:
+                prepare()
             # one inference before the hand starts: the first call of a network is slow (allocation, dispatch)
             bundle.act({k: np.zeros(shape, dtype=np.float32) for k, shape in bundle.config.obs_groups.items()})
             if setup.emulated:

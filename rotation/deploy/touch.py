@@ -55,12 +55,12 @@ log = logging.getLogger(__name__)
 STALE_REFRESHES = 3.0
 """A correction older than this many refresh periods (``touch_every`` control periods), and at least
 ``MIN_STALE_S``, is dropped (its age: since the observation and windows it was computed from)."""
-MIN_STALE_S = 1.0
+MIN_STALE_S = 2.0
 """Floor of the staleness limit (s). A worker that keeps up replaces a correction at an age of about one refresh
-period plus its refresh time; a slow but working one (on a loaded 2-core machine an all-modality refresh took
-0.3-0.5 s) at about twice its refresh time, which 3 periods of a ``touch_every`` 4 adapter at 20 Hz (0.6 s) would
-drop every cycle; the object properties touch estimates (friction, mass) do not change within a second, and a hung
-worker is still caught within it (1.2 s for ``touch_every`` 8 at 20 Hz)."""
+period plus its refresh time; a slow but working one at about twice its refresh time. On a loaded 2-core machine an
+all-modality refresh took 0.3-0.5 s, and 0.8-0.9 s on a slower one (the emulated hand and fingertips sharing its
+cores), so its corrections reach 1.8 s; the object properties touch estimates (friction, mass) do not change within
+a few seconds, and a hung worker is still caught within 2 s."""
 SLOW_REFRESHES = 5
 """Refreshes in a row longer than the refresh period that are reported (once) as a worker too slow for the adapter."""
 REPEAT_WARN_EVERY = 20

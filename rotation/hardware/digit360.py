@@ -94,6 +94,10 @@ class Digit360Config:
     """Newest serial sample older than this (s) -> SensorStale from window()."""
     reconnect_s: float = 0.5
     """Retry period (s) for reopening the data tty after a disconnect."""
+    read_every_s: float = 0.005
+    """Pause (s) after each read of the data tty, so that one read takes the frames of a few ms at once: waking for
+    every 400 Hz frame of four sensors kept the interpreter's lock so busy that the policy's thread missed its
+    budget on a slower 2-core machine. The samples keep their device time stamps; 0 reads every frame at once."""
     buffer_s: float = 3.0
     """History kept per stream (s); must exceed the longest window (pressure, 1.12 s)."""
 
@@ -104,6 +108,8 @@ class Digit360Config:
             raise ValueError(f"Digit360Config.buffer_s must exceed the 1.12 s pressure window, got {self.buffer_s}")
         if not self.stale_timeout_s > 0 or not self.reconnect_s > 0 or not self.device_clock_hz > 0:
             raise ValueError("Digit360Config: stale_timeout_s, reconnect_s and device_clock_hz must be > 0")
+        if not 0 <= self.read_every_s < self.stale_timeout_s:
+            raise ValueError(f"Digit360Config: read_every_s must be in [0, stale_timeout_s), got {self.read_every_s}")
 
 
 class Digit360Media(Protocol):
@@ -274,6 +280,8 @@ class Digit360:
                         self._on_frame(frame, t_recv)
                     except Exception:  # a reader thread must not die silently
                         log.exception("%s: error handling a frame", self.name)
+            if self.cfg.read_every_s > 0:
+                self._stop.wait(self.cfg.read_every_s)
 
     def _on_frame(self, frame: bytes, t_recv: float) -> None:
         try:

@@ -170,12 +170,63 @@ class ActorNet(nn.Module):
         return self.mean(obs).clamp(-1.0, 1.0)
 
 
+class CorrectedActor(nn.Module):
+    """``net``'s clipped action with its latent moved by ``correction`` (B, Z): the acting path of a student with a
+    tactile adapter's correction (adapters.bundle.AdaptedPolicy)."""
+
+    def __init__(self, net: ActorNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, obs: dict[str, torch.Tensor], correction: torch.Tensor) -> torch.Tensor:
+        return self.net.mean(obs, self.net.extractor.z(obs) + correction).clamp(-1.0, 1.0)
+
+
+def trace_single(module: nn.Module, example: tuple) -> nn.Module:
+    """``module`` traced with TorchScript for inputs shaped like ``example`` (one observation).
+
+    A traced network runs its whole forward in one call that does not hold Python's interpreter lock, where the
+    eager network takes the lock back after each of its few dozen operations. In deploy the policy's thread shares
+    the lock with the hand's and the sensors' threads (and with emulated hardware), and the eager forward waited
+    its turn so often that it missed its 30 ms budget on a busy 2-core machine. Same operations, same results
+    (checked in tests/policy/test_bundle.py). TorchScript profiles and optimizes a traced module in its first calls,
+    which are slow: they are made here, on ``example``."""
+    with torch.no_grad(), warnings.catch_warnings():
+        # torch 2.9+ calls jit.trace deprecated (torch.compile needs a C++ toolchain at run time); input checks in
+        # forward become constants of the trace (TracerWarning): the callers check their inputs before the trace
+        warnings.simplefilter("ignore", DeprecationWarning)
+        warnings.simplefilter("ignore", torch.jit.TracerWarning)
+        try:
+            traced = torch.jit.trace(module.eval(), example, strict=False, check_trace=False)
+        except (AttributeError, RuntimeError) as err:  # a torch without TorchScript: the eager module still works
+            warnings.warn(f"TorchScript tracing failed ({err}); acting with the eager network", stacklevel=2)
+            return module
+        for _ in range(WARM_UP_CALLS):
+            traced(*example)
+    return traced
+
+
+WARM_UP_CALLS = 3
+"""Calls of a freshly traced module before it is used (TorchScript optimizes it during the first two)."""
+
+
 class PolicyBundle:
     """A loaded bundle: :attr:`config` plus the acting network :attr:`net` (eval mode, CPU, float32)."""
 
     def __init__(self, config: BundleConfig, net: ActorNet | None = None) -> None:
         self.config = config
         self.net = (net if net is not None else ActorNet(config)).eval()
+        self.single: nn.Module | None = None
+        """``net`` traced for one observation (:meth:`prepare_realtime`); :meth:`act` uses it when set."""
+
+    def zero_observation(self) -> dict[str, np.ndarray]:
+        """An observation of zeros in every group this policy reads (for warm-ups and tracing)."""
+        return {k: np.zeros(shape, dtype=np.float32) for k, shape in self.config.obs_groups.items()}
+
+    def prepare_realtime(self) -> None:
+        """Trace the acting network for single observations (:func:`trace_single`); deploy calls this once before
+        the control loop. :meth:`act` then runs the traced network; batches keep the eager one."""
+        self.single = trace_single(self.net, (self._tensors(self.zero_observation(), batched=False),))
 
     # ------------------------------------------------------------------ acting
     def _tensors(self, obs: dict[str, Any], batched: bool) -> dict[str, torch.Tensor]:
@@ -207,7 +258,8 @@ class PolicyBundle:
     @torch.no_grad()
     def act(self, obs: dict[str, Any]) -> np.ndarray:
         """One observation (groups without a batch dim) -> (action_dim,) float32 action in [-1, 1]."""
-        return self.net(self._tensors(obs, batched=False))[0].numpy()
+        net = self.net if self.single is None else self.single
+        return net(self._tensors(obs, batched=False))[0].numpy()
 
     @torch.no_grad()
     def act_batch(self, obs: dict[str, Any]) -> np.ndarray:

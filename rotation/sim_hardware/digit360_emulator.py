@@ -35,6 +35,10 @@ log = logging.getLogger(__name__)
 
 IMU_PERIOD_S = 1.0 / 400.0
 PRESSURE_EVERY = 2  # pressure at 200 Hz = every second IMU tick
+BATCH_TICKS = 4
+"""IMU ticks written per wake-up (every 10 ms), each with its own device time stamp, as a USB host receives them
+in bursts. One wake-up per tick (four sensors: 1,600 a second) kept the interpreter's lock so busy that the
+policy's thread in the same process missed its 30 ms budget on a slower 2-core machine."""
 HPA_PER_N = 20.0
 """Emulated pressure rise per newton of contact force (hPa/N) of a ``source``, a made-up sensitivity (a hand's
 fingertip uses the env's model instead)."""
@@ -129,7 +133,7 @@ class Digit360Emulator(EmulatorThread):
         k = 0
         self._system()
         while not self._stop.is_set():
-            next_t = t0 + (k + 1) * IMU_PERIOD_S
+            next_t = t0 + (k + BATCH_TICKS) * IMU_PERIOD_S
             self.link.read(max(0.0, next_t - time.monotonic()))  # drain host -> device bytes; also paces
             if time.monotonic() < next_t:
                 continue
@@ -137,24 +141,30 @@ class Digit360Emulator(EmulatorThread):
                 pause, self.faults.pause_s = self.faults.pause_s, 0.0
                 self._stop.wait(pause)
                 k = int((time.monotonic() - t0) / IMU_PERIOD_S)
-            k += 1
-            t = k * IMU_PERIOD_S
-            ts = int(t * 1e6) & 0xFFFFFFFF
-            try:
-                accel, pressure = self._readings(k)
-            except Exception:  # a broken source must not kill the stream silently
-                log.exception("digit360 emulator: source failed at t=%.3f s", t)
-                continue
-            m = self._msg()
-            m.imu.ts = ts
-            m.imu.raw.sensor = SENSOR["ACC"]
-            m.imu.raw.x, m.imu.raw.y, m.imu.raw.z = (int(round(float(a) * ACC_PER_G)) for a in accel)
-            self._emit(m)
-            if pressure is not None:
-                p = self._msg()
-                p.pressure.ts = ts
-                p.pressure.pressure = pressure
-                p.pressure.temperature = 30.0
-                self._emit(p)
-            if k % 400 == 0:
-                self._system()
+            due = int((time.monotonic() - t0) / IMU_PERIOD_S)  # every tick whose device time has come
+            while k < due and not self._stop.is_set():
+                k += 1
+                self._tick(k)
+
+    def _tick(self, k: int) -> None:
+        """Write IMU tick ``k`` (and its pressure sample, and every 400th tick a ``system`` message)."""
+        t = k * IMU_PERIOD_S
+        ts = int(t * 1e6) & 0xFFFFFFFF
+        try:
+            accel, pressure = self._readings(k)
+        except Exception:  # a broken source must not kill the stream silently
+            log.exception("digit360 emulator: source failed at t=%.3f s", t)
+            return
+        m = self._msg()
+        m.imu.ts = ts
+        m.imu.raw.sensor = SENSOR["ACC"]
+        m.imu.raw.x, m.imu.raw.y, m.imu.raw.z = (int(round(float(a) * ACC_PER_G)) for a in accel)
+        self._emit(m)
+        if pressure is not None:
+            p = self._msg()
+            p.pressure.ts = ts
+            p.pressure.pressure = pressure
+            p.pressure.temperature = 30.0
+            self._emit(p)
+        if k % 400 == 0:
+            self._system()

@@ -51,6 +51,30 @@ def test_zero_init_acts_exactly_like_the_student(env_obs):
     assert np.array_equal(policy.act(one, correction=corr[0]), student.act(one))
 
 
+def test_the_traced_paths_give_the_eager_corrections_and_actions_bit_for_bit(env_obs):
+    """Deploy traces the student's acting paths and the encoder (AdaptedPolicy.prepare_realtime): same numbers, and
+    non-finite windows are still refused."""
+    env, obs = env_obs
+    policy = build_adapted("student", ENCODER, ("img", "imu", "pressure"), seed=3)
+    torch.nn.init.normal_(policy.adapter.zero.weight, std=0.05)  # a non-zero correction
+    groups = {k: obs[k] for k in policy.config.obs_groups}
+    windows = _windows(policy, obs)
+    eager_corr = policy.correction(windows, groups)
+    one = {k: v[0] for k, v in groups.items()}
+    eager_act = policy.act(one, correction=eager_corr[0])
+    eager_student = policy.act(one)
+    assert np.abs(eager_corr).max() > 0
+    policy.prepare_realtime()
+    for _ in range(2):
+        assert np.array_equal(policy.correction(windows, groups), eager_corr)
+        assert np.array_equal(policy.act(one, correction=eager_corr[0]), eager_act)
+        assert np.array_equal(policy.act(one), eager_student)
+    assert len(policy.traced_encoders) == 1
+    bad = {f: dict(w) for f, w in windows.items()}
+    bad["index"]["imu"] = np.full_like(bad["index"]["imu"], np.nan)
+    with pytest.raises(TouchUnavailable, match="non-finite"):
+        policy.correction(bad, groups)
+
 def test_gradients_reach_only_the_adapter(env_obs):
     env, obs = env_obs
     policy = build_adapted("student", ENCODER, ("img",), seed=0)

@@ -184,6 +184,23 @@ def test_rejects_bad_observations(teacher):
         teacher.act({**obs, "proprio": np.full((3, 32), np.nan)})
 
 
+@pytest.mark.parametrize("shipped", ["teacher", "student"])
+def test_the_traced_acting_path_gives_the_eager_actions_bit_for_bit(shipped):
+    """Deploy acts with the network traced for one observation (PolicyBundle.prepare_realtime): same actions."""
+    bundle = load_bundle(shipped)
+    obs = random_obs(12, seed=3)
+    singles = [{k: obs[k][i] for k in bundle.config.obs_groups} for i in range(12)]
+    eager = [bundle.act(o) for o in singles]
+    batch = {k: obs[k] for k in bundle.config.obs_groups}
+    eager_batch = bundle.act_batch(batch)
+    bundle.prepare_realtime()
+    assert bundle.single is not None
+    for _ in range(2):  # also after TorchScript's optimizing first calls
+        assert all(np.array_equal(a, bundle.act(o)) for a, o in zip(eager, singles, strict=True))
+    with pytest.raises(BundleError, match="non-finite"):  # the observation checks stay in front of the trace
+        bundle.act({**singles[0], "proprio": np.full((3, 32), np.nan, np.float32)})
+    assert np.array_equal(bundle.act_batch(batch), eager_batch)  # batches keep the eager network
+
 # a config.json edit -> the words the loader's BundleError must contain (field and what is allowed)
 HAND = {"lower": list(B.C.JOINT_LOWER), "upper": list(B.C.JOINT_UPPER)}
 BAD_CONFIGS = [
