@@ -183,8 +183,10 @@ class AdaptedPolicy:
         student.net.eval().requires_grad_(False)  # frozen: only the adapter ever learns
         self.encoder = encoder
         self.adapter = adapter.eval()
+        self.corrected_actor = CorrectedActor(student.net)
+        """The student's acting path with a correction (batches)."""
         self.corrected: nn.Module | None = None
-        """The student's acting path with a correction, traced for one observation (:meth:`prepare_realtime`)."""
+        """``corrected_actor`` traced for one observation (:meth:`prepare_realtime`)."""
         self.traced_encoders: dict[tuple, nn.Module] | None = None
         """After :meth:`prepare_realtime`: the encoder traced per input shapes (:meth:`_encode`)."""
         self.config: BundleConfig = replace(student.config, adapter=path or "(in memory)",
@@ -282,8 +284,7 @@ class AdaptedPolicy:
         if correction is None:
             return self.student.act_batch(dict(obs))
         t = self.student._tensors(dict(obs), batched=True)
-        z = self.student.net.extractor.z(t) + torch.as_tensor(correction, dtype=torch.float32)
-        return self.student.net.mean(t, z).clamp(-1.0, 1.0).numpy()
+        return self.corrected_actor(t, torch.as_tensor(correction, dtype=torch.float32)).numpy()
 
     def prepare_realtime(self) -> None:
         """Trace the student's acting paths, with and without a correction, for single observations, and from the
@@ -291,9 +292,8 @@ class AdaptedPolicy:
         :meth:`correction` then use them."""
         self.traced_encoders = {}
         self.student.prepare_realtime()
-        example = self.student._tensors(self.student.zero_observation(), batched=False)
-        self.corrected = trace_single(CorrectedActor(self.student.net),
-                                      (example, torch.zeros(1, self.student.config.latent_dim)))
+        example = self.student._tensors(self.config.zero_observation(), batched=False)
+        self.corrected = trace_single(self.corrected_actor, (example, torch.zeros(1, self.student.config.latent_dim)))
 
     @torch.no_grad()
     def act(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:

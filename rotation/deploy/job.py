@@ -357,7 +357,7 @@ def run(cfg: Config) -> dict[str, Any]:
             if prepare is not None:
                 prepare()
             # one inference before the hand starts: the first call of a network is slow (allocation, dispatch)
-            bundle.act({k: np.zeros(shape, dtype=np.float32) for k, shape in bundle.config.obs_groups.items()})
+            bundle.act(bundle.config.zero_observation())
             if setup.emulated:
                 # the emulator shares this process (and the GIL) with the busy-polling drivers: switch threads
                 # every 0.5 ms instead of 5 ms so the emulated hardware answers in time

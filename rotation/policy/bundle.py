@@ -141,6 +141,10 @@ class BundleConfig:
     def observation_space(self) -> spaces.Dict:
         return spaces.Dict({k: spaces.Box(-np.inf, np.inf, s, np.float32) for k, s in self.obs_groups.items()})
 
+    def zero_observation(self) -> dict[str, np.ndarray]:
+        """An observation of zeros in every group the policy reads (warm-ups and tracing)."""
+        return {k: np.zeros(shape, dtype=np.float32) for k, shape in self.obs_groups.items()}
+
 
 class ActorNet(nn.Module):
     """The acting path: (B, ...) observation groups -> (B, action_dim) deterministic action in [-1, 1]."""
@@ -182,6 +186,10 @@ class CorrectedActor(nn.Module):
         return self.net.mean(obs, self.net.extractor.z(obs) + correction).clamp(-1.0, 1.0)
 
 
+WARM_UP_CALLS = 3
+"""Calls of a freshly traced module before it is used (TorchScript optimizes it during the first two)."""
+
+
 def trace_single(module: nn.Module, example: tuple) -> nn.Module:
     """``module`` traced with TorchScript for inputs shaped like ``example`` (one observation).
 
@@ -206,10 +214,6 @@ def trace_single(module: nn.Module, example: tuple) -> nn.Module:
     return traced
 
 
-WARM_UP_CALLS = 3
-"""Calls of a freshly traced module before it is used (TorchScript optimizes it during the first two)."""
-
-
 class PolicyBundle:
     """A loaded bundle: :attr:`config` plus the acting network :attr:`net` (eval mode, CPU, float32)."""
 
@@ -219,14 +223,10 @@ class PolicyBundle:
         self.single: nn.Module | None = None
         """``net`` traced for one observation (:meth:`prepare_realtime`); :meth:`act` uses it when set."""
 
-    def zero_observation(self) -> dict[str, np.ndarray]:
-        """An observation of zeros in every group this policy reads (for warm-ups and tracing)."""
-        return {k: np.zeros(shape, dtype=np.float32) for k, shape in self.config.obs_groups.items()}
-
     def prepare_realtime(self) -> None:
         """Trace the acting network for single observations (:func:`trace_single`); deploy calls this once before
         the control loop. :meth:`act` then runs the traced network; batches keep the eager one."""
-        self.single = trace_single(self.net, (self._tensors(self.zero_observation(), batched=False),))
+        self.single = trace_single(self.net, (self._tensors(self.config.zero_observation(), batched=False),))
 
     # ------------------------------------------------------------------ acting
     def _tensors(self, obs: dict[str, Any], batched: bool) -> dict[str, torch.Tensor]:

@@ -75,6 +75,7 @@ def test_the_traced_paths_give_the_eager_corrections_and_actions_bit_for_bit(env
     with pytest.raises(TouchUnavailable, match="non-finite"):
         policy.correction(bad, groups)
 
+
 def test_gradients_reach_only_the_adapter(env_obs):
     env, obs = env_obs
     policy = build_adapted("student", ENCODER, ("img",), seed=0)
