@@ -201,6 +201,7 @@ def test_the_traced_acting_path_gives_the_eager_actions_bit_for_bit(shipped):
         bundle.act({**singles[0], "proprio": np.full((3, 32), np.nan, np.float32)})
     assert np.array_equal(bundle.act_batch(batch), eager_batch)  # batches keep the eager network
 
+
 # a config.json edit -> the words the loader's BundleError must contain (field and what is allowed)
 HAND = {"lower": list(B.C.JOINT_LOWER), "upper": list(B.C.JOINT_UPPER)}
 BAD_CONFIGS = [
