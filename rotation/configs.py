@@ -14,6 +14,7 @@ import dataclasses
 import inspect
 import json
 import math
+import sys
 import textwrap
 import types
 import typing
@@ -274,10 +275,20 @@ def from_jsonable(cls: type, data: dict[str, Any]) -> Any:
 
 
 def script_main(config_cls: type, run: Any, description: str | None, argv: list[str] | None = None) -> int:
-    """Entry point of a script: parse ``config_cls`` from the command line and call ``run(cfg)``."""
+    """Entry point of a script: parse ``config_cls`` from the command line and call ``run(cfg)``. Bad input
+    (ValueError, also from the config's own validation) and file-system faults (OSError) end with one line on
+    stderr and status 2 or 1, as ``rotate``'s commands do, never a traceback."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_dataclass_arguments(parser, config_cls)
-    run(dataclass_from_args(config_cls, parser.parse_args(argv)))
+    args = parser.parse_args(argv)
+    try:
+        run(dataclass_from_args(config_cls, args))
+    except ValueError as err:
+        print(f"{parser.prog}: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"{parser.prog}: error: {err}", file=sys.stderr)
+        return 1
     return 0
 
 
