@@ -16,7 +16,6 @@ student, or a randomly initialised student when none ships: inference cost is th
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import io
 import json
@@ -28,7 +27,7 @@ from typing import Literal
 
 import numpy as np
 
-from rotation.configs import add_dataclass_arguments, dataclass_from_args
+from rotation.configs import script_main
 from rotation.hardware.allegro import AllegroConfig, AllegroHand
 from rotation.hardware.hand import JOINT_LOWER, JOINT_UPPER
 from rotation.hardware.realtime import set_realtime_priority
@@ -122,12 +121,10 @@ def policy_loop(cfg: Config) -> dict:
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_dataclass_arguments(parser, Config)
+def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    run(dataclass_from_args(Config, parser.parse_args()))
+    return script_main(Config, run, __doc__, argv)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
