@@ -139,7 +139,7 @@ def reward_and_termination(xp: ModuleType, cfg: EnvConfig, *, q: Array, qdot: Ar
     lin_vel = (pos - pos0) / dt
     rw = cfg.reward
     terms = {
-        "rotate": rw.rotate * xp.clip(spin, -rw.rotate_clip, rw.rotate_clip),
+        "rotate": rw.rotate * xp.clip(spin, -rw.rotate_back_clip, rw.rotate_clip),
         "obj_linvel": rw.obj_linvel * xp.abs(lin_vel).sum(-1),
         "pose_diff": rw.pose_diff * ((q - grasp_q) ** 2).sum(-1),
         "torque": rw.torque * (tau**2).sum(-1),

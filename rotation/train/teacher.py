@@ -41,7 +41,7 @@ import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 
-from envs.config import EnvConfig, RandomizationConfig
+from envs.config import EnvConfig, RandomizationConfig, RewardConfig
 from envs.objects import OBJECTS
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import check_device, save_config, to_jsonable
@@ -108,6 +108,10 @@ class Config:
     coherent finger motions instead of jitter that mostly earns penalties."""
     reward_scale: float = 0.1
     """Multiplies rewards seen by the learner (logged episode returns are unscaled)."""
+    rotate_back_clip: float = 0.5
+    """Backward clip of the rotate reward term (rad/s; envs.config.RewardConfig.rotate_back_clip). 0.5 (Hora's,
+    the shipped teacher's) lets a policy earn the term by turning forward and snapping back; 5 makes a snap back
+    cost what it undoes."""
     checkpoint_every: int = 1_000_000
     """Save a checkpoint every this many env steps."""
     resume: Path | None = None
@@ -218,7 +222,7 @@ class Config:
     def env_config(self) -> EnvConfig:
         rc = RandomizationConfig() if self.randomize else RandomizationConfig(enabled=False)
         return EnvConfig(object=self.object, hand=self.hand, episode_steps=self.episode_steps, randomization=rc,
-                         grasp_cache=self.grasp_cache)
+                         grasp_cache=self.grasp_cache, reward=RewardConfig(rotate_back_clip=self.rotate_back_clip))
 
 
 def config_from_args(args) -> Config:
