@@ -39,6 +39,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "*:node_rank": {"zero": "the first node of a multi-node run is rank 0"},
     "*:ent_coef": {"zero": "no entropy bonus is Hora's setting"},
     "*:log_std_init": {"negative": "a log standard deviation: negative = std below 1", "zero": "std 1 (Hora)"},
+    "*:fall_reward": {"negative": "a fall penalty (the default is -20)", "zero": "no penalty; a fall still ends it"},
     "*:gae_lambda": {"zero": "lambda 0 is one-step TD, a valid estimator"},
     "*:added_mass": {"zero": "no added mass: the nominal object"},
     "grasps:noise": {"zero": "grasps exactly at the canonical pose"},

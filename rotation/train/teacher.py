@@ -112,6 +112,10 @@ class Config:
     """Backward clip of the rotate reward term (rad/s; envs.config.RewardConfig.rotate_back_clip). 0.5 (Hora's,
     the shipped teacher's) lets a policy earn the term by turning forward and snapping back; 5 makes a snap back
     cost what it undoes."""
+    fall_reward: float = -20.0
+    """One-off reward when the cup falls or tips past the tilt limit (envs.config.RewardConfig.fall); a penalty or
+    0, never a gain. The per-step reward is small, so at -20 (the default) losing the cup late costs little; the
+    shipped teacher's third stage used -60 and held slippery cups longer."""
     checkpoint_every: int = 1_000_000
     """Save a checkpoint every this many env steps."""
     resume: Path | None = None
@@ -208,6 +212,7 @@ class Config:
             raise ValueError(f"net_arch must be 1 to 16 layer widths, each in [1, 8192], got {self.net_arch!r}")
         check_number("log_std_init", self.log_std_init, -10.0, 2.0)  # std e^-10 .. e^2 for actions in [-1, 1]
         check_number("reward_scale", self.reward_scale, 0.0, 1000.0, low_open=True)
+        check_number("fall_reward", self.fall_reward, -10000.0, 0.0)  # a penalty or off: falling must never pay
         check_int("checkpoint_every", self.checkpoint_every, 1, 10**12)
         check_int("torch_threads", self.torch_threads, 1, 1024)
         check_int("critic_warmup", self.critic_warmup, 0, 10**6)
@@ -222,7 +227,8 @@ class Config:
     def env_config(self) -> EnvConfig:
         rc = RandomizationConfig() if self.randomize else RandomizationConfig(enabled=False)
         return EnvConfig(object=self.object, hand=self.hand, episode_steps=self.episode_steps, randomization=rc,
-                         grasp_cache=self.grasp_cache, reward=RewardConfig(rotate_back_clip=self.rotate_back_clip))
+                         grasp_cache=self.grasp_cache, reward=RewardConfig(rotate_back_clip=self.rotate_back_clip,
+                                                               fall=self.fall_reward))
 
 
 def config_from_args(args) -> Config:

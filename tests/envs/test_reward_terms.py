@@ -46,3 +46,10 @@ def test_teacher_option_reaches_the_env_and_is_checked():
     assert TeacherConfig(rotate_back_clip=5.0).env_config().reward.rotate_back_clip == 5.0
     with pytest.raises(ValueError, match=r"reward\.rotate_back_clip must be > 0"):
         TeacherConfig(rotate_back_clip=0.0)
+
+
+def test_teacher_fall_reward_reaches_the_env_and_must_not_pay():
+    assert TeacherConfig().env_config().reward.fall == -20.0
+    assert TeacherConfig(fall_reward=-60.0).env_config().reward.fall == -60.0
+    with pytest.raises(ValueError, match="fall_reward"):
+        TeacherConfig(fall_reward=5.0)
