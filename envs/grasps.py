@@ -3,8 +3,9 @@
 Generation (reference/hora.md "Grasp cache"): sample a canonical closed pose + U(-0.25, 0.25) rad per joint, start
 with the fingers opened a little and the object floating at its nominal place, close the fingers on it, release
 it under gravity, run 50 policy steps, and keep the grasp if all four fingertips are within 10 cm of the object
-centre, at least two touch it, it did not fall, and (our addition for the upright-cup task) its up axis is within
-`max_tilt` of vertical. A cached row is 16 joint positions + 7 object pose numbers.
+centre, at least two touch it, it did not fall, and (our additions for the upright-cup task) its up axis is within
+`max_tilt` of vertical and, with a HoldRule, the grasp holds the object still by itself when the env resets into it.
+A cached row is 16 joint positions + 7 object pose numbers.
 
 The cache file (.npz) holds `object` (name), `scales` (S,), `grasps` (S, G, 23) and `seed`; one bucket per
 randomization scale. Reset picks the bucket of the env's scale and a row uniformly.
@@ -12,6 +13,7 @@ randomization scale. Reset picks the bucket of the env's scale and a row uniform
 
 from __future__ import annotations
 
+import math
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -22,10 +24,11 @@ import mujoco.batch
 import numpy as np
 
 from envs import constants as C
+from envs.config import EnvConfig, RandomizationConfig
 from envs.geometry import tilt_angle
 from envs.objects import OBJECTS, ObjectSpec, get_object
 from envs.scene import HANDS, OBJECT_BODY, OBJECT_START, build_model
-from envs.task import pick_grasps
+from envs.task import object_inertia, pick_grasps, set_gains
 
 GRASP_DIM = C.NUM_JOINTS + 7
 CANONICAL_POSE = np.array(
@@ -55,9 +58,12 @@ class GraspCache:
     """Where the cache was read from (named in error messages); empty for a cache built in memory."""
     hand: str = "digit360"
     """Hand variant the grasps were generated with (envs.scene.HANDS); caches of older versions are 'digit360'."""
+    hold: tuple[float, ...] = ()
+    """The HoldRule every grasp passed (seconds, friction, mass, max_tilt), or () for a cache generated without one."""
 
     def __post_init__(self) -> None:
         where = self.where
+        self.hold = tuple(float(x) for x in self.hold)
         self.scales = np.asarray(self.scales, dtype=np.float64)
         self.grasps = np.asarray(self.grasps, dtype=np.float64)
         if self.scales.ndim != 1 or not np.all(np.isfinite(self.scales) & (self.scales >= 0.1) & (self.scales <= 3.0)):
@@ -84,7 +90,7 @@ class GraspCache:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         with open(path, "wb") as f:
             np.savez_compressed(f, object=self.object, scales=self.scales, grasps=self.grasps.astype(np.float32),
-                                seed=self.seed, hand=self.hand)
+                                seed=self.seed, hand=self.hand, hold=np.asarray(self.hold, dtype=np.float64))
 
     @classmethod
     def load(cls, path: str | Path) -> GraspCache:
@@ -108,6 +114,7 @@ class GraspCache:
                 name, scales, grasps = str(f["object"]), f["scales"], f["grasps"]
                 seed = int(f["seed"]) if "seed" in f.files else 0
                 hand = str(f["hand"]) if "hand" in f.files else "digit360"
+                hold = tuple(float(x) for x in f["hold"]) if "hold" in f.files else ()
             except damaged as err:
                 raise ValueError(f"grasp cache {path} is corrupted ({type(err).__name__}: {err}); "
                                  f"regenerate it with `rotate grasps`") from err
@@ -116,7 +123,10 @@ class GraspCache:
                              f"{', '.join(sorted(OBJECTS))}")
         if hand not in HANDS:
             raise ValueError(f"grasp cache {path}: unknown hand {hand!r}; hands: {', '.join(HANDS)}")
-        return cls(name, scales, grasps, seed, source=str(path), hand=hand)
+        if hold and (len(hold) != 4 or not all(math.isfinite(x) for x in hold)):
+            raise ValueError(f"grasp cache {path}: 'hold' must be 4 finite numbers (seconds, friction, mass, "
+                             f"max_tilt), got {list(hold)}; regenerate it with `rotate grasps`")
+        return cls(name, scales, grasps, seed, source=str(path), hand=hand, hold=hold)
 
 
 JOINT_TOLERANCE = 0.02
@@ -228,10 +238,111 @@ def _penetration(model: mujoco.MjModel, data: mujoco.MjData, q: np.ndarray, pos:
     return min((data.contact[i].dist for i in range(data.ncon)), default=1.0)
 
 
+HOLD_DROP = 0.02
+"""How far (m) the object may sink below its grasped height during a hold check before it counts as dropped."""
+
+
+@dataclass(frozen=True)
+class HoldRule:
+    """A grasp must hold the object still by itself: reset into the grasp as the env does (joint targets = the
+    grasp's joints, so the fingers press no harder than the grasp's own contacts), hold still (zero action) for
+    ``seconds`` with the env's physics at ``friction`` (hand and object) and object ``mass``, no pushes, the centre
+    of mass in the middle and the nominal PD gains; keep the grasp if the object's tilt stays under ``max_tilt`` and
+    it does not sink more than HOLD_DROP. Grasps that fail this start the policy from a cup that is already falling:
+    of the cup grasps that passed Hora's rule alone, about a third tipped past 20 degrees or dropped within 3 s."""
+
+    seconds: float = 3.0
+    friction: float = float(np.mean(RandomizationConfig().friction))
+    """Default: the middle of the randomization range (1.65), the nominal env's friction."""
+    mass: float = float(np.mean(RandomizationConfig().mass))
+    """Default (kg): the middle of the randomization range (0.13), the nominal env's mass."""
+    max_tilt: float = 0.35
+    """rad (about 20 degrees)."""
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.seconds, self.friction, self.mass, self.max_tilt])
+
+
+class HoldTest:
+    """Runs HoldRule checks on batches of grasp rows of one object (the env's model, built once)."""
+
+    def __init__(self, object_name: str, hand: str = "digit360", batch_size: int = 128, nthread: int | None = None):
+        from envs.core import task_model  # envs.core imports this module
+
+        self.cfg = EnvConfig(object=object_name, hand=hand)
+        model, self.obj, self.max_scale = task_model(self.cfg)
+        self.batch_size = batch_size
+        b = self.batch = mujoco.batch.Batch(model, batch_size, nthread or 0, persistent=True)
+        self.obj_body = model.body(OBJECT_BODY).id
+        self.obj_geoms = np.flatnonzero(model.geom_bodyid == self.obj_body)
+        self.size1 = model.geom_size[self.obj_geoms] / self.max_scale
+        self.pos1 = model.geom_pos[self.obj_geoms] / self.max_scale
+        self.o = int(model.joint("object_free").qposadr[0])
+        self.fields = {k: b.expand(k) for k in ("geom_size", "geom_pos", "geom_friction", "body_mass", "body_ipos",
+                                                "body_inertia", "actuator_gainprm", "actuator_biasprm")}
+        self.qpos, self.qvel, self.ctrl = b.bind("qpos"), b.bind("qvel"), b.bind("ctrl")
+        self.xfrc = b.bind("xfrc_applied")
+
+    def worst_tilt(self, rows: np.ndarray, scales: np.ndarray, rule: HoldRule) -> np.ndarray:
+        """(k,) worst tilt (rad) of each row (k, 23) at its object scale (k,) under ``rule``; inf where the object
+        sank more than HOLD_DROP or the state went non-finite."""
+        rows, scales = np.asarray(rows, dtype=np.float64), np.asarray(scales, dtype=np.float64)
+        n, f, o, cfg = self.batch_size, self.fields, self.o, self.cfg
+        steps = max(1, round(rule.seconds * cfg.control_hz))
+        worst = np.zeros(len(rows))
+        for first in range(0, len(rows), n):
+            k = min(n, len(rows) - first)
+            pad = np.r_[np.arange(first, first + k), np.full(n - k, first + k - 1)]  # repeat the last row
+            chunk, scale = rows[pad], scales[pad]
+            f["geom_size"][:, self.obj_geoms] = self.size1[None] * scale[:, None, None]
+            f["geom_pos"][:, self.obj_geoms] = self.pos1[None] * scale[:, None, None]
+            fr = f["geom_friction"][:]
+            fr[:, :, 0] = rule.friction
+            f["geom_friction"][:] = fr
+            f["body_mass"][:, self.obj_body] = rule.mass
+            f["body_ipos"][:, self.obj_body] = 0.0
+            f["body_inertia"][:, self.obj_body] = object_inertia(np, self.obj.kind, self.obj.radius,
+                                                                 self.obj.length, scale, np.full(n, rule.mass))
+            gain, bias = f["actuator_gainprm"][:], f["actuator_biasprm"][:]
+            set_gains(gain, bias, np.full((n, C.NUM_JOINTS), cfg.kp), np.full((n, C.NUM_JOINTS), cfg.kd))
+            f["actuator_gainprm"][:], f["actuator_biasprm"][:] = gain, bias
+            self.batch.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
+            self.batch.set_const()
+            qp = self.qpos.copy()
+            qp[:, : C.NUM_JOINTS] = chunk[:, : C.NUM_JOINTS]
+            qp[:, o : o + 7] = chunk[:, C.NUM_JOINTS :]
+            self.qpos[:] = qp
+            self.qvel[:] = 0.0
+            self.ctrl[:] = chunk[:, : C.NUM_JOINTS]
+            self.xfrc[:] = 0.0
+            self.batch.forward()
+            z0 = chunk[:, C.NUM_JOINTS + 2]
+            tilt = np.zeros(n)
+            for _ in range(steps):
+                self.batch.step(nstep=cfg.substeps)
+                pose = self.qpos[:, o : o + 7]
+                t = tilt_angle(pose[:, 3:])
+                t[(pose[:, 2] < z0 - HOLD_DROP) | ~np.all(np.isfinite(pose), axis=1)] = np.inf
+                tilt = np.maximum(tilt, t)
+            worst[first : first + k] = tilt[:k]
+        return worst
+
+
+def hold_check(cache: GraspCache, rule: HoldRule = HoldRule(), batch_size: int = 128,
+               nthread: int | None = None) -> np.ndarray:
+    """Worst tilt (rad, (S, G)) of every cached grasp under ``rule`` (HoldRule); a grasp passes where it is below
+    ``rule.max_tilt``."""
+    s, g = cache.grasps.shape[:2]
+    test = HoldTest(cache.object, cache.hand, batch_size, nthread)
+    return test.worst_tilt(cache.grasps.reshape(s * g, GRASP_DIM), np.repeat(cache.scales, g), rule).reshape(s, g)
+
+
 def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int, seed: int = 0,
                     batch_size: int = 128, max_rounds: int = 200, noise: float = 0.25, nthread: int | None = None,
-                    progress=None, max_tilt: float = DEFAULT_MAX_TILT, hand: str = "digit360") -> GraspCache:
-    """Generate ``per_scale`` accepted grasps for each scale (see the module docstring for the rule)."""
+                    progress=None, max_tilt: float = DEFAULT_MAX_TILT, hand: str = "digit360",
+                    hold: HoldRule | None = None) -> GraspCache:
+    """Generate ``per_scale`` accepted grasps for each scale (see the module docstring for the rule); with ``hold``
+    a grasp must also pass that HoldRule."""
     if per_scale < 1:
         raise ValueError(f"per_scale must be >= 1, got {per_scale}")
     obj = get_object(object_name)
@@ -250,6 +361,7 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
     o = int(model.joint("object_free").qposadr[0])
     substeps = round(0.05 / model.opt.timestep)
     mass = 0.1
+    hold_test = HoldTest(object_name, hand, batch_size, nthread) if hold is not None else None
     out = []
     for scale in scales:
         accepted: list[np.ndarray] = []
@@ -297,14 +409,18 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
             upright = tilt_angle(quat) < max_tilt
             ok = clear & near & (touching >= 2) & (pos[:, 2] > z0 - 0.02) & still & upright
             ok &= np.all(np.isfinite(qpos), axis=1)
-            for i in np.flatnonzero(ok):
-                accepted.append(np.concatenate([qpos[i, :16], qpos[i, o : o + 7]]))
+            rows = np.concatenate([qpos[:, :16], qpos[:, o : o + 7]], axis=1)[ok]
+            if hold_test is not None and len(rows):
+                rows = rows[hold_test.worst_tilt(rows, np.full(len(rows), scale), hold) < hold.max_tilt]
+            accepted.extend(rows)
             if progress is not None:
                 progress(scale, len(accepted), per_scale)
         if len(accepted) < per_scale:
             raise RuntimeError(
                 f"only {len(accepted)} of {per_scale} grasps accepted for {object_name} at scale {scale} after "
                 f"{max_rounds} rounds of {batch_size}; the canonical pose may not fit this object"
+                + (" or the hold check may be too strict for it" if hold is not None else "")
             )
         out.append(np.stack(accepted[:per_scale]))
-    return GraspCache(object_name, np.asarray(scales), np.stack(out), seed, hand=hand)
+    return GraspCache(object_name, np.asarray(scales), np.stack(out), seed, hand=hand,
+                      hold=tuple(hold.as_array()) if hold is not None else ())

@@ -43,6 +43,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "*:gae_lambda": {"zero": "lambda 0 is one-step TD, a valid estimator"},
     "*:added_mass": {"zero": "no added mass: the nominal object"},
     "grasps:noise": {"zero": "grasps exactly at the canonical pose"},
+    "grasps:hold_seconds": {"zero": "turns the hold check off (the cache records no hold rule)"},
     "train-teacher:critic_warmup": {"zero": "0 = the actor trains from the first update"},
     "finetune-student:critic_warmup": {"zero": "0 = the actor trains from the first update"},
     "deploy:duration": {"zero": "0 runs until Ctrl-C / SIGTERM (documented)"},

@@ -2,8 +2,8 @@
 
 Layout under the report directory OUT:
 
-    OUT/progress.json               what the results depend on: the config (less the fields in RESUMABLE_CHANGES)
-                                    and a digest of every policy's weights
+    OUT/progress.json               what the results depend on: the config (less the fields in RESUMABLE_CHANGES),
+                                    a digest of every policy's weights and one of the grasp cache
     OUT/conditions/<name>.json      the result rows of one finished condition, written (atomically) as it completes
 
 A later run into the same OUT continues: it checks that progress.json describes the same evaluation (refusing with
@@ -46,19 +46,31 @@ def weights_digest(policy: str) -> str:
     return hashlib.sha256(data).hexdigest()[:16]
 
 
-def identity(cfg: Any, policies: dict[str, str]) -> dict[str, Any]:
-    """What the rows of an evaluation depend on: its config (without RESUMABLE_CHANGES) and the policies' weights."""
+def grasps_digest(cfg: Any, hand: str = "digit360") -> str:
+    """First 16 hex digits of the SHA-256 of the grasp cache the episodes start from (the shipped one of the object
+    unless cfg.grasp_cache names one): a regenerated cache changes every episode's start."""
+    from envs.grasps import default_cache_path
+
+    path = Path(cfg.grasp_cache) if cfg.grasp_cache else default_cache_path(cfg.object, hand)
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.is_file() else "(none)"
+
+
+def identity(cfg: Any, policies: dict[str, str], hand: str = "digit360") -> dict[str, Any]:
+    """What the rows of an evaluation depend on: its config (without RESUMABLE_CHANGES), the policies' weights and
+    the grasp cache (of ``hand``, the hand the episodes run on)."""
     config = {k: v for k, v in to_jsonable(cfg).items() if k not in RESUMABLE_CHANGES}
-    return {"config": config, "policy_weights": {name: weights_digest(path) for name, path in policies.items()}}
+    return {"config": config, "policy_weights": {name: weights_digest(path) for name, path in policies.items()},
+            "grasps": {"cache": grasps_digest(cfg, hand)}}
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     out = []
-    for section in ("config", "policy_weights"):
+    for section in ("config", "policy_weights", "grasps"):
         a, b = old.get(section, {}), new.get(section, {})
         for key in sorted(set(a) | set(b)):
             if a.get(key) != b.get(key):
-                what = f"the weights of policy {key!r}" if section == "policy_weights" else key
+                names = {"policy_weights": f"the weights of policy {key!r}", "grasps": "the grasp cache"}
+                what = names.get(section, key)
                 out.append(f"{what}: {a.get(key, '(not set)')!r} -> {b.get(key, '(not set)')!r}")
     return out
 

@@ -267,7 +267,7 @@ def run(cfg: Config) -> list[dict]:
     bundles = load_policies(cfg)
     first = next(iter(bundles.values()))
     out = Path(cfg.out)
-    ident = finished.identity(cfg, policy_paths(cfg))
+    ident = finished.identity(cfg, policy_paths(cfg), touch_env(bundles).get("hand", "digit360"))
     continuing = finished.check_out(out, ident, cfg.resume)  # refuses another evaluation's folder: reads only
     names = list(bundles)
     done = {c.name: rows for c in conditions if (rows := finished.rows(out, c.name, names)) is not None}

@@ -3,7 +3,10 @@
 For each object and each randomization scale bucket: sample the canonical closed pose + U(-noise, noise) per joint,
 close the fingers on the floating object, release it under gravity for 50 policy steps, and keep the grasp if all
 four fingertips are within 10 cm of the object, at least two touch it, it did not fall, and it stands upright
-(its up axis within --max-tilt of vertical).
+(its up axis within --max-tilt of vertical). Then the hold check: reset into the grasp as the env does (joint targets
+= the grasp's joints), hold still for --hold-seconds at the nominal friction and mass, and keep the grasp only if the
+object stays within --hold-tilt of vertical and does not sink (about a third of the grasps that pass the first rule
+fail this one; `--hold-seconds 0` turns it off).
 
     rotate grasps --objects cup cylinder --per-scale 100 --out grasps/
     rotate grasps --objects cup --hand xela --out grasps/      # the Xela skin hand (docs/skin.md)
@@ -24,7 +27,7 @@ from typing import Literal
 from tqdm import tqdm
 
 from envs.config import RandomizationConfig
-from envs.grasps import DEFAULT_MAX_TILT, default_cache_path, generate_grasps
+from envs.grasps import DEFAULT_MAX_TILT, HoldRule, default_cache_path, generate_grasps
 from envs.objects import OBJECTS, get_object
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 
@@ -47,6 +50,14 @@ class Config:
     """Keep only grasps holding the object's up axis within this angle (rad) of vertical after settling."""
     out: Path = Path("grasps")
     """Output directory."""
+    hold_seconds: float = HoldRule.seconds
+    """Hold check: seconds the grasp must hold the object still by itself (0 turns the check off)."""
+    hold_friction: float = HoldRule.friction
+    """Hold check: friction of hand and object (the default is the middle of the randomization range)."""
+    hold_mass: float = HoldRule.mass
+    """Hold check: object mass in kg (the default is the middle of the randomization range)."""
+    hold_tilt: float = HoldRule.max_tilt
+    """Hold check: the largest tilt (rad) the object may reach during the hold."""
     hand: Literal["digit360", "xela"] = "digit360"
     """Hand variant (envs.scene.HANDS): 'digit360' fingertips or the Xela skin hand; grasps are hand-specific."""
 
@@ -67,7 +78,17 @@ class Config:
         check_int("batch_size", self.batch_size, 1, 65_536)
         check_number("noise", self.noise, 0.0, 1.0, unit="rad")
         check_number("max_tilt", self.max_tilt, 0.0, math.pi, low_open=True, unit="rad")
+        check_number("hold_seconds", self.hold_seconds, 0.0, 60.0, unit="s")
+        check_number("hold_friction", self.hold_friction, 0.01, 10.0)
+        check_number("hold_mass", self.hold_mass, 0.001, 5.0, unit="kg")
+        check_number("hold_tilt", self.hold_tilt, 0.0, math.pi, low_open=True, unit="rad")
         check_output_dir("out", self.out)
+
+    @property
+    def hold(self) -> HoldRule | None:
+        if self.hold_seconds == 0:
+            return None
+        return HoldRule(self.hold_seconds, self.hold_friction, self.hold_mass, self.hold_tilt)
 
 
 def run(cfg: Config) -> list[Path]:
@@ -88,7 +109,8 @@ def run(cfg: Config) -> list[Path]:
             bar.refresh()
 
         cache = generate_grasps(name, tuple(cfg.scales), cfg.per_scale, seed=cfg.seed, batch_size=cfg.batch_size,
-                                noise=cfg.noise, progress=progress, max_tilt=cfg.max_tilt, hand=cfg.hand)
+                                noise=cfg.noise, progress=progress, max_tilt=cfg.max_tilt, hand=cfg.hand,
+                                hold=cfg.hold)
         bar.close()
         path = cfg.out / default_cache_path(name, cfg.hand).name
         cache.save(path)

@@ -32,8 +32,8 @@ def first_window(reader, timeout_s: float = 5.0) -> dict:
             time.sleep(0.05)
 
 
-def test_sim_fingertips_sense_the_emulated_hand():
-    physics = HandPhysics.at_grasp("cup", 0, hold=True)  # grasp 0: the thumb presses the cup, the middle is free
+def test_sim_fingertips_sense_the_emulated_hand(pressed_and_free_grasp):
+    physics = HandPhysics.at_grasp("cup", pressed_and_free_grasp, hold=True)  # the thumb presses, the middle is free
     fields = physics.contact_fields()
     rise: dict[str, float] = {}  # pressure above the sensor's no-contact level (hPa)
     with contextlib.ExitStack() as stack:

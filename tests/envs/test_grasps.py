@@ -1,5 +1,6 @@
-"""Grasp cache: file round trip, sampling by hand, clear errors for bad files, and a tiny generation whose grasps
-satisfy Hora's acceptance rule when checked with MuJoCo's own distance query (not the generator's own geometry)."""
+"""Grasp cache: file round trip, sampling by hand, clear errors for bad files, a tiny generation whose grasps
+satisfy Hora's acceptance rule when checked with MuJoCo's own distance query (not the generator's own geometry), and
+the hold check, compared with the env itself holding still."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import pytest
 
 from envs import EnvConfig, RotateCupVec
 from envs import constants as C
-from envs.grasps import CANONICAL_POSE, GRASP_DIM, GraspCache, generate_grasps, load_default_cache
+from envs.config import RandomizationConfig
+from envs.grasps import CANONICAL_POSE, GRASP_DIM, GraspCache, HoldRule, generate_grasps, hold_check, load_default_cache
 from envs.objects import get_object
 from envs.scene import OBJECT_BODY, OBJECT_START, build_model
 
@@ -207,3 +209,67 @@ def test_shipped_caches_are_valid():
 
     for name in ("cup", "cup_small", "cup_large", "cylinder"):
         assert GraspCache.load(default_cache_path(name)).source.endswith(f"grasps_{name}.npz")
+
+
+@pytest.fixture(scope="module")
+def cup_grasps():
+    """16 cup grasps at the nominal scale that pass Hora's rule but not all of the hold check."""
+    return generate_grasps("cup", (0.78,), per_scale=16, batch_size=16, seed=0, nthread=1)
+
+
+def test_hold_check_is_the_env_holding_still(tmp_path, cup_grasps):
+    """A nominal env reset into each grasp and held still (zero action) tilts the cup exactly as far as the hold
+    check says, and the grasps the check fails tip over or drop the cup in the env."""
+    rule = HoldRule()
+    assert (rule.friction, rule.mass) == (np.mean(RandomizationConfig().friction), np.mean(RandomizationConfig().mass))
+    worst = hold_check(cup_grasps, rule, batch_size=16, nthread=1)[0]
+    fails = worst >= rule.max_tilt
+    assert fails.sum() >= 2 and (~fails).sum() >= 8, worst  # this sample has both kinds, by a wide margin
+    cup_grasps.save(tmp_path / "g.npz")
+    cfg = EnvConfig(object="cup", grasp_cache=str(tmp_path / "g.npz"), randomization=RandomizationConfig(enabled=False))
+    env = RotateCupVec(cfg, num_envs=64, seed=0, nthread=1)
+    env.reset(seed=0)
+    rows = GraspCache.load(tmp_path / "g.npz").grasps[0, :, :16]
+    row = np.array([np.flatnonzero(np.all(np.abs(rows - q) < 1e-9, axis=1))[0] for q in env.grasp_q])
+    tilt, ended = np.zeros(64), np.zeros(64, dtype=bool)
+    for _ in range(round(rule.seconds * cfg.control_hz)):
+        _, _, term, _, info = env.step(np.zeros((64, 16)))
+        tilt = np.where(ended, tilt, np.maximum(tilt, info["tilt"]))
+        ended |= term
+    assert len(set(row[fails[row]])) >= 2 and len(set(row[~fails[row]])) >= 5  # the env met both kinds
+    held = ~fails[row]
+    np.testing.assert_allclose(tilt[held], worst[row[held]], atol=1e-6)
+    assert not ended[held].any()
+    assert np.all(ended[~held] | (tilt[~held] >= rule.max_tilt))
+
+
+def test_the_hold_rule_only_removes_grasps(tmp_path, cup_grasps):
+    """With the rule, generation keeps, in order, the grasps of the same draws that pass it, records the rule in the
+    file, and every kept grasp passes a fresh check."""
+    rule = HoldRule()
+    held = generate_grasps("cup", (0.78,), per_scale=6, batch_size=16, seed=0, nthread=1, hold=rule)
+    passing = cup_grasps.grasps[0][hold_check(cup_grasps, rule, batch_size=16, nthread=1)[0] < rule.max_tilt]
+    np.testing.assert_array_equal(held.grasps[0], passing[:6])
+    assert np.all(hold_check(held, rule, batch_size=8, nthread=1) < rule.max_tilt)
+    held.save(tmp_path / "h.npz")
+    assert GraspCache.load(tmp_path / "h.npz").hold == (3.0, rule.friction, rule.mass, rule.max_tilt)
+    assert cup_grasps.hold == ()
+
+
+def test_a_damaged_hold_record_is_refused(tmp_path):
+    np.savez(tmp_path / "hold.npz", object="cylinder", scales=small_cache().scales, grasps=small_cache().grasps,
+             hold=np.array([3.0, np.nan]))
+    with pytest.raises(ValueError, match=r"'hold' must be 4 finite numbers"):
+        GraspCache.load(tmp_path / "hold.npz")
+
+
+@pytest.mark.parametrize("obj", ["cup", "cup_small", "cup_large"])
+def test_shipped_cup_caches_pass_the_hold_rule(obj):
+    """The caches the policies are evaluated on were generated with the default HoldRule, and their grasps at the
+    nominal scale hold the cup by themselves (the other scales were checked when they were generated)."""
+    cache = load_default_cache(obj)
+    rule = HoldRule()
+    assert cache.hold == tuple(rule.as_array())
+    bucket = int(np.abs(cache.scales - 0.78).argmin())
+    nominal = GraspCache(obj, cache.scales[bucket : bucket + 1], cache.grasps[bucket : bucket + 1])
+    assert np.all(hold_check(nominal, rule) < rule.max_tilt)

@@ -114,6 +114,25 @@ def test_other_settings_are_refused_with_the_differences(bundles, tmp_path, monk
     assert (out / "conditions" / "nominal.json").is_file()  # nothing was touched
 
 
+def test_a_regenerated_grasp_cache_is_another_evaluation(bundles, tmp_path, monkeypatch):
+    """Episodes start from the grasp cache: one regenerated at the same path must not continue the old rows."""
+    from envs.grasps import GraspCache, load_default_cache
+
+    shipped = load_default_cache("cup")
+    cache = tmp_path / "grasps_cup.npz"
+    shipped.save(cache)
+    out = tmp_path / "eval"
+    Calls(monkeypatch, stop_at=3, stop=ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        job.run(make_cfg(bundles, out, grasp_cache=str(cache)))
+    assert json.loads((out / "progress.json").read_text())["grasps"]["cache"] == finished.grasps_digest(
+        make_cfg(bundles, out, grasp_cache=str(cache)))
+    GraspCache("cup", shipped.scales, shipped.grasps[:, ::-1], seed=1).save(cache)
+    with pytest.raises(ValueError, match=r"other settings \(the grasp cache: '[0-9a-f]{16}' -> '[0-9a-f]{16}'\)"):
+        job.run(make_cfg(bundles, out, grasp_cache=str(cache), resume=True))
+    assert (out / "conditions" / "nominal.json").is_file()  # nothing was touched
+
+
 def test_resume_needs_something_to_continue_and_old_reports_are_not_overwritten(bundles, tmp_path):
     with pytest.raises(ValueError, match="--resume: .* holds no evaluation to continue"):
         job.run(make_cfg(bundles, tmp_path / "empty", resume=True))

@@ -95,13 +95,13 @@ def test_emulated_fingertip_streams_equal_the_env_windows():
     assert env["pressure"][-1, 0] - env["pressure"][0, 0] > 5  # 2.5 N at the end, none at the start
 
 
-def test_held_hand_reads_gravity_and_the_grasp():
-    physics = HandPhysics.at_grasp("cup", 0, hold=True)
+def test_held_hand_reads_gravity_and_the_grasp(pressed_and_free_grasp):
+    physics = HandPhysics.at_grasp("cup", pressed_and_free_grasp, hold=True)
     fields = physics.contact_fields()  # (4, NUM_FIELDS)
     acc = fields[:, FIELD["acc_x"] : FIELD["acc_z"] + 1]
     np.testing.assert_allclose(np.linalg.norm(acc, axis=1), 9.81, atol=1e-3)  # a held scene is still
     thumb, middle = fields[FINGERS.index("thumb")], fields[FINGERS.index("middle")]
-    assert thumb[FIELD["force_n"]] > 0.2 and thumb[FIELD["c0_found"]] == 1  # grasp 0: the thumb presses the cup
+    assert thumb[FIELD["force_n"]] > 0.2 and thumb[FIELD["c0_found"]] == 1  # the thumb presses the cup
     assert middle[FIELD["c0_found"]] == 0 and middle[FIELD["force_n"]] == 0
     physics.release()
     physics.advance(0.01)

@@ -29,7 +29,8 @@ def test_the_command_line_starts_from_the_gpu_recipe():
 
 def test_tiny_teacher_run_writes_a_bundle_that_evaluates(tmp_path, capsys):
     cfg = teacher.Config(backend="warp", device="cpu", num_envs=4, n_steps=4, batch_size=8, n_epochs=2,
-                         total_steps=32, checkpoint_every=16, out=tmp_path / "teacher", progress=False)
+                         total_steps=32, checkpoint_every=16, out=tmp_path / "teacher", progress=False,
+                         episode_steps=4)  # every env ends an episode each iteration: a curve row each time
     bundle = teacher.run(cfg)
     loaded = load_bundle(tmp_path / "teacher" / "bundle")
     assert loaded.config.latent_source == "privileged" and loaded.config.card["backend"] == "warp"
@@ -59,7 +60,8 @@ def test_tiny_teacher_run_writes_a_bundle_that_evaluates(tmp_path, capsys):
 
 def _warp_cfg(tmp_path, **kw) -> teacher.Config:
     base = dict(backend="warp", device="cpu", num_envs=4, n_steps=4, batch_size=8, n_epochs=2, total_steps=32,
-                checkpoint_every=16, out=tmp_path / "teacher", progress=False)
+                checkpoint_every=16, out=tmp_path / "teacher", progress=False,
+                episode_steps=4)  # every env ends an episode each iteration: a curve row each time
     return teacher.Config(**{**base, **kw})
 
 
