@@ -28,10 +28,7 @@ def test_the_command_line_starts_from_the_gpu_recipe():
 
 
 def test_tiny_teacher_run_writes_a_bundle_that_evaluates(tmp_path, capsys):
-    cfg = teacher.Config(backend="warp", device="cpu", num_envs=4, n_steps=4, batch_size=8, n_epochs=2,
-                         total_steps=32, checkpoint_every=16, out=tmp_path / "teacher", progress=False,
-                         episode_steps=4)  # every env ends an episode each iteration: a curve row each time
-    bundle = teacher.run(cfg)
+    bundle = teacher.run(_warp_cfg(tmp_path))
     loaded = load_bundle(tmp_path / "teacher" / "bundle")
     assert loaded.config.latent_source == "privileged" and loaded.config.card["backend"] == "warp"
     obs = {"proprio": np.zeros((3, 32), np.float32), "priv": np.zeros(9, np.float32)}
