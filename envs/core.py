@@ -52,6 +52,62 @@ def task_model(cfg: EnvConfig, edit=None) -> tuple[mujoco.MjModel, ObjectSpec, f
     return m, obj, max_scale
 
 
+class EpisodeStarts:
+    """Places simulations of a batch of the task model at an episode start: their physical parameters (object scale,
+    friction, mass, centre of mass, inertia, PD gains) and their start state (grasp joints, object pose, at rest).
+
+    The env's reset and the grasp hold check (envs.grasps.HoldTest) both start episodes through it, so a grasp
+    that passes the check starts the env's episodes the same way. It needs only the compiled model, not a grasp
+    cache, so the check can run while an object's first cache is being generated."""
+
+    def __init__(self, batch: mujoco.batch.Batch, model: mujoco.MjModel, obj: ObjectSpec, max_scale: float):
+        self.batch, self.obj = batch, obj
+        self.obj_body = model.body(OBJECT_BODY).id
+        self.obj_geoms = np.flatnonzero(model.geom_bodyid == self.obj_body)
+        self.obj_qpos = int(model.joint("object_free").qposadr[0])
+        # object geometry at scale 1 (the model was compiled at max_scale)
+        self.geom_size1 = model.geom_size[self.obj_geoms].copy() / max_scale
+        self.geom_pos1 = model.geom_pos[self.obj_geoms].copy() / max_scale
+        # per-simulation model fields written at each start
+        self.geom_size, self.geom_pos = batch.expand("geom_size"), batch.expand("geom_pos")
+        self.geom_friction = batch.expand("geom_friction")
+        self.body_mass, self.body_ipos = batch.expand("body_mass"), batch.expand("body_ipos")
+        self.body_inertia = batch.expand("body_inertia")
+        self.gainprm, self.biasprm = batch.expand("actuator_gainprm"), batch.expand("actuator_biasprm")
+        # live state views
+        self.qpos, self.qvel, self.ctrl = batch.bind("qpos"), batch.bind("qvel"), batch.bind("ctrl")
+        self.xfrc = batch.bind("xfrc_applied")
+
+    def start(self, ids: np.ndarray, p: dict[str, np.ndarray], q: np.ndarray, pose: np.ndarray) -> None:
+        """Reset simulations ``ids`` (k,) with parameters ``p`` (scale, friction, mass (k,); com (k, 3); kp, kd
+        (k, 16)), joints and joint targets ``q`` (k, 16) and object pose ``pose`` (k, 7), at rest with no push."""
+        self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
+        s = p["scale"][:, None, None]
+        self.geom_size[np.ix_(ids, self.obj_geoms)] = self.geom_size1[None] * s
+        self.geom_pos[np.ix_(ids, self.obj_geoms)] = self.geom_pos1[None] * s
+        fr = self.geom_friction[ids]
+        fr[:, :, 0] = p["friction"][:, None]  # one coefficient for hand and object (Hora); the floor never collides
+        self.geom_friction[ids] = fr
+        self.body_mass[ids, self.obj_body] = p["mass"]
+        self.body_ipos[ids, self.obj_body] = p["com"]
+        self.body_inertia[ids, self.obj_body] = task.object_inertia(np, self.obj.kind, self.obj.radius,
+                                                                    self.obj.length, p["scale"], p["mass"])
+        gain, bias = self.gainprm[ids], self.biasprm[ids]
+        task.set_gains(gain, bias, p["kp"], p["kd"])
+        self.gainprm[ids], self.biasprm[ids] = gain, bias
+        self.batch.set_const(ids)
+        qpos = self.qpos[ids]
+        qpos[:, : C.NUM_JOINTS] = q
+        qpos[:, self.obj_qpos : self.obj_qpos + 7] = pose
+        self.qpos[ids] = qpos
+        self.qvel[ids] = 0.0
+        self.ctrl[ids] = q
+        xfrc = self.xfrc[ids]
+        xfrc[:] = 0.0
+        self.xfrc[ids] = xfrc
+        self.batch.forward(ids)
+
+
 def observation_space(cfg: EnvConfig) -> gym.spaces.Dict:
     """One env's observation groups, the same on both physics backends (touch and skin only when on)."""
     return gym.spaces.Dict(
@@ -102,30 +158,15 @@ class RotateCupVec:
         # skin: per-env Xela readings feeding obs["skin"] and the pad force labels; None when off
         self.skin = SkinState(m, n, cfg.physics_dt, cfg.substeps) if cfg.skin else None
 
-        # model indices
-        self.obj_body = m.body(OBJECT_BODY).id
-        self.obj_geoms = np.flatnonzero(m.geom_bodyid == self.obj_body)
-        self.obj_qpos = int(m.joint("object_free").qposadr[0])
-        # object geometry at scale 1 (the model was compiled at max_scale)
-        self._geom_size1 = m.geom_size[self.obj_geoms].copy() / self.max_scale
-        self._geom_pos1 = m.geom_pos[self.obj_geoms].copy() / self.max_scale
-
-        # per-simulation model fields written at reset
-        b = self.batch
-        self._geom_size = b.expand("geom_size")
-        self._geom_pos = b.expand("geom_pos")
-        self._geom_friction = b.expand("geom_friction")
-        self._body_mass = b.expand("body_mass")
-        self._body_ipos = b.expand("body_ipos")
-        self._body_inertia = b.expand("body_inertia")
-        self._gainprm = b.expand("actuator_gainprm")
-        self._biasprm = b.expand("actuator_biasprm")
-        # live state views
-        self._qpos = b.bind("qpos")
-        self._qvel = b.bind("qvel")
-        self._ctrl = b.bind("ctrl")
-        self._xfrc = b.bind("xfrc_applied")
-        self._act_force = b.bind("actuator_force")
+        # episode starts (shared with the grasp hold check); the env keeps short names for its fields and views
+        self.starts = st = EpisodeStarts(self.batch, m, self.obj, self.max_scale)
+        self.obj_body, self.obj_geoms, self.obj_qpos = st.obj_body, st.obj_geoms, st.obj_qpos
+        self._geom_size1, self._geom_pos1 = st.geom_size1, st.geom_pos1
+        self._geom_size, self._geom_pos, self._geom_friction = st.geom_size, st.geom_pos, st.geom_friction
+        self._body_mass, self._body_ipos, self._body_inertia = st.body_mass, st.body_ipos, st.body_inertia
+        self._gainprm, self._biasprm = st.gainprm, st.biasprm
+        self._qpos, self._qvel, self._ctrl, self._xfrc = st.qpos, st.qvel, st.ctrl, st.xfrc
+        self._act_force = self.batch.bind("actuator_force")
 
         self.grasps = grasps if grasps is not None else load_default_cache(cfg.object, cfg.grasp_cache, cfg.hand)
         self.rng = CounterRNG(env_keys(seed, n))
@@ -149,30 +190,10 @@ class RotateCupVec:
         scales = self.cfg.randomization.scales
         return float(scales[len(scales) // 2])
 
-    _set_gains = staticmethod(task.set_gains)
-
     def _sample_params(self, ids: np.ndarray) -> dict[str, np.ndarray]:
         """Per-env physical parameters for envs ``ids`` (vectorized, keyed by env and episode; envs.task)."""
         u = self.rng.uniform(ids, self.episode[ids], np.zeros(len(ids), np.int64), _STREAM_RESET, task.PARAM_DRAWS)
         return task.sample_params(np, self.cfg, u)
-
-    def _write_params(self, ids: np.ndarray, p: dict[str, np.ndarray]) -> None:
-        s = p["scale"][:, None, None]
-        self._geom_size[np.ix_(ids, self.obj_geoms)] = self._geom_size1[None] * s
-        self._geom_pos[np.ix_(ids, self.obj_geoms)] = self._geom_pos1[None] * s
-        fr = self._geom_friction[ids]
-        fr[:, :, 0] = p["friction"][:, None]  # one coefficient for hand and object (Hora); the floor never collides
-        self._geom_friction[ids] = fr
-        self._body_mass[ids, self.obj_body] = p["mass"]
-        self._body_ipos[ids, self.obj_body] = p["com"]
-        self._body_inertia[ids, self.obj_body] = task.object_inertia(np, self.obj.kind, self.obj.radius,
-                                                                     self.obj.length, p["scale"], p["mass"])
-        gain, bias = self._gainprm[ids], self._biasprm[ids]
-        self._set_gains(gain, bias, p["kp"], p["kd"])
-        self._gainprm[ids], self._biasprm[ids] = gain, bias
-        self.batch.set_const(ids)
-        for key in ("scale", "mass", "friction", "com", "kp", "kd"):
-            self.params[key][ids] = p[key]
 
     # ------------------------------------------------------------------ API
     def reset(self, seed: int | None = None, ids: np.ndarray | None = None) -> dict[str, np.ndarray]:
@@ -191,19 +212,10 @@ class RotateCupVec:
             return
         self.episode[ids] += 1
         p = self._sample_params(ids)
-        self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
-        self._write_params(ids, p)
         q, pose = self.grasps.sample(p["bucket"], p["scale"], p["grasp_u"])  # (k, 16), (k, 7)
-        qpos = self._qpos[ids]
-        qpos[:, : C.NUM_JOINTS] = q
-        qpos[:, self.obj_qpos : self.obj_qpos + 7] = pose
-        self._qpos[ids] = qpos
-        self._qvel[ids] = 0.0
-        self._ctrl[ids] = q
-        xfrc = self._xfrc[ids]
-        xfrc[:] = 0.0
-        self._xfrc[ids] = xfrc
-        self.batch.forward(ids)
+        self.starts.start(ids, p, q, pose)
+        for key in ("scale", "mass", "friction", "com", "kp", "kd"):
+            self.params[key][ids] = p[key]
         self.targets[ids] = q
         self.grasp_q[ids] = q
         self.start_pos[ids] = pose[:, :3]

@@ -28,7 +28,7 @@ from envs.config import EnvConfig, RandomizationConfig
 from envs.geometry import tilt_angle
 from envs.objects import OBJECTS, ObjectSpec, get_object
 from envs.scene import HANDS, OBJECT_BODY, OBJECT_START, build_model
-from envs.task import object_inertia, pick_grasps, set_gains
+from envs.task import pick_grasps
 
 GRASP_DIM = C.NUM_JOINTS + 7
 CANONICAL_POSE = np.array(
@@ -267,60 +267,34 @@ class HoldTest:
     """Runs HoldRule checks on batches of grasp rows of one object (the env's model, built once)."""
 
     def __init__(self, object_name: str, hand: str = "digit360", batch_size: int = 128, nthread: int | None = None):
-        from envs.core import task_model  # envs.core imports this module
+        from envs.core import EpisodeStarts, task_model  # envs.core imports this module
 
         self.cfg = EnvConfig(object=object_name, hand=hand)
-        model, self.obj, self.max_scale = task_model(self.cfg)
+        model, obj, max_scale = task_model(self.cfg)
         self.batch_size = batch_size
-        b = self.batch = mujoco.batch.Batch(model, batch_size, nthread or 0, persistent=True)
-        self.obj_body = model.body(OBJECT_BODY).id
-        self.obj_geoms = np.flatnonzero(model.geom_bodyid == self.obj_body)
-        self.size1 = model.geom_size[self.obj_geoms] / self.max_scale
-        self.pos1 = model.geom_pos[self.obj_geoms] / self.max_scale
-        self.o = int(model.joint("object_free").qposadr[0])
-        self.fields = {k: b.expand(k) for k in ("geom_size", "geom_pos", "geom_friction", "body_mass", "body_ipos",
-                                                "body_inertia", "actuator_gainprm", "actuator_biasprm")}
-        self.qpos, self.qvel, self.ctrl = b.bind("qpos"), b.bind("qvel"), b.bind("ctrl")
-        self.xfrc = b.bind("xfrc_applied")
+        self.batch = mujoco.batch.Batch(model, batch_size, nthread or 0, persistent=True)
+        self.starts = EpisodeStarts(self.batch, model, obj, max_scale)  # the env's own episode start
 
     def worst_tilt(self, rows: np.ndarray, scales: np.ndarray, rule: HoldRule) -> np.ndarray:
         """(k,) worst tilt (rad) of each row (k, 23) at its object scale (k,) under ``rule``; inf where the object
         sank more than HOLD_DROP or the state went non-finite."""
         rows, scales = np.asarray(rows, dtype=np.float64), np.asarray(scales, dtype=np.float64)
-        n, f, o, cfg = self.batch_size, self.fields, self.o, self.cfg
+        n, cfg, st = self.batch_size, self.cfg, self.starts
+        o, ids = st.obj_qpos, np.arange(n)
         steps = max(1, round(rule.seconds * cfg.control_hz))
+        params = {"friction": np.full(n, rule.friction), "mass": np.full(n, rule.mass), "com": np.zeros((n, 3)),
+                  "kp": np.full((n, C.NUM_JOINTS), cfg.kp), "kd": np.full((n, C.NUM_JOINTS), cfg.kd)}
         worst = np.zeros(len(rows))
         for first in range(0, len(rows), n):
             k = min(n, len(rows) - first)
             pad = np.r_[np.arange(first, first + k), np.full(n - k, first + k - 1)]  # repeat the last row
-            chunk, scale = rows[pad], scales[pad]
-            f["geom_size"][:, self.obj_geoms] = self.size1[None] * scale[:, None, None]
-            f["geom_pos"][:, self.obj_geoms] = self.pos1[None] * scale[:, None, None]
-            fr = f["geom_friction"][:]
-            fr[:, :, 0] = rule.friction
-            f["geom_friction"][:] = fr
-            f["body_mass"][:, self.obj_body] = rule.mass
-            f["body_ipos"][:, self.obj_body] = 0.0
-            f["body_inertia"][:, self.obj_body] = object_inertia(np, self.obj.kind, self.obj.radius,
-                                                                 self.obj.length, scale, np.full(n, rule.mass))
-            gain, bias = f["actuator_gainprm"][:], f["actuator_biasprm"][:]
-            set_gains(gain, bias, np.full((n, C.NUM_JOINTS), cfg.kp), np.full((n, C.NUM_JOINTS), cfg.kd))
-            f["actuator_gainprm"][:], f["actuator_biasprm"][:] = gain, bias
-            self.batch.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
-            self.batch.set_const()
-            qp = self.qpos.copy()
-            qp[:, : C.NUM_JOINTS] = chunk[:, : C.NUM_JOINTS]
-            qp[:, o : o + 7] = chunk[:, C.NUM_JOINTS :]
-            self.qpos[:] = qp
-            self.qvel[:] = 0.0
-            self.ctrl[:] = chunk[:, : C.NUM_JOINTS]
-            self.xfrc[:] = 0.0
-            self.batch.forward()
+            chunk = rows[pad]
+            st.start(ids, {**params, "scale": scales[pad]}, chunk[:, : C.NUM_JOINTS], chunk[:, C.NUM_JOINTS :])
             z0 = chunk[:, C.NUM_JOINTS + 2]
             tilt = np.zeros(n)
             for _ in range(steps):
                 self.batch.step(nstep=cfg.substeps)
-                pose = self.qpos[:, o : o + 7]
+                pose = st.qpos[:, o : o + 7]
                 t = tilt_angle(pose[:, 3:])
                 t[(pose[:, 2] < z0 - HOLD_DROP) | ~np.all(np.isfinite(pose), axis=1)] = np.inf
                 tilt = np.maximum(tilt, t)

@@ -217,7 +217,7 @@ class RotateCupWarp:
         with self._wp.ScopedDevice(self.device):
             self._mjw.reset_data(self.wm, self.wd, reset=self._reset_flags)
 
-        # per-world model fields (envs.core.RotateCupVec._write_params)
+        # per-world model fields (envs.core.EpisodeStarts.start)
         s = f["scale"][:, None, None]
         g = self._obj_geoms
         self._geom_size[:, g] = torch.where(m2, self._geom_size1[None] * s, self._geom_size[:, g])
