@@ -66,8 +66,7 @@ def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, prefix: 
         tp, optional = _unwrap_optional(hints[f.name])
         dest = prefix + f.name
         flag = "--" + dest.replace("_", "-")
-        default = f.default if f.default is not dataclasses.MISSING else (
-            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)  # type: ignore[misc]
+        default = _field_default(f)
         if dataclasses.is_dataclass(tp):
             add_dataclass_arguments(parser, tp, prefix=dest + ".")
             continue
@@ -149,8 +148,11 @@ def check_device(name: str, device: str) -> None:
     raise ValueError(f"{name} {device!r}: only 'cpu' and 'cuda' (or 'cuda:N') are supported")
 
 
-def dataclass_from_args(cls: type, args: argparse.Namespace, prefix: str = "", **overrides: Any) -> Any:
-    """Build ``cls`` from parsed options (fields not given on the command line keep their defaults)."""
+def dataclass_from_args(cls: type, args: argparse.Namespace, prefix: str = "", base: Any = None,
+                        **overrides: Any) -> Any:
+    """Build ``cls`` from parsed options: fields not given on the command line keep their defaults, those of
+    ``base`` when given. A nested config keeps its field's default too (e.g. finetune-adapter's training env), so
+    ``--env.randomization.mass 0.1 0.5`` changes the mass range and nothing else of it."""
     hints = typing.get_type_hints(cls)
     values: dict[str, Any] = {}
     ns = vars(args)
@@ -161,9 +163,8 @@ def dataclass_from_args(cls: type, args: argparse.Namespace, prefix: str = "", *
         dest = prefix + f.name
         if dataclasses.is_dataclass(tp):
             if any(k.startswith(dest + ".") for k in ns):
-                base = getattr(cls, f.name, None) if f.default is dataclasses.MISSING else f.default
-                nested = dataclass_from_args(tp, args, prefix=dest + ".")
-                values[f.name] = nested if base is None else nested
+                default = getattr(base, f.name) if base is not None else _field_default(f)
+                values[f.name] = dataclass_from_args(tp, args, prefix=dest + ".", base=default)
             continue
         if dest in ns:
             value = ns[dest]
@@ -171,7 +172,16 @@ def dataclass_from_args(cls: type, args: argparse.Namespace, prefix: str = "", *
                 value = tuple(value)
             values[f.name] = value
     values.update(overrides)
-    return cls(**values)
+    return cls(**values) if base is None else dataclasses.replace(base, **values)
+
+
+def _field_default(f: dataclasses.Field) -> Any:
+    """A field's default value (a fresh one from its factory), or None without one."""
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        return f.default_factory()  # type: ignore[misc]
+    return None
 
 
 def _leaf_fields(cls: type, prefix: str = "") -> dict[str, Any]:

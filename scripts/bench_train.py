@@ -2,7 +2,17 @@
 
 Both measurements use the same env config, number of envs and MuJoCo threads, so ``train_over_env`` is the share of
 the raw simulation speed that training keeps (policy inference during rollouts and the PPO updates take the rest).
-The last line printed is a JSON object.
+It also measures what a rollout costs in CPU time, each part alone: the physics on one MuJoCo thread
+(``physics_core_s``), one PPO update (``update_s``) and the policy's inference over the rollout (``inference_s``).
+Training has to do all three for every rollout on ``cores`` cores, and cannot step faster than the env alone, so
+no scheduling (overlap, threads) of this recipe can pass, on this machine::
+
+    train_over_env_ceiling = min(1, cores x rollout_physics_s / (physics_core_s + update_s + inference_s))
+
+where ``rollout_physics_s`` = rollout / ``env_steps_per_s`` is the wall time of the env alone. The update and the
+inference are timed as wall time, a lower bound on their CPU time with any thread count, so the ceiling is an upper
+bound. A recipe whose ceiling is under a target needs cheaper updates (smaller networks, fewer epochs), not better
+overlap. The last line printed is a JSON object.
 
     python scripts/bench_train.py --train-steps 65536
     python scripts/bench_train.py --num-envs 128 --n-steps 32 --train-steps 16384
@@ -11,6 +21,8 @@ The last line printed is a JSON object.
 from __future__ import annotations
 
 import json
+import os
+import statistics
 import tempfile
 import time
 from dataclasses import dataclass
@@ -66,17 +78,20 @@ def teacher_config(cfg: Config, out: Path) -> teacher.Config:
                           overlap=cfg.overlap, **threads)
 
 
-def bench_env(cfg: Config, tcfg: teacher.Config) -> float:
-    """Env transitions per second of the batched core alone (uniform random actions, done envs reset)."""
-    env = RotateCupVec(tcfg.env_config(), num_envs=cfg.num_envs, seed=cfg.seed, nthread=cfg.nthread or None)
+def bench_env(cfg: Config, tcfg: teacher.Config, nthread: int | None = None) -> float:
+    """Env transitions per second of the batched core alone (uniform random actions, done envs reset), on
+    ``nthread`` MuJoCo threads (default: the config's)."""
+    nthread = nthread or cfg.nthread or None
+    env = RotateCupVec(tcfg.env_config(), num_envs=cfg.num_envs, seed=cfg.seed, nthread=nthread)
     try:
         return random_steps_per_s(env, cfg.env_steps, cfg.seed)
     finally:
         env.close()
 
 
-def bench_train(cfg: Config, tcfg: teacher.Config) -> tuple[float, int]:
-    """Env transitions per second during PPO training (rollouts + updates), and the number timed."""
+def bench_train(cfg: Config, tcfg: teacher.Config) -> tuple[float, int, dict[str, float]]:
+    """Env transitions per second during PPO training (rollouts + updates), the number timed, and the update's
+    and the rollout inference's own costs (:func:`time_costs`)."""
     torch.set_num_threads(tcfg.torch_threads)
     torch.manual_seed(cfg.seed)
     env = RotateCupSB3VecEnv(tcfg.env_config(), cfg.num_envs, seed=cfg.seed, nthread=cfg.nthread or None,
@@ -87,8 +102,44 @@ def bench_train(cfg: Config, tcfg: teacher.Config) -> tuple[float, int]:
     start = time.perf_counter()
     model.learn(total, progress_bar=False)
     wall = time.perf_counter() - start
+    costs = time_costs(model)
     env.close()
-    return model.num_timesteps / wall, int(model.num_timesteps)
+    return model.num_timesteps / wall, int(model.num_timesteps), costs
+
+
+def time_costs(model, repeats: int = 2) -> dict[str, float]:
+    """Seconds of one PPO update on the last rollout, and of the policy's inference over one rollout, each alone
+    (median of ``repeats``; the model's weights change, so call it once training is timed)."""
+    from stable_baselines3.common.utils import obs_as_tensor
+
+    model.overlap = False  # the update alone, with no rollout started beside it
+    updates, inferences = [], []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        model.train()
+        updates.append(time.perf_counter() - start)
+        obs = obs_as_tensor(model._last_obs, model.device)
+        start = time.perf_counter()
+        with torch.no_grad():
+            for _ in range(model.n_steps):
+                model.policy(obs)
+        inferences.append(time.perf_counter() - start)
+    return {"update_s": statistics.median(updates), "inference_s": statistics.median(inferences)}
+
+
+def ceiling(rollout: int, env_sps: float, env_sps_1thread: float, cores: int, update_s: float,
+            inference_s: float) -> float:
+    """The highest train_over_env a recipe can reach on ``cores`` cores (module docstring)."""
+    physics_core_s = rollout / env_sps_1thread
+    return min(1.0, cores * (rollout / env_sps) / (physics_core_s + update_s + inference_s))
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
 
 
 def run(cfg: Config) -> dict:
@@ -98,7 +149,10 @@ def run(cfg: Config) -> dict:
     with tempfile.TemporaryDirectory() as tmp:  # PPO's TensorBoard files are not part of the result
         tcfg = teacher_config(cfg, Path(tmp))
         env_sps = bench_env(cfg, tcfg)
-        train_sps, timed = bench_train(cfg, tcfg)
+        env_sps_1 = bench_env(cfg, tcfg, nthread=1)
+        train_sps, timed, costs = bench_train(cfg, tcfg)
+    rollout = cfg.num_envs * cfg.n_steps
+    cores = usable_cores()
     result = {
         "num_envs": cfg.num_envs,
         "overlap": cfg.overlap,
@@ -106,10 +160,20 @@ def run(cfg: Config) -> dict:
         "env_steps_per_s": round(env_sps, 1),
         "train_steps_per_s": round(train_sps, 1),
         "train_steps_timed": timed,
+        "env_steps_per_s_1thread": round(env_sps_1, 1),
+        "rollout_physics_s": round(rollout / env_sps, 3),
+        "physics_core_s": round(rollout / env_sps_1, 3),
+        "update_s": round(costs["update_s"], 3),
+        "inference_s": round(costs["inference_s"], 3),
+        "cores": cores,
+        "train_over_env_ceiling": round(ceiling(rollout, env_sps, env_sps_1, cores, **costs), 4),
         "train_over_env": round(train_sps / env_sps, 4),
     }
     print(f"batched env alone: {env_sps:,.0f} steps/s; PPO training: {train_sps:,.0f} steps/s "
           f"({100 * train_sps / env_sps:.0f}% of the env alone)")
+    print(f"per rollout of {rollout} steps: physics {result['physics_core_s']:.2f} core-s, one update "
+          f"{result['update_s']:.2f} s, inference {result['inference_s']:.2f} s on {cores} cores -> no scheduling "
+          f"of this recipe passes train_over_env {result['train_over_env_ceiling']:.2f} on this machine")
     print(json.dumps(result))
     return result
 

@@ -330,3 +330,21 @@ def test_every_help_prints(command, capsys):
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert out.startswith("usage: rotate") and "--help" in out
+
+
+def test_a_nested_option_keeps_the_rest_of_its_config():
+    """Giving one field of a nested config changes that field only: the others keep the field's default, here
+    finetune-adapter's training env (touch on, slippery and heavy cups), not the nested class's own defaults."""
+    from adapters import finetune
+    from rotation.configs import add_dataclass_arguments, dataclass_from_args
+
+    parser = argparse.ArgumentParser()
+    add_dataclass_arguments(parser, finetune.Config)
+    default = finetune.Config().env
+    cfg = dataclass_from_args(finetune.Config, parser.parse_args(["--env.randomization.mass", "0.1", "0.5"]))
+    assert cfg.env.randomization.mass == (0.1, 0.5)
+    assert cfg.env.randomization.friction == default.randomization.friction == (0.075, 1.5)
+    assert cfg.env.tactile and cfg.env == dataclasses.replace(
+        default, randomization=dataclasses.replace(default.randomization, mass=(0.1, 0.5)))
+    cfg = dataclass_from_args(finetune.Config, parser.parse_args(["--env.episode-steps", "200"]))
+    assert cfg.env.episode_steps == 200 and cfg.env.randomization == default.randomization
