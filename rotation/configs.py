@@ -14,6 +14,7 @@ import dataclasses
 import inspect
 import json
 import math
+import os
 import sys
 import textwrap
 import types
@@ -282,6 +283,14 @@ def from_jsonable(cls: type, data: dict[str, Any]) -> Any:
             value = Path(value)
         values[key] = value
     return cls(**values)
+
+
+def num_cores() -> int:
+    """CPU cores this process may run on (its affinity on Linux): the benchmarks' default thread counts."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 def script_main(config_cls: type, run: Any, description: str | None, argv: list[str] | None = None) -> int:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
-from rotation.configs import script_main
+from rotation.configs import num_cores, script_main
 from rotation.tactile.sparshx import SIZES, SparshX, SparshXConfig
 from rotation.tactile.sparshx_inputs import INPUT_SHAPES, MODALITIES
 
@@ -58,13 +58,6 @@ class Config:
     pretrain: bool = False
     """Also measure the pretraining data path and step rate (scripts/bench_pretrain.py with its defaults on this
     device): adds loader_windows_per_s (from the cache), loader_windows_per_s_live and pretrain_samples_per_s."""
-
-
-def num_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def median_ms(fn: Callable[[], object], iters: int, warmup: int, device: torch.device) -> float:

@@ -35,7 +35,7 @@ from envs.config import EnvConfig
 from envs.core import RotateCupVec
 from envs.rotate_cup import RotateCupEnv
 from envs.vector import RotateCupVectorEnv
-from rotation.configs import script_main
+from rotation.configs import num_cores, script_main
 from rotation.train.vec_env import RotateCupSB3VecEnv
 
 
@@ -64,14 +64,6 @@ class Config:
     """Grasp cache file; empty = the one shipped for the object."""
     seed: int = 0
     """Seed of the envs and of the actions."""
-
-
-def num_cores() -> int:
-    """CPU cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def _timed(step, seconds: float) -> tuple[int, float]:

@@ -21,7 +21,6 @@ overlap. The last line printed is a JSON object.
 from __future__ import annotations
 
 import json
-import os
 import statistics
 import tempfile
 import time
@@ -31,7 +30,7 @@ from pathlib import Path
 import torch
 
 from envs.core import RotateCupVec, random_steps_per_s
-from rotation.configs import script_main
+from rotation.configs import num_cores, script_main
 from rotation.train import teacher
 from rotation.train.vec_env import RotateCupSB3VecEnv
 
@@ -134,14 +133,6 @@ def ceiling(rollout: int, env_sps: float, env_sps_1thread: float, cores: int, up
     return min(1.0, cores * (rollout / env_sps) / (physics_core_s + update_s + inference_s))
 
 
-def usable_cores() -> int:
-    """CPU cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
 def run(cfg: Config) -> dict:
     """Both measurements; prints a short summary and, last, the JSON result (also returned)."""
     if min(cfg.num_envs, cfg.env_steps, cfg.train_steps, cfg.n_steps, cfg.batch_size, cfg.n_epochs) < 1:
@@ -152,7 +143,7 @@ def run(cfg: Config) -> dict:
         env_sps_1 = bench_env(cfg, tcfg, nthread=1)
         train_sps, timed, costs = bench_train(cfg, tcfg)
     rollout = cfg.num_envs * cfg.n_steps
-    cores = usable_cores()
+    cores = num_cores()
     result = {
         "num_envs": cfg.num_envs,
         "overlap": cfg.overlap,

@@ -20,7 +20,6 @@ The last line printed is a JSON object with `warp_env_steps_per_s` (the best ove
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass
 
@@ -29,7 +28,7 @@ import torch
 from envs.config import EnvConfig
 from envs.core import RotateCupVec, random_steps_per_s
 from envs.validation import check_int, check_seed, check_types
-from rotation.configs import script_main
+from rotation.configs import num_cores, script_main
 
 
 @dataclass
@@ -127,11 +126,7 @@ def warp_train_rate(cfg: Config) -> float:
 
 def cpu_env_rate(cfg: Config) -> tuple[float, int]:
     """Control steps/s (x envs) of the CPU core under uniform random actions; returns (rate, threads)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    nthread = cfg.nthread or cores
+    nthread = cfg.nthread or num_cores()
     env = RotateCupVec(EnvConfig(), num_envs=cfg.cpu_envs, seed=cfg.seed, nthread=nthread)
     random_steps_per_s(env, cfg.cpu_envs * max(1, cfg.warmup), seed=cfg.seed)  # warm-up
     rate = random_steps_per_s(env, cfg.cpu_envs * cfg.cpu_steps, seed=cfg.seed)
