@@ -57,7 +57,7 @@ class Config:
 
 
 TITLES = {"l": "episode length (steps)", "ep_length": "episode length (steps)", "latent_mse": "latent MSE",
-          "r": "episode return", "ttf": "ttf", "upright": "upright (fraction)",
+          "student_mse": "student's latent MSE", "r": "episode return", "ttf": "ttf", "upright": "upright (fraction)",
           "rotation_rate": "rotation rate (rad/s)"}
 """Panel titles of curves.jsonl keys (training episodes, stochastic actions)."""
 
@@ -133,12 +133,14 @@ def _write(cfg: Config, runs: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]
         for i, (name, series) in enumerate(runs.items()):
             steps, values = series[tag]
             color = f"C{i}"
+            if not len(values) >= cfg.smooth > 1:  # nothing to smooth (few points): the raw line is the curve
+                ax.plot(steps / cfg.x_scale, values, color=color, lw=1.6, marker="o", ms=3, label=name or None)
+                continue
             ax.plot(steps / cfg.x_scale, values, color=color if named else "0.75", alpha=0.25 if named else 1.0,
                     lw=0.8)
-            if len(values) >= cfg.smooth > 1:
-                kernel = np.ones(cfg.smooth) / cfg.smooth
-                ax.plot(steps[cfg.smooth - 1 :] / cfg.x_scale, np.convolve(values, kernel, mode="valid"),
-                        color=color, lw=1.6, label=name or None)
+            kernel = np.ones(cfg.smooth) / cfg.smooth
+            ax.plot(steps[cfg.smooth - 1 :] / cfg.x_scale, np.convolve(values, kernel, mode="valid"),
+                    color=color, lw=1.6, label=name or None)
         ax.set_title(TITLES.get(tag, tag))
         ax.set_xlabel(cfg.x_label)
         ax.grid(alpha=0.3)

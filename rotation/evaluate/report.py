@@ -112,7 +112,8 @@ BAR_METRICS = ("ttf", "vertical_drift", "upright")
 
 def plot_bars(path: Path, rows: list[dict[str, Any]], conditions: list[Condition]) -> Path:
     """plots/bars.png: one panel per metric of BAR_METRICS, a group of bars per condition, one bar per policy
-    (mean; the error bar is the standard error over episodes, std / sqrt(episodes))."""
+    (mean; the error bar is the standard error over episodes, std / sqrt(episodes)); a policy without a row for
+    a condition has no bar there."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -127,9 +128,10 @@ def plot_bars(path: Path, rows: list[dict[str, Any]], conditions: list[Condition
     fig, axes = plt.subplots(len(BAR_METRICS), 1, figsize=size, squeeze=False)
     for ax, metric in zip(axes[:, 0], BAR_METRICS, strict=True):
         for j, policy in enumerate(policies):
-            cells = [by_key[(policy, c.name)] for c in conditions]
-            ys = np.array([r[metric] for r in cells])
-            se = np.array([r[metric + "_std"] / np.sqrt(max(r["episodes"], 1)) for r in cells])
+            cells = [by_key.get((policy, c.name)) for c in conditions]  # no bar where a policy was not run
+            ys = np.array([np.nan if r is None else r[metric] for r in cells])
+            se = np.array([np.nan if r is None else r[metric + "_std"] / np.sqrt(max(r["episodes"], 1))
+                           for r in cells])
             ax.bar(x + (j - (len(policies) - 1) / 2) * width, ys, width, yerr=se, capsize=2, label=policy)
         ax.set_xticks(x, [c.name for c in conditions], rotation=20, ha="right", fontsize=8)
         ax.set_ylabel(f"{metric} ({METRICS[metric]})")

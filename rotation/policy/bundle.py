@@ -333,6 +333,31 @@ class PolicyBundle:
         net.action_mean.load_state_dict(self.net.action_mean.state_dict())
         return PolicyBundle(config, net)
 
+    def with_teacher_latent(self, teacher: PolicyBundle, card: dict[str, Any] | None = None) -> PolicyBundle:
+        """This student's actor acting on ``teacher``'s privileged latent z (its env-factor encoder over ``priv``).
+
+        The oracle-latent student: a latent correction such as the tactile adapter can at best make the student
+        act like this, so its evaluation bounds what any correction of this student's latent can gain.
+        """
+        if self.config.latent_source != "adaptation":
+            raise BundleError(f"with_teacher_latent needs a student bundle (latent_source 'adaptation'), got "
+                              f"{self.config.latent_source!r}")
+        if teacher.config.latent_source != "privileged":
+            raise BundleError(f"with_teacher_latent needs a teacher bundle (latent_source 'privileged'), got "
+                              f"{teacher.config.latent_source!r}")
+        for name in ("proprio_shape", "latent_dim", "action_dim", "control_hz", "action_scale"):
+            mine, theirs = getattr(self.config, name), getattr(teacher.config, name)
+            if to_jsonable(mine) != to_jsonable(theirs):
+                raise BundleError(f"the student and the teacher disagree on {name}: {mine} vs {theirs}")
+        config = replace(teacher.config, actor_hidden=self.config.actor_hidden, norm_clip=self.config.norm_clip,
+                         card=dict(card or {}))
+        net = ActorNet(config)
+        net.extractor.load_state_dict(teacher.net.extractor.state_dict())
+        net.extractor.proprio_norm.load_state_dict(self.net.extractor.proprio_norm.state_dict())
+        net.actor.load_state_dict(self.net.actor.state_dict())
+        net.action_mean.load_state_dict(self.net.action_mean.state_dict())
+        return PolicyBundle(config, net)
+
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path) -> Path:
         """Write ``path/config.json`` and ``path/model.safetensors``; returns the directory."""

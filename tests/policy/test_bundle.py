@@ -94,6 +94,22 @@ def test_to_student_shares_actor(teacher):
         student.to_student()
 
 
+def test_with_teacher_latent_is_the_students_actor_on_the_teachers_z(tmp_path, teacher):
+    student = randomized(teacher.to_student(), seed=1)  # its own actor and normalization, as after fine-tuning
+    oracle = student.with_teacher_latent(teacher, card={"role": "oracle-latent student"})
+    assert oracle.config.latent_source == "privileged" and oracle.config.obs_groups == teacher.config.obs_groups
+    obs = {k: torch.as_tensor(v) for k, v in random_obs(5, seed=3).items()}
+    z = teacher.net.extractor.z(obs)
+    torch.testing.assert_close(oracle.net.mean(obs), student.net.mean(obs, z))
+    assert not torch.allclose(oracle.net.mean(obs), teacher.net.mean(obs))
+    loaded = load_bundle(oracle.save(tmp_path / "oracle"))  # an ordinary teacher-kind bundle for evaluate
+    np.testing.assert_array_equal(loaded.act_batch(random_obs(5, seed=3)), oracle.act_batch(random_obs(5, seed=3)))
+    with pytest.raises(BundleError, match="student bundle"):
+        teacher.with_teacher_latent(teacher)
+    with pytest.raises(BundleError, match="teacher bundle"):
+        student.with_teacher_latent(student)
+
+
 @pytest.mark.parametrize("kind", ["teacher", "student"])
 def test_onnx_matches_torch(tmp_path, teacher, kind):
     import onnxruntime as ort

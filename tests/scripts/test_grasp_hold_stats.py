@@ -2,25 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
 from envs.grasps import HoldRule, generate_grasps, hold_check
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "grasp_hold_stats.py"
-
 
 @pytest.fixture(scope="module")
-def stats():
-    spec = importlib.util.spec_from_file_location("grasp_hold_stats", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
+def stats(load_script):
+    return load_script("grasp_hold_stats")
 
 
 def test_pass_rate_of_a_cache_generated_without_the_rule(stats, tmp_path):

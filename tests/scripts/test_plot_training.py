@@ -3,23 +3,15 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "plot_training.py"
-
 
 @pytest.fixture(scope="module")
-def plot():
-    spec = importlib.util.spec_from_file_location("plot_training", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
+def plot(load_script):
+    return load_script("plot_training")
 
 
 def _curves(path: Path, steps: list[int], ttf: float) -> Path:
@@ -49,6 +41,16 @@ def test_compare_writes_one_line_per_run_and_a_run_column(plot, tmp_path):
     b_ttf = [float(r["value"]) for r in rows if r["run"] == "no-overlap" and r["tag"] == "ttf"]
     assert len(b_ttf) == 20 and b_ttf[0] == pytest.approx(0.8)
     assert not (out / "curves.png").exists()  # --name chose the stem
+
+
+def test_a_curve_too_short_to_smooth_is_drawn_as_the_curve(plot, tmp_path, monkeypatch):
+    figures = []
+    monkeypatch.setattr(plot.plt, "close", figures.append)  # keep the figure to look at it
+    a = _curves(tmp_path / "a.jsonl", [10, 20, 30], 0.5)
+    assert plot.main(["--curves", str(a), "--tags", "ttf", "--out", str(tmp_path / "out"), "--smooth", "25"]) == 0
+    (line,) = figures[0].axes[0].get_lines()  # one solid line, not a faint raw line without its smoothed one
+    assert line.get_ydata().tolist() == pytest.approx([0.5, 0.51, 0.52])
+    assert line.get_color() == "C0" and line.get_alpha() is None
 
 
 @pytest.mark.parametrize("entries, message", [

@@ -2,24 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "spin_stats.py"
-
 
 @pytest.fixture(scope="module")
-def spin():
-    spec = importlib.util.spec_from_file_location("spin_stats", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
+def spin(load_script):
+    return load_script("spin_stats")
 
 
 def test_summary_of_a_ratchet(spin):

@@ -1,0 +1,172 @@
+"""Pool several `rotate evaluate` reports over disjoint seed sets into one table, with the gap each policy closes.
+
+Evaluations made on different seed sets (say 128 episodes on seeds 800000+ and 128 on 1300000+) measure the same
+thing on more episodes. This pools them per (policy, condition): episode-weighted means, standard deviations over
+all episodes, and the net rotation rate as total rotation over total time in hand. With --reference and --baseline
+it adds, for every other policy, the share of the baseline's gap to the reference that it closes,
+(policy - baseline) / (reference - baseline), for ttf and vertical drift: how the tactile adapter's targets are
+stated.
+
+    python scripts/pool_evaluations.py --results docs/results/adapter/student_rl2/seeds_800000 \\
+        docs/results/adapter/student_rl2/seeds_1300000 --reference teacher --baseline student --out runs/pooled
+
+Writes results.json (pooled rows, as evaluate's), results.md (table, shares, the seed sets) and plots/bars.png. A
+policy evaluated twice on overlapping seeds is refused: the episodes would count twice.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from envs.config import Perturbation
+from rotation.configs import script_main
+from rotation.evaluate.metrics import METRICS
+from rotation.evaluate.report import markdown_table, plot_bars
+from rotation.evaluate.suites import make_condition
+
+SHARE_METRICS = {"ttf": "higher", "vertical_drift": "lower"}
+"""Metrics whose gap shares are reported, and which direction is better."""
+
+
+@dataclass
+class Config:
+    results: tuple[Path, ...] = ()
+    """Evaluation report directories (each with results.json), on disjoint seed sets."""
+    out: Path = Path("runs/pooled")
+    """Output directory (refused if it already holds a pooled report)."""
+    reference: str = ""
+    """Policy whose level is the goal (e.g. teacher); with --baseline, adds the gap-share table."""
+    baseline: str = ""
+    """Policy whose gap to the reference is measured (e.g. student)."""
+    policies: tuple[str, ...] = ()
+    """Pool only these policies (default: every policy in the reports)."""
+
+
+def _read(path: Path) -> tuple[list[dict[str, Any]], range]:
+    file = path / "results.json"
+    if not file.is_file():
+        raise ValueError(f"{path} has no results.json (give directories written by `rotate evaluate`)")
+    try:
+        report = json.loads(file.read_text())
+        rows, config = report["rows"], report["config"]
+        return rows, range(int(config["seed"]), int(config["seed"]) + int(config["episodes"]))
+    except (json.JSONDecodeError, KeyError, TypeError) as err:
+        raise ValueError(f"{file} is not an evaluation report: {err}") from err
+
+
+def pool_rows(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """One row from rows of the same (policy, condition) on disjoint episodes."""
+    n = np.array([r["episodes"] for r in rows], dtype=np.float64)
+    pooled = {k: rows[0][k] for k in ("policy", "condition", "friction_scale", "added_mass", "com_shift")}
+    pooled["episodes"] = int(n.sum())
+    for key in [*METRICS, "reward"]:
+        means = np.array([r[key] for r in rows])
+        stds = np.array([r[key + "_std"] for r in rows])
+        mean = float((n * means).sum() / n.sum())
+        pooled[key] = mean
+        pooled[key + "_std"] = float(np.sqrt((n * (stds**2 + (means - mean) ** 2)).sum() / n.sum()))
+    # net rate = total rotation / total time in hand, and a set's time in hand is proportional to its ttf * episodes
+    time = np.array([r["ttf"] for r in rows]) * n
+    rate = np.array([r["net_rotation_rate"] for r in rows])
+    pooled["net_rotation_rate"] = float((rate * time).sum() / time.sum()) if time.sum() > 0 else 0.0
+    return pooled
+
+
+def gap_shares(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any]]]], reference: str,
+               baseline: str) -> list[dict[str, Any]]:
+    """Per condition and other policy: the share of the baseline's gap to the reference it closes, on the policy's
+    own episodes (the reference and baseline pooled over the same seed sets; a policy whose seed sets they do not
+    both cover is left out). None where the baseline is already as good as the reference: there is no gap."""
+    shares = []
+    for (policy, cond), runs in groups.items():
+        if policy in (reference, baseline):
+            continue
+        spans = sorted((s.start, s.stop) for s, _ in runs)
+        same: list[dict[str, Any]] = []
+        for name in (reference, baseline):
+            theirs = {(s.start, s.stop): r for s, r in groups.get((name, cond), [])}
+            if not all(span in theirs for span in spans):
+                break
+            same.append(pool_rows([theirs[span] for span in spans]))
+        else:
+            mine, (ref, base) = pool_rows([r for _, r in runs]), same
+            entry: dict[str, Any] = {"policy": policy, "condition": cond, "episodes": mine["episodes"]}
+            for metric, better in SHARE_METRICS.items():
+                gap = ref[metric] - base[metric]
+                has_gap = gap > 0 if better == "higher" else gap < 0
+                entry[metric] = float((mine[metric] - base[metric]) / gap) if has_gap else None
+                entry[metric + "_reference_baseline"] = [ref[metric], base[metric]]
+            shares.append(entry)
+    return shares
+
+
+def run(cfg: Config) -> Path:
+    if not cfg.results:
+        raise ValueError("give the evaluation directories to pool with --results")
+    if bool(cfg.reference) != bool(cfg.baseline):
+        raise ValueError("give --reference and --baseline together")
+    if (cfg.out / "results.json").exists():
+        raise ValueError(f"{cfg.out} already holds a pooled report; give another --out or remove it")
+    groups: dict[tuple[str, str], list[tuple[range, dict[str, Any]]]] = defaultdict(list)
+    seeds: dict[tuple[str, str], list[tuple[range, Path]]] = defaultdict(list)
+    sets = []
+    for path in cfg.results:
+        rows, span = _read(path)
+        rows = [r for r in rows if not cfg.policies or r["policy"] in cfg.policies]
+        sets.append(f"- `{path}`: seeds {span.start}-{span.stop - 1}, policies "
+                    f"{', '.join(dict.fromkeys(r['policy'] for r in rows))}")
+        for r in rows:
+            key = (r["policy"], r["condition"])
+            for other, where in seeds[key]:
+                if set(other) & set(span):
+                    raise ValueError(f"{r['policy']} under {r['condition']} is in both {where} and {path} on "
+                                     f"overlapping seeds: its episodes would count twice")
+            seeds[key].append((span, path))
+            groups[key].append((span, r))
+    pooled = [pool_rows([r for _, r in runs]) for runs in groups.values()]
+    for name in (cfg.reference, cfg.baseline):
+        if name and not any(r["policy"] == name for r in pooled):
+            raise ValueError(f"no policy {name!r} in these reports; they have "
+                             f"{sorted({r['policy'] for r in pooled})}")
+    conditions = [make_condition(Perturbation(friction_scale=r["friction_scale"], added_mass=r["added_mass"],
+                                              com_shift=tuple(r["com_shift"])))
+                  for r in {r["condition"]: r for r in pooled}.values()]
+    policies = list(dict.fromkeys(r["policy"] for r in pooled))
+    order = {c.name: i for i, c in enumerate(conditions)}
+    pooled.sort(key=lambda r: (order[r["condition"]], policies.index(r["policy"])))
+    rank = {(r["condition"], r["policy"]): (order[r["condition"]], policies.index(r["policy"])) for r in pooled}
+    shares = gap_shares(groups, cfg.reference, cfg.baseline) if cfg.reference else []
+    shares.sort(key=lambda e: rank[(e["condition"], e["policy"])])
+
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    text = markdown_table(pooled).replace("# Evaluation", "# Pooled evaluation", 1)
+    if shares:
+        text += (f"\n## Share of the {cfg.baseline}'s gap to the {cfg.reference} closed\n\n"
+                 f"(policy - {cfg.baseline}) / ({cfg.reference} - {cfg.baseline}), with the {cfg.reference} and the "
+                 f"{cfg.baseline} on the policy's own episodes; '-' where the {cfg.baseline} is already as good as "
+                 f"the {cfg.reference}.\n\n| condition | policy | episodes | "
+                 + " | ".join(SHARE_METRICS) + " |\n|---|---|---|" + "---|" * len(SHARE_METRICS) + "\n")
+        text += "".join(f"| {s['condition']} | {s['policy']} | {s['episodes']} | "
+                        + " | ".join("-" if s[m] is None else f"{s[m]:.0%}" for m in SHARE_METRICS) + " |\n"
+                        for s in shares)
+    text += "\n## Pooled reports\n\n" + "\n".join(sets) + "\n"
+    (cfg.out / "results.md").write_text(text)
+    (cfg.out / "results.json").write_text(json.dumps(
+        {"rows": pooled, "shares": shares, "sources": [str(p) for p in cfg.results]}, indent=2) + "\n")
+    plot_bars(cfg.out / "plots" / "bars.png", pooled, conditions)
+    print(f"pooled {len(cfg.results)} reports into {len(pooled)} rows -> {cfg.out / 'results.md'}")
+    return cfg.out
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main(Config, run, __doc__, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,83 @@
+"""scripts/pool_evaluations.py: evaluate reports on disjoint seed sets pooled into one, with paired gap shares."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rotation.evaluate.metrics import METRICS
+
+
+@pytest.fixture(scope="module")
+def pool(load_script):
+    return load_script("pool_evaluations")
+
+
+def _row(policy: str, ttf: float, drift: float, episodes: int, net: float = 0.4) -> dict:
+    row = {"policy": policy, "condition": "friction_0.25", "friction_scale": 0.25, "added_mass": 0.0,
+           "com_shift": [0.0, 0.0, 0.0], "episodes": episodes, "net_rotation_rate": net}
+    for key in [*METRICS, "reward"]:
+        row[key], row[key + "_std"] = 0.1, 0.01
+    row["ttf"], row["ttf_std"], row["vertical_drift"] = ttf, 0.2, drift
+    return row
+
+
+def _report(path: Path, seed: int, episodes: int, rows: list[dict]) -> Path:
+    path.mkdir(parents=True)
+    (path / "results.json").write_text(json.dumps({"rows": rows, "config": {"seed": seed, "episodes": episodes}}))
+    return path
+
+
+def test_pools_disjoint_sets_and_shares_on_the_policys_own_episodes(pool, tmp_path, capsys):
+    a = _report(tmp_path / "a", 100, 10, [_row("teacher", 0.8, 0.009, 10), _row("student", 0.4, 0.011, 10),
+                                          _row("adapter", 0.6, 0.010, 10, net=0.2)])
+    b = _report(tmp_path / "b", 200, 30, [_row("teacher", 0.9, 0.009, 30), _row("student", 0.7, 0.011, 30),
+                                          _row("adapter", 0.8, 0.010, 30, net=0.6)])
+    c = _report(tmp_path / "c", 200, 30, [_row("other", 0.9, 0.009, 30)])  # only on b's seeds
+    out = tmp_path / "pooled"
+    assert pool.main(["--results", str(a), str(b), str(c), "--reference", "teacher", "--baseline", "student",
+                      "--out", str(out)]) == 0
+    report = json.loads((out / "results.json").read_text())
+    rows = {r["policy"]: r for r in report["rows"]}
+    assert rows["student"]["episodes"] == 40
+    assert rows["student"]["ttf"] == pytest.approx((10 * 0.4 + 30 * 0.7) / 40)
+    spread = (10 * 0.225**2 + 30 * 0.075**2) / 40  # the sets' means around the pooled mean 0.625
+    assert rows["student"]["ttf_std"] == pytest.approx(np.sqrt(0.2**2 + spread))
+    # total rotation / total time in hand, each set's time in hand being ttf * episodes
+    assert rows["adapter"]["net_rotation_rate"] == pytest.approx((0.2 * 6 + 0.6 * 24) / 30)
+    shares = {s["policy"]: s for s in report["shares"]}
+    assert shares["adapter"]["ttf"] == pytest.approx((0.75 - 0.625) / (0.875 - 0.625))
+    assert shares["adapter"]["vertical_drift"] == pytest.approx(0.5)
+    assert shares["other"]["episodes"] == 30  # against b's teacher and student only, not all 40 episodes
+    assert shares["other"]["ttf"] == pytest.approx(1.0)
+    assert "| friction_0.25 | adapter | 40 | 50% | 50% |" in (out / "results.md").read_text()
+    assert (out / "plots" / "bars.png").read_bytes()[:4] == b"\x89PNG"
+    only = tmp_path / "only"
+    assert pool.main(["--results", str(a), str(b), str(c), "--policies", "teacher", "other", "--out", str(only)]) == 0
+    assert [r["policy"] for r in json.loads((only / "results.json").read_text())["rows"]] == ["teacher", "other"]
+
+
+def test_refuses_overlapping_seeds_and_bad_input(pool, tmp_path, capsys):
+    a = _report(tmp_path / "a", 100, 10, [_row("student", 0.4, 0.011, 10)])
+    b = _report(tmp_path / "b", 105, 10, [_row("student", 0.5, 0.011, 10)])
+    assert pool.main(["--results", str(a), str(b), "--out", str(tmp_path / "o1")]) == 2
+    assert "count twice" in capsys.readouterr().err
+    assert pool.main(["--results", str(tmp_path), "--out", str(tmp_path / "o2")]) == 2
+    assert "no results.json" in capsys.readouterr().err
+    assert pool.main(["--results", str(a), "--reference", "teacher", "--out", str(tmp_path / "o3")]) == 2
+    assert "together" in capsys.readouterr().err
+    assert pool.main(["--results", str(a), "--reference", "teacher", "--baseline", "student",
+                      "--out", str(tmp_path / "o4")]) == 2
+    assert "no policy 'teacher'" in capsys.readouterr().err
+    assert not any((tmp_path / f"o{i}").exists() for i in range(1, 5))
+
+
+def test_a_policy_missing_from_a_condition_has_no_bar_there(pool, tmp_path):
+    nominal = {**_row("teacher", 0.9, 0.009, 8), "condition": "nominal", "friction_scale": 1.0}
+    a = _report(tmp_path / "a", 100, 8, [nominal, _row("teacher", 0.8, 0.009, 8)])
+    b = _report(tmp_path / "b", 100, 8, [_row("oracle", 0.7, 0.009, 8)])  # run on friction x0.25 only
+    assert pool.main(["--results", str(a), str(b), "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "plots" / "bars.png").read_bytes()[:4] == b"\x89PNG"
