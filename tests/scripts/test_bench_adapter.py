@@ -2,26 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_adapter.py"
 
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("bench_adapter", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_bench_adapter_tiny(capsys):
-    bench = load_script()
+def test_bench_adapter_tiny(load_script, capsys):
+    bench = load_script("bench_adapter")
     assert bench.main(["--iters", "1", "--threads", "1"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert {"step_ms", "step_img_ms", "student_ms", "amortized_ms", "touch_every"} <= set(result)

@@ -2,26 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_encoder.py"
 
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("bench_encoder", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_bench_encoder_tiny(capsys):
-    bench = load_script()
+def test_bench_encoder_tiny(load_script, capsys):
+    bench = load_script("bench_encoder")
     cfg = bench.Config(sizes=("tinier",), gpu_sizes=("tinier",), batch=1, iters=1, warmup=0, threads=1,
                        fusion_size="tinier", gpu=False)
     result = bench.run(cfg)

@@ -3,26 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 from rotation.configs import add_dataclass_arguments, dataclass_from_args
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_env.py"
 
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("bench_env", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_bench_env_tiny(capsys):
-    bench = load_script()
+def test_bench_env_tiny(load_script, capsys):
+    bench = load_script("bench_env")
     cfg = bench.Config(num_envs=4, nthread=1, subproc_envs=1, seconds=0.05, slice=0.02, rounds=1, action=0.1)
     result = bench.run(cfg)
     out = capsys.readouterr().out.strip().splitlines()
@@ -37,8 +24,8 @@ def test_bench_env_tiny(capsys):
     assert any(line.startswith("raw mujoco.batch.Batch.step") for line in out)  # the table
 
 
-def test_bench_env_cli_parses_the_config():
-    bench = load_script()
+def test_bench_env_cli_parses_the_config(load_script):
+    bench = load_script("bench_env")
     parser = argparse.ArgumentParser()
     add_dataclass_arguments(parser, bench.Config)
     cfg = dataclass_from_args(bench.Config, parser.parse_args(["--num-envs", "32", "--seconds", "0.5"]))

@@ -2,26 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_pretrain.py"
 
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("bench_pretrain", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_bench_pretrain_tiny(capsys):
-    bench = load_script()
+def test_bench_pretrain_tiny(load_script, capsys):
+    bench = load_script("bench_pretrain")
     cfg = bench.Config(sessions=2, session_steps=30, workers=0, batch_size=4, batches=2, device="cpu", steps=2,
                        threads=1)
     result = bench.run(cfg)

@@ -2,26 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_skin.py"
 
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("bench_skin", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_bench_skin_tiny(capsys):
-    bench = load_script()
+def test_bench_skin_tiny(load_script, capsys):
+    bench = load_script("bench_skin")
     assert bench.main(["--num-envs", "2", "--steps", "8", "--rounds", "1", "--nthread", "1", "--only", "env"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert {"skin_over_plain", "skin_over_xela_off", "plain_steps_per_s", "skin_steps_per_s"} <= set(result)
@@ -30,8 +17,8 @@ def test_bench_skin_tiny(capsys):
         bench.run(bench.Config(only=("nope",)))
 
 
-def test_bench_skin_encoder_latency(capsys):
-    bench = load_script()
+def test_bench_skin_encoder_latency(load_script, capsys):
+    bench = load_script("bench_skin")
     result = bench.run(bench.Config(only=("encoder",), encoder_size="tinier", iters=1, threads=1))
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == result
     assert result["skin_tinier_ms"] > 0 and result["skin_tinier_params"] == 938_112 and result["encoder_threads"] == 1

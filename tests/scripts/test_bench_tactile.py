@@ -2,24 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
-
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_tactile.py"
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("bench_tactile", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_bench_tactile_tiny(capsys):
-    bench = load_script()
+def test_bench_tactile_tiny(load_script, capsys):
+    bench = load_script("bench_tactile")
     argv = ["--num-envs", "2", "--env-steps", "16", "--rounds", "1", "--collect-steps", "40", "--reader-windows", "2",
             "--nthread", "1"]
     assert bench.main(argv) == 0

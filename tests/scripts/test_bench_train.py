@@ -3,24 +3,11 @@ the ceiling's arithmetic."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
-
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_train.py"
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("bench_train", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_bench_train_tiny(tmp_path, capsys):
-    bench = load_script()
+def test_bench_train_tiny(load_script, tmp_path, capsys):
+    bench = load_script("bench_train")
     argv = ["--num-envs", "4", "--env-steps", "64", "--train-steps", "64", "--n-steps", "16", "--batch-size", "32",
             "--n-epochs", "1", "--nthread", "1", "--torch-threads", "1"]
     assert bench.main(argv) == 0
@@ -33,8 +20,8 @@ def test_bench_train_tiny(tmp_path, capsys):
     assert result["update_s"] > 0 and result["inference_s"] > 0 and result["physics_core_s"] > 0
 
 
-def test_ceiling_is_the_cpu_time_bound():
-    bench = load_script()
+def test_ceiling_is_the_cpu_time_bound(load_script):
+    bench = load_script("bench_train")
     # the physics alone fills 2 cores for 1 s of wall (2 core-s); an update of 1 s and inference of 0.2 s leave
     # (2 + 1 + 0.2) / 2 = 1.6 s of wall per rollout at best: 1 / 1.6 of the env's speed
     assert abs(bench.ceiling(4096, 4096.0, 2048.0, 2, 1.0, 0.2) - 1.0 / 1.6) < 1e-9

@@ -4,29 +4,16 @@ line printed is the JSON result."""
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
 from rotation.configs import add_dataclass_arguments, dataclass_from_args
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_warp.py"
 
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("bench_warp", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_bench_warp_tiny(capsys):
+def test_bench_warp_tiny(load_script, capsys):
     pytest.importorskip("mujoco_warp", reason="the warp backend needs the [warp] extra")
-    bench = load_script()
+    bench = load_script("bench_warp")
     cfg = bench.Config(worlds=(2, 3), device="cpu", steps=2, warmup=1, train_worlds=2, train_iterations=1,
                        n_steps=2, n_epochs=1, cpu_envs=4, cpu_steps=2, nthread=1)
     result = bench.run(cfg)
@@ -38,8 +25,8 @@ def test_bench_warp_tiny(capsys):
     assert result["warp_env_steps_per_s"] == max(result["warp_env_steps_per_s_by_worlds"].values())
 
 
-def test_bench_warp_cli_parses_the_config():
-    bench = load_script()
+def test_bench_warp_cli_parses_the_config(load_script):
+    bench = load_script("bench_warp")
     parser = argparse.ArgumentParser()
     add_dataclass_arguments(parser, bench.Config)
     cfg = dataclass_from_args(bench.Config, parser.parse_args(["--worlds", "1024", "4096", "--device", "cpu"]))

@@ -2,32 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
 from rotation.tactile.encoders import ENCODERS, load_encoder, shipped_encoders
 from rotation.tactile.sparshx import SparshX, SparshXConfig
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "export_encoder.py"
 
-
-def _script():
-    spec = importlib.util.spec_from_file_location("export_encoder", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_export_halves_the_weights_and_keeps_the_tokens(tmp_path):
+def test_export_halves_the_weights_and_keeps_the_tokens(load_script, tmp_path):
     torch.manual_seed(0)
     model = SparshX(SparshXConfig(size="tinier", modalities=("imu", "pressure")))
     src = ENCODERS["sparshx"].save(model, tmp_path / "run" / "encoder.safetensors")
-    mod = _script()
+    mod = load_script("export_encoder")
     out = mod.run(mod.Config(checkpoint=src.parent, out=tmp_path / "ship"))
     assert out["bytes"] < 0.6 * src.stat().st_size
     assert 0 < out["relative_error"] < 1e-2

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 from rotation.cli import main
 from rotation.jobs.hand_info import Config, run
@@ -24,15 +21,8 @@ def test_hand_info_sim_leap_through_the_cli(capsys):
     assert "leap" in out and "XC330-M288 x16" in out and "index_0" in out
 
 
-def test_bench_deploy_smoke(capsys):
-    path = Path(__file__).resolve().parents[2] / "scripts" / "bench_deploy.py"
-    spec = importlib.util.spec_from_file_location("bench_deploy", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_deploy"] = module  # dataclasses look their module up
-    try:
-        spec.loader.exec_module(module)
-    finally:
-        del sys.modules["bench_deploy"]
+def test_bench_deploy_smoke(load_script, capsys):
+    module = load_script("bench_deploy")
     result = module.run(module.Config(duration_s=0.5, warmup_s=0.2, rt_priority=0))
     last = capsys.readouterr().out.strip().splitlines()[-1]
     assert json.loads(last) == result
