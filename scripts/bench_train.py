@@ -126,11 +126,10 @@ def time_costs(model, repeats: int = 2) -> dict[str, float]:
     return {"update_s": statistics.median(updates), "inference_s": statistics.median(inferences)}
 
 
-def ceiling(rollout: int, env_sps: float, env_sps_1thread: float, cores: int, update_s: float,
+def ceiling(rollout_physics_s: float, physics_core_s: float, cores: int, update_s: float,
             inference_s: float) -> float:
     """The highest train_over_env a recipe can reach on ``cores`` cores (module docstring)."""
-    physics_core_s = rollout / env_sps_1thread
-    return min(1.0, cores * (rollout / env_sps) / (physics_core_s + update_s + inference_s))
+    return min(1.0, cores * rollout_physics_s / (physics_core_s + update_s + inference_s))
 
 
 def run(cfg: Config) -> dict:
@@ -143,6 +142,7 @@ def run(cfg: Config) -> dict:
         env_sps_1 = bench_env(cfg, tcfg, nthread=1)
         train_sps, timed, costs = bench_train(cfg, tcfg)
     rollout = cfg.num_envs * cfg.n_steps
+    rollout_physics_s, physics_core_s = rollout / env_sps, rollout / env_sps_1
     cores = num_cores()
     result = {
         "num_envs": cfg.num_envs,
@@ -152,12 +152,12 @@ def run(cfg: Config) -> dict:
         "train_steps_per_s": round(train_sps, 1),
         "train_steps_timed": timed,
         "env_steps_per_s_1thread": round(env_sps_1, 1),
-        "rollout_physics_s": round(rollout / env_sps, 3),
-        "physics_core_s": round(rollout / env_sps_1, 3),
+        "rollout_physics_s": round(rollout_physics_s, 3),
+        "physics_core_s": round(physics_core_s, 3),
         "update_s": round(costs["update_s"], 3),
         "inference_s": round(costs["inference_s"], 3),
         "cores": cores,
-        "train_over_env_ceiling": round(ceiling(rollout, env_sps, env_sps_1, cores, **costs), 4),
+        "train_over_env_ceiling": round(ceiling(rollout_physics_s, physics_core_s, cores, **costs), 4),
         "train_over_env": round(train_sps / env_sps, 4),
     }
     print(f"batched env alone: {env_sps:,.0f} steps/s; PPO training: {train_sps:,.0f} steps/s "

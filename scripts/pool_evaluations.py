@@ -78,7 +78,7 @@ def pool_rows(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return pooled
 
 
-def gap_shares(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any]]]], reference: str,
+def gap_shares(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], Path]]], reference: str,
                baseline: str) -> list[dict[str, Any]]:
     """Per condition and other policy: the share of the baseline's gap to the reference it closes, on the policy's
     own episodes (the reference and baseline pooled over the same seed sets; a policy whose seed sets they do not
@@ -87,15 +87,15 @@ def gap_shares(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any]]]]
     for (policy, cond), runs in groups.items():
         if policy in (reference, baseline):
             continue
-        spans = sorted((s.start, s.stop) for s, _ in runs)
+        spans = sorted((s.start, s.stop) for s, _, _ in runs)
         same: list[dict[str, Any]] = []
         for name in (reference, baseline):
-            theirs = {(s.start, s.stop): r for s, r in groups.get((name, cond), [])}
+            theirs = {(s.start, s.stop): r for s, r, _ in groups.get((name, cond), [])}
             if not all(span in theirs for span in spans):
                 break
             same.append(pool_rows([theirs[span] for span in spans]))
         else:
-            mine, (ref, base) = pool_rows([r for _, r in runs]), same
+            mine, (ref, base) = pool_rows([r for _, r, _ in runs]), same
             entry: dict[str, Any] = {"policy": policy, "condition": cond, "episodes": mine["episodes"]}
             for metric, better in SHARE_METRICS.items():
                 gap = ref[metric] - base[metric]
@@ -113,8 +113,7 @@ def run(cfg: Config) -> Path:
         raise ValueError("give --reference and --baseline together")
     if (cfg.out / "results.json").exists():
         raise ValueError(f"{cfg.out} already holds a pooled report; give another --out or remove it")
-    groups: dict[tuple[str, str], list[tuple[range, dict[str, Any]]]] = defaultdict(list)
-    seeds: dict[tuple[str, str], list[tuple[range, Path]]] = defaultdict(list)
+    groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], Path]]] = defaultdict(list)
     sets = []
     for path in cfg.results:
         rows, span = _read(path)
@@ -123,13 +122,12 @@ def run(cfg: Config) -> Path:
                     f"{', '.join(dict.fromkeys(r['policy'] for r in rows))}")
         for r in rows:
             key = (r["policy"], r["condition"])
-            for other, where in seeds[key]:
-                if set(other) & set(span):
+            for other, _, where in groups[key]:
+                if other.start < span.stop and span.start < other.stop:
                     raise ValueError(f"{r['policy']} under {r['condition']} is in both {where} and {path} on "
                                      f"overlapping seeds: its episodes would count twice")
-            seeds[key].append((span, path))
-            groups[key].append((span, r))
-    pooled = [pool_rows([r for _, r in runs]) for runs in groups.values()]
+            groups[key].append((span, r, path))
+    pooled = [pool_rows([r for _, r, _ in runs]) for runs in groups.values()]
     for name in (cfg.reference, cfg.baseline):
         if name and not any(r["policy"] == name for r in pooled):
             raise ValueError(f"no policy {name!r} in these reports; they have "
@@ -139,10 +137,12 @@ def run(cfg: Config) -> Path:
                   for r in {r["condition"]: r for r in pooled}.values()]
     policies = list(dict.fromkeys(r["policy"] for r in pooled))
     order = {c.name: i for i, c in enumerate(conditions)}
-    pooled.sort(key=lambda r: (order[r["condition"]], policies.index(r["policy"])))
-    rank = {(r["condition"], r["policy"]): (order[r["condition"]], policies.index(r["policy"])) for r in pooled}
-    shares = gap_shares(groups, cfg.reference, cfg.baseline) if cfg.reference else []
-    shares.sort(key=lambda e: rank[(e["condition"], e["policy"])])
+
+    def rank(entry: dict[str, Any]) -> tuple[int, int]:  # the reports' order of conditions, then of policies
+        return order[entry["condition"]], policies.index(entry["policy"])
+
+    pooled.sort(key=rank)
+    shares = sorted(gap_shares(groups, cfg.reference, cfg.baseline), key=rank) if cfg.reference else []
 
     cfg.out.mkdir(parents=True, exist_ok=True)
     text = markdown_table(pooled).replace("# Evaluation", "# Pooled evaluation", 1)

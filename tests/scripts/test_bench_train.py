@@ -24,6 +24,6 @@ def test_ceiling_is_the_cpu_time_bound(load_script):
     bench = load_script("bench_train")
     # the physics alone fills 2 cores for 1 s of wall (2 core-s); an update of 1 s and inference of 0.2 s leave
     # (2 + 1 + 0.2) / 2 = 1.6 s of wall per rollout at best: 1 / 1.6 of the env's speed
-    assert abs(bench.ceiling(4096, 4096.0, 2048.0, 2, 1.0, 0.2) - 1.0 / 1.6) < 1e-9
+    assert abs(bench.ceiling(1.0, 2.0, 2, 1.0, 0.2) - 1.0 / 1.6) < 1e-9
     # physics that does not scale over cores (1 core-s on 1 s of wall): the rest fits on the idle core
-    assert bench.ceiling(4096, 4096.0, 4096.0, 2, 0.5, 0.0) == 1.0
+    assert bench.ceiling(1.0, 1.0, 2, 0.5, 0.0) == 1.0
