@@ -106,7 +106,8 @@ class Config:
     hidden: tuple[int, ...] = (256, 128)
     """Hidden widths of the adapter's MLP g."""
     checkpoint_every: int = 20_000
-    """Env transitions between checkpoints (rounded to whole touch periods); each interval starts afresh."""
+    """Env transitions between checkpoints (rounded to whole touch periods); each interval starts afresh, so one
+    shorter than num_envs x the env's episode_steps cuts every episode short (2,048 with 16 envs: 6.4 s episodes)."""
     log_every: int = 10
     """Touch refreshes between log points."""
     seed: int = 0
