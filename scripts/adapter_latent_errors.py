@@ -79,6 +79,9 @@ def collect(cfg: Config) -> Samples:
         raise ValueError(f"--adapter {cfg.adapter!r} is not an adapter bundle (it reads no touch)")
     if teacher.config.latent_source != "privileged":
         raise ValueError(f"--teacher {cfg.teacher!r} is not a teacher bundle (its latent is not privileged)")
+    if teacher.config.latent_dim != policy.config.latent_dim:
+        raise ValueError(f"--teacher {cfg.teacher!r} has a {teacher.config.latent_dim}-dim latent, the adapter's "
+                         f"student a {policy.config.latent_dim}-dim one")
     cond = get_suite("perturbations", [cfg.condition])[0]
     ecfg = job.Config(policies={"adapter": cfg.adapter}, seed=cfg.seed, num_envs=cfg.num_envs)
     env = make_vec("cpu", job.env_config(ecfg, policy, cond.perturb, policy.env_needs), num_envs=cfg.num_envs,
