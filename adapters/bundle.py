@@ -268,6 +268,17 @@ class AdaptedPolicy:
         t = self.student._tensors(dict(obs), batched=True)
         return self.student.net.extractor.z(t)
 
+    @property
+    def proprio_dim(self) -> int:
+        """Width of :meth:`proprio_features`."""
+        return self.student.net.extractor.features_dim - self.student.config.latent_dim
+
+    @torch.no_grad()
+    def proprio_features(self, obs: Mapping[str, Any]) -> torch.Tensor:
+        """The student's actor input besides the latent, (N, S * D), for batched observations (the adapter's
+        action-matching loss feeds it to ``student.net.head``)."""
+        return self.student.net.proprio_features(self.student._tensors(dict(obs), batched=True))
+
     @torch.no_grad()
     def correction(self, windows: Mapping[str, Mapping[str, Any]], obs: Mapping[str, Any]) -> np.ndarray:
         """(N, Z) latent correction from touch windows and the batched observation (for phi); TouchUnavailable

@@ -5,7 +5,9 @@ The student, the touch encoder and the teacher stay frozen; only the adapter lea
 
     MSE(phi(history) + adapter(tokens, phi(history)), z_teacher(priv))
 
-over the student's own rollouts (DAgger): for the first ``student_steps`` env steps the student acts alone, then
+optionally plus ``action_weight`` x the MSE between the frozen student actor's action mean on that latent and on
+z_teacher (same proprioception: the action the student would take knowing the teacher's z), over the student's own
+rollouts (DAgger): for the first ``student_steps`` env steps the student acts alone, then
 the student with the adapter's current correction, so the adapter learns on the states its own corrections lead
 to. The env simulates the Digit 360 fingertips under a randomization that emphasizes low friction and heavy
 objects. Every ``touch_every`` control steps (the adapter's refresh period, as at run time) the fingertip windows
@@ -103,6 +105,10 @@ class Config:
     """Samples kept in the buffer (the oldest are replaced); each holds every fingertip's tokens in float16."""
     lr: float = 3e-4
     """Adam learning rate."""
+    action_weight: float = 0.0
+    """Weight of an action-matching term added to the latent MSE: the MSE between the frozen student actor's action
+    mean on the adapted latent and on the teacher's z (same proprioception). It weights each latent direction by
+    how much it moves the action; 0 = the latent MSE alone."""
     hidden: tuple[int, ...] = (256, 128)
     """Hidden widths of the adapter's MLP g."""
     checkpoint_every: int = 20_000
@@ -162,6 +168,7 @@ class Config:
         check_int("batch_size", self.batch_size, 1, 1 << 20)
         check_int("buffer_size", self.buffer_size, 1, 1 << 24)
         check_number("lr", self.lr, 0.0, 1.0, low_open=True)
+        check_number("action_weight", self.action_weight, 0.0, 1e6)
         if not self.hidden or not all(isinstance(h, int) and 1 <= h <= 65_536 for h in self.hidden):
             raise ValueError(f"hidden must be widths in 1..65536, got {self.hidden}")
         check_int("checkpoint_every", self.checkpoint_every, 1, 10**12)
@@ -204,29 +211,43 @@ class Result:
 
 
 class TokenBuffer:
-    """A ring buffer of samples: per fingertip and token group (S, N_g, D) float16 tokens, phi's z and the target z."""
+    """A ring buffer of samples: per fingertip and token group (S, N_g, D) float16 tokens, phi's z, the target z and
+    the student actor's proprioceptive input (for the action-matching loss)."""
 
-    def __init__(self, capacity: int, samples: tuple[str, ...], groups: dict[str, int], width: int, latent: int):
+    def __init__(self, capacity: int, samples: tuple[str, ...], groups: dict[str, int], width: int, latent: int,
+                 proprio: int):
         self.capacity, self.samples, self.size, self.next = capacity, samples, 0, 0
         self.tokens = {g: torch.zeros(capacity, len(samples), n, width, dtype=torch.float16) for g, n in groups.items()}
         self.z_student = torch.zeros(capacity, latent)
         self.z_teacher = torch.zeros(capacity, latent)
+        self.proprio = torch.zeros(capacity, proprio)
 
     def clear(self) -> None:
         self.size = self.next = 0
 
-    def add(self, tokens: dict[str, dict[str, torch.Tensor]], z_student: torch.Tensor, z_teacher: torch.Tensor) -> None:
+    def add(self, tokens: dict[str, dict[str, torch.Tensor]], z_student: torch.Tensor, z_teacher: torch.Tensor,
+            proprio: torch.Tensor) -> None:
         n = z_student.shape[0]
         idx = (self.next + torch.arange(n)) % self.capacity
         for g, store in self.tokens.items():
             store[idx] = torch.stack([tokens[s][g] for s in self.samples], dim=1).to(torch.float16)  # (n, S, N, D)
-        self.z_student[idx], self.z_teacher[idx] = z_student, z_teacher
+        self.z_student[idx], self.z_teacher[idx], self.proprio[idx] = z_student, z_teacher, proprio
         self.next = int((self.next + n) % self.capacity)
         self.size = min(self.capacity, self.size + n)
 
-    def batch(self, idx: torch.Tensor) -> tuple[dict[str, dict[str, torch.Tensor]], torch.Tensor, torch.Tensor]:
+    def batch(self, idx: torch.Tensor) -> Sample:
         toks = {s: {g: store[idx, i].float() for g, store in self.tokens.items()} for i, s in enumerate(self.samples)}
-        return toks, self.z_student[idx], self.z_teacher[idx]
+        return Sample(toks, self.z_student[idx], self.z_teacher[idx], self.proprio[idx])
+
+
+@dataclass
+class Sample:
+    """A minibatch of a TokenBuffer."""
+
+    tokens: dict[str, dict[str, torch.Tensor]]
+    z_student: torch.Tensor
+    z_teacher: torch.Tensor
+    proprio: torch.Tensor
 
 
 def _latest(out: Path) -> Path | None:
@@ -384,14 +405,27 @@ def run(cfg: Config) -> Result:
     return train_in_sim(job)
 
 
-def adam_step(adapter: torch.nn.Module, optim: torch.optim.Optimizer, tokens: dict[str, dict[str, torch.Tensor]],
-              z_student: torch.Tensor, z_teacher: torch.Tensor) -> float:
-    """One Adam step on MSE(phi + adapter(tokens, phi), z_teacher); returns the loss."""
-    loss = torch.nn.functional.mse_loss(z_student + adapter(tokens, z_student), z_teacher)
+def adam_step(adapter: torch.nn.Module, optim: torch.optim.Optimizer, batch: Sample, head: Any = None,
+              action_weight: float = 0.0) -> float:
+    """One Adam step on MSE(phi + adapter(tokens, phi), z_teacher), plus with ``action_weight`` > 0
+    ``action_weight`` x MSE(head(proprio, that latent), head(proprio, z_teacher)) where ``head`` is the frozen
+    student's :meth:`ActorNet.head <rotation.policy.bundle.ActorNet.head>`; returns the loss."""
+    z = batch.z_student + adapter(batch.tokens, batch.z_student)
+    loss = torch.nn.functional.mse_loss(z, batch.z_teacher)
+    if action_weight > 0.0:
+        with torch.no_grad():
+            target = head(batch.proprio, batch.z_teacher)
+        loss = loss + action_weight * torch.nn.functional.mse_loss(head(batch.proprio, z), target)
     optim.zero_grad(set_to_none=True)
     loss.backward()
     optim.step()
     return loss.item()
+
+
+@torch.no_grad()
+def action_error(head: Any, proprio: torch.Tensor, z: torch.Tensor, z_teacher: torch.Tensor) -> float:
+    """MSE between the student actor's action means on ``z`` and on the teacher's z."""
+    return float(((head(proprio, z) - head(proprio, z_teacher)) ** 2).mean())
 
 
 def _save_checkpoint(out: Path, adapter: torch.nn.Module, optim: torch.optim.Optimizer, iteration: int,
@@ -406,7 +440,9 @@ _TB_TAGS = {"latent_mse": "adapter/latent_mse", "student_mse": "adapter/student_
             "train_loss": "adapter/train_loss", "rotation_rate": "rollout/rotation_rate", "ttf": "rollout/ttf",
             "ep_length": "rollout/episode_length", "steps_per_s": "time/steps_per_s",
             "val_latent_mse": "adapter/val_latent_mse", "val_student_mse": "adapter/val_student_latent_mse",
-            "samples_per_s": "time/samples_per_s"}
+            "samples_per_s": "time/samples_per_s", "action_mse": "adapter/action_mse",
+            "student_action_mse": "adapter/student_action_mse", "val_action_mse": "adapter/val_action_mse",
+            "val_student_action_mse": "adapter/val_student_action_mse"}
 
 
 def log_point(writer, point: dict[str, float], step_key: str) -> None:

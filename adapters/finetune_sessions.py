@@ -5,12 +5,13 @@
    (rotation.data.dataset.split_sessions, by file, under the seed).
 2. Each session's samples (adapters.real_data.session_samples) are encoded once by the frozen encoder into a
    TokenBuffer (tokens float16, phi's z, the teacher's z), as the simulation path caches its rollouts.
-3. ``epochs`` passes of shuffled minibatch Adam steps on MSE(phi + adapter, z_teacher) over the training samples.
-   After each pass the adapted latent's MSE on the training and validation samples is logged beside the student's
-   own (``latent_mse`` / ``student_mse``, ``val_latent_mse`` / ``val_student_mse``; epoch 0 is the untrained
-   adapter, i.e. the student), and a checkpoint is written. Epoch e draws its minibatch order from ``seed + e``,
-   so a resumed run is bit-identical to an uninterrupted one. Ctrl-C / SIGTERM stop after the current epoch; a
-   second signal stops at once and keeps the last finished epoch.
+3. ``epochs`` passes of shuffled minibatch Adam steps on MSE(phi + adapter, z_teacher) (plus the action-matching
+   term with ``action_weight``) over the training samples. After each pass the adapted latent's MSE on the training
+   and validation samples is logged beside the student's own (``latent_mse`` / ``student_mse``, ``val_latent_mse``
+   / ``val_student_mse``; epoch 0 is the untrained adapter, i.e. the student), and so are the errors of the actions
+   they give (``action_mse`` / ``student_action_mse``, and ``val_``), and a checkpoint is written. Epoch e draws its
+   minibatch order from ``seed + e``, so a resumed run is bit-identical to an uninterrupted one. Ctrl-C / SIGTERM
+   stop after the current epoch; a second signal stops at once and keeps the last finished epoch.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import math
 import signal
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from tqdm import tqdm
@@ -54,7 +56,7 @@ def train_on_sessions(job: Job) -> Result:
     batches = math.ceil(train.size / cfg.batch_size)
     history: list[dict[str, float]] = []
     if job.start == 0:  # epoch 0: the untrained adapter (exactly the student)
-        history.append(_point(0, 0, train, val, adapter))
+        history.append(_point(0, 0, train, val, adapter, policy.student.net.head))
         log_point(writer, history[-1], "epoch")
     bar = tqdm(total=cfg.epochs * batches, initial=job.start * batches, unit="step", disable=not cfg.progress,
                desc="finetune-adapter", dynamic_ncols=True)
@@ -71,10 +73,11 @@ def train_on_sessions(job: Job) -> Result:
             adapter.train()
             loss = 0.0
             for b in range(batches):
-                loss += adam_step(adapter, job.optim, *train.batch(order[b * cfg.batch_size:(b + 1) * cfg.batch_size]))
+                loss += adam_step(adapter, job.optim, train.batch(order[b * cfg.batch_size:(b + 1) * cfg.batch_size]),
+                                  policy.student.net.head, cfg.action_weight)
                 bar.update(1)
             adapter.eval()
-            point = _point(epoch + 1, (epoch + 1) * batches, train, val, adapter)
+            point = _point(epoch + 1, (epoch + 1) * batches, train, val, adapter, policy.student.net.head)
             point.update(train_loss=loss / batches, samples_per_s=train.size / max(time.perf_counter() - t0, 1e-9))
             log_point(writer, point, "epoch")
             history.append(point)
@@ -129,31 +132,36 @@ def encode_sessions(job: Job, infos: Sequence[SessionInfo], what: str) -> TokenB
             except TouchUnavailable as err:
                 raise SessionError(f"session {info.path}: its touch windows cannot be encoded ({err})") from None
             tokens = {f: {g: t.half() for g, t in d.items()} for f, d in tokens.items()}
-            parts.append((tokens, torch.as_tensor(s.z_student[rows]), torch.as_tensor(s.z[rows])))
+            proprio = policy.proprio_features({g: x[rows] for g, x in s.obs.items()})
+            parts.append((tokens, torch.as_tensor(s.z_student[rows]), torch.as_tensor(s.z[rows]), proprio))
     interface = adapter.interface
     buf = TokenBuffer(max(1, sum(len(p[1]) for p in parts)), adapter.cfg.samples, interface.counts, interface.width,
-                      adapter.cfg.latent_dim)
+                      adapter.cfg.latent_dim, policy.proprio_dim)
     for part in parts:
         buf.add(*part)
     return buf
 
 
 @torch.no_grad()
-def latent_errors(adapter: torch.nn.Module, buf: TokenBuffer) -> tuple[float, float]:
-    """(MSE of phi + adapter, MSE of phi) against the teacher's z over every sample of ``buf``."""
-    adapted = student = 0.0
+def latent_errors(adapter: torch.nn.Module, buf: TokenBuffer, head: Any) -> dict[str, float]:
+    """Over every sample of ``buf``: the MSE of phi + adapter and of phi against the teacher's z (``latent_mse``,
+    ``student_mse``), and of the student actor's action means (``head``) on them against its action on the
+    teacher's z (``action_mse``, ``student_action_mse``)."""
+    sums = dict.fromkeys(("latent_mse", "student_mse", "action_mse", "student_action_mse"), 0.0)
     for i in range(0, buf.size, EVAL_BATCH):
-        tokens, zs, zt = buf.batch(torch.arange(i, min(i + EVAL_BATCH, buf.size)))
-        adapted += float(((zs + adapter(tokens, zs) - zt) ** 2).sum())
-        student += float(((zs - zt) ** 2).sum())
-    n = max(buf.size, 1) * buf.z_teacher.shape[1]
-    return adapted / n, student / n
+        b = buf.batch(torch.arange(i, min(i + EVAL_BATCH, buf.size)))
+        z = b.z_student + adapter(b.tokens, b.z_student)
+        target = head(b.proprio, b.z_teacher)
+        sums["latent_mse"] += float(((z - b.z_teacher) ** 2).mean(1).sum())
+        sums["student_mse"] += float(((b.z_student - b.z_teacher) ** 2).mean(1).sum())
+        sums["action_mse"] += float(((head(b.proprio, z) - target) ** 2).mean(1).sum())
+        sums["student_action_mse"] += float(((head(b.proprio, b.z_student) - target) ** 2).mean(1).sum())
+    return {k: v / max(buf.size, 1) for k, v in sums.items()}
 
 
-def _point(epoch: int, updates: int, train: TokenBuffer, val: TokenBuffer | None,
-           adapter: torch.nn.Module) -> dict[str, float]:
-    point: dict[str, float] = {"epoch": epoch, "updates": updates}
-    point["latent_mse"], point["student_mse"] = latent_errors(adapter, train)
+def _point(epoch: int, updates: int, train: TokenBuffer, val: TokenBuffer | None, adapter: torch.nn.Module,
+           head: Any) -> dict[str, float]:
+    point: dict[str, float] = {"epoch": epoch, "updates": updates, **latent_errors(adapter, train, head)}
     if val is not None and val.size:
-        point["val_latent_mse"], point["val_student_mse"] = latent_errors(adapter, val)
+        point.update({f"val_{k}": v for k, v in latent_errors(adapter, val, head).items()})
     return point

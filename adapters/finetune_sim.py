@@ -18,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from adapters.bundle import TouchUnavailable
-from adapters.finetune import Job, Result, TokenBuffer, adam_step, log_point
+from adapters.finetune import Job, Result, TokenBuffer, action_error, adam_step, log_point
 from rotation.evaluate.metrics import EpisodeTracker, summarize
 from rotation.interrupt import StopSignals
 
@@ -39,7 +39,8 @@ def train_in_sim(job: Job) -> Result:
 
     interface = adapter.interface
     buffer = TokenBuffer(cfg.buffer_size, adapter.cfg.samples, interface.counts, interface.width,
-                         adapter.cfg.latent_dim)
+                         adapter.cfg.latent_dim, policy.proprio_dim)
+    head = policy.student.net.head
     tracker = EpisodeTracker(n, cfg.env.control_dt, cfg.env.episode_steps)
     history: list[dict[str, float]] = []
     sums: dict[str, float] = {}
@@ -67,22 +68,25 @@ def train_in_sim(job: Job) -> Result:
                 with torch.no_grad():
                     z_teacher = teacher.net.extractor.z(t_obs)
                     z_student = policy.student_latent(groups)
+                    proprio = policy.proprio_features(groups)
                 try:
                     tokens = policy.tokens(policy.env_windows(obs))
                 except TouchUnavailable as err:  # cannot happen in simulation unless the renderer breaks
                     raise RuntimeError(f"simulated touch unusable: {err}") from None
-                buffer.add(tokens, z_student, z_teacher)
+                buffer.add(tokens, z_student, z_teacher, proprio)
                 with torch.no_grad():
                     corr = adapter(tokens, z_student)
                 correction[:] = corr.numpy()
                 # errors on the fresh samples, before the adapter trains on them
                 _add(sums, "latent_mse", float(((z_student + corr - z_teacher) ** 2).mean()))
                 _add(sums, "student_mse", float(((z_student - z_teacher) ** 2).mean()))
+                _add(sums, "action_mse", action_error(head, proprio, z_student + corr, z_teacher))
+                _add(sums, "student_action_mse", action_error(head, proprio, z_student, z_teacher))
                 loss_sum = 0.0
                 adapter.train()
                 for _ in range(cfg.updates):
                     idx = torch.randint(0, buffer.size, (min(cfg.batch_size, buffer.size),), generator=gen)
-                    loss_sum += adam_step(adapter, optim, *buffer.batch(idx))
+                    loss_sum += adam_step(adapter, optim, buffer.batch(idx), head, cfg.action_weight)
                 adapter.eval()
                 _add(sums, "train_loss", loss_sum / max(cfg.updates, 1))
                 refreshes += 1
@@ -109,7 +113,8 @@ def train_in_sim(job: Job) -> Result:
                     log_point(writer, point, "env_steps")
                     history.append(point)
                     bar.set_postfix(latent_mse=f"{point['latent_mse']:.4f}",
-                                    student_mse=f"{point['student_mse']:.4f}")
+                                    student_mse=f"{point['student_mse']:.4f}",
+                                    action_mse=f"{point['action_mse']:.4f}")
                     sums, refreshes, episodes, t_log = {}, 0, [], now
             done_iters = it + 1
             if (it + 1) % interval == 0 or it + 1 == total_iters or stop.requested:
@@ -133,6 +138,8 @@ def train_in_sim(job: Job) -> Result:
     if history:
         card["final_latent_mse"] = history[-1]["latent_mse"]
         card["final_student_mse"] = history[-1]["student_mse"]
+        card["final_action_mse"] = history[-1]["action_mse"]
+        card["final_student_action_mse"] = history[-1]["student_action_mse"]
     return job.finish(card, history, signum, f"{done_iters * n} env steps", f"{total_iters * n}")
 
 

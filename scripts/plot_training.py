@@ -57,8 +57,9 @@ class Config:
 
 
 TITLES = {"l": "episode length (steps)", "ep_length": "episode length (steps)", "latent_mse": "latent MSE",
-          "student_mse": "student's latent MSE", "r": "episode return", "ttf": "ttf", "upright": "upright (fraction)",
-          "rotation_rate": "rotation rate (rad/s)"}
+          "student_mse": "student's latent MSE", "action_mse": "action MSE (vs on the teacher's z)",
+          "student_action_mse": "student's action MSE", "r": "episode return", "ttf": "ttf",
+          "upright": "upright (fraction)", "rotation_rate": "rotation rate (rad/s)"}
 """Panel titles of curves.jsonl keys (training episodes, stochastic actions)."""
 
 

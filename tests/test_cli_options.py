@@ -48,6 +48,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "finetune-student:critic_warmup": {"zero": "0 = the actor trains from the first update"},
     "deploy:duration": {"zero": "0 runs until Ctrl-C / SIGTERM (documented)"},
     "finetune-adapter:val_fraction": {"zero": "no held-out sessions: train on every session"},
+    "finetune-adapter:action_weight": {"zero": "0 = the latent MSE alone (the default)"},
     "deploy:rt_priority": {"zero": "0 leaves the scheduling alone"},
     "deploy:grasp": {"zero": "row 0 of the grasp cache"},
     "inspect-tactile:time": {"negative": "< 0 picks the middle of the session (documented)",

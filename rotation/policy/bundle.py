@@ -164,11 +164,17 @@ class ActorNet(nn.Module):
     def mean(self, obs: dict[str, torch.Tensor], z: torch.Tensor | None = None) -> torch.Tensor:
         """Unclipped action mean (B, A); a given ``z`` replaces the extractor's latent (DAgger, adapters)."""
         if z is None:
-            feats = self.extractor(obs)  # (B, 96 + Z)
-        else:
-            p = self.extractor.proprio_norm(obs["proprio"]).flatten(1)  # (B, S * D)
-            feats = torch.cat([p, z], dim=-1)  # (B, 96 + Z)
-        return self.action_mean(self.actor(feats))
+            return self.action_mean(self.actor(self.extractor(obs)))  # features (B, 96 + Z)
+        return self.head(self.proprio_features(obs), z)
+
+    def proprio_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B, S * D) normalized proprioception: the part of the actor's input that is not the latent."""
+        return self.extractor.proprio_norm(obs["proprio"]).flatten(1)
+
+    def head(self, proprio: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Unclipped action mean (B, A) from :meth:`proprio_features` and a latent (B, Z) (differentiable in z: an
+        adapter's action-matching loss)."""
+        return self.action_mean(self.actor(torch.cat([proprio, z], dim=-1)))
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         return self.mean(obs).clamp(-1.0, 1.0)

@@ -91,6 +91,39 @@ def test_gradients_reach_only_the_adapter(env_obs):
     assert not tokens["index"]["img"].requires_grad
 
 
+def test_the_action_matching_term_is_the_frozen_actors_error_and_trains_only_the_adapter(env_obs):
+    env, obs = env_obs
+    policy = build_adapted("student", ENCODER, ("pressure",), seed=0)
+    teacher = load_bundle("teacher")
+    groups = {k: obs[k] for k in policy.config.obs_groups}
+    with torch.no_grad():
+        z_teacher = teacher.net.extractor.z(teacher._tensors({k: obs[k] for k in teacher.config.obs_groups}, True))
+    buf = finetune.TokenBuffer(4, policy.adapter.cfg.samples, policy.adapter.interface.counts,
+                               policy.adapter.interface.width, policy.adapter.cfg.latent_dim, policy.proprio_dim)
+    buf.add(policy.tokens(_windows(policy, obs)), policy.student_latent(groups), z_teacher,
+            policy.proprio_features(groups))
+    batch = buf.batch(torch.arange(2))
+    head = policy.student.net.head
+    # the head on the student's own latent is the student's action mean
+    assert torch.allclose(head(batch.proprio, batch.z_student).clamp(-1, 1),
+                          torch.as_tensor(policy.student.act_batch(groups)), atol=1e-6)
+    student_err = finetune.action_error(head, batch.proprio, batch.z_student, batch.z_teacher)
+    assert student_err > 0
+    latent = float(((batch.z_student - batch.z_teacher) ** 2).mean())
+    optim = torch.optim.SGD(policy.adapter.parameters(), lr=0.0)  # lr 0: the returned loss at the zero adapter
+    assert finetune.adam_step(policy.adapter, optim, batch, head, 0.0) == pytest.approx(latent, rel=1e-6)
+    assert finetune.adam_step(policy.adapter, optim, batch, head, 10.0) == pytest.approx(latent + 10 * student_err,
+                                                                                        rel=1e-5)
+    assert all(p.grad is None for p in policy.student.net.parameters())
+    optim = torch.optim.Adam(policy.adapter.parameters(), lr=1e-3)
+    for _ in range(150):
+        finetune.adam_step(policy.adapter, optim, batch, head, 10.0)
+    with torch.no_grad():
+        z = batch.z_student + policy.adapter(batch.tokens, batch.z_student)
+    assert finetune.action_error(head, batch.proprio, z, batch.z_teacher) < 0.1 * student_err
+    assert all(p.grad is None for p in policy.student.net.parameters())
+
+
 def test_missing_or_bad_touch_is_touch_unavailable(env_obs):
     env, obs = env_obs
     policy = build_adapted("student", ENCODER, ("img", "pressure"))
@@ -142,6 +175,7 @@ def test_tiny_finetuning_reduces_the_latent_error(tiny_run):
     adapted = np.mean([h["latent_mse"] for h in late])
     student = np.mean([h["student_mse"] for h in late])
     assert adapted < 0.8 * student, (adapted, student)
+    assert all(h["action_mse"] >= 0 and h["student_action_mse"] > 0 for h in hist)  # logged beside the latent's
     rows = [json.loads(line) for line in (out / "curves.jsonl").read_text().splitlines()]
     assert [r["env_steps"] for r in rows] == [h["env_steps"] for h in hist]
 

@@ -154,6 +154,8 @@ def test_finetune_on_sessions_writes_an_adapter_that_lowers_the_latent_error(ses
     assert hist[0]["latent_mse"] == pytest.approx(hist[0]["student_mse"])  # epoch 0: exactly the student
     assert hist[-1]["latent_mse"] < 0.5 * hist[-1]["student_mse"], hist[-1]
     assert "val_latent_mse" in hist[-1] and hist[-1]["val_student_mse"] > 0
+    assert hist[0]["action_mse"] == pytest.approx(hist[0]["student_action_mse"])  # the actions too
+    assert hist[-1]["action_mse"] < hist[-1]["student_action_mse"] and "val_action_mse" in hist[-1]
     rows = [json.loads(line) for line in (out / "curves.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in rows] == [h["epoch"] for h in hist]
     assert (out / "config.json").is_file() and any((out / "tb").iterdir())
