@@ -405,7 +405,7 @@ def run(cfg: Config) -> Result:
     return train_in_sim(job)
 
 
-def adam_step(adapter: torch.nn.Module, optim: torch.optim.Optimizer, batch: Sample, head: Any = None,
+def adam_step(adapter: torch.nn.Module, optim: torch.optim.Optimizer, batch: Sample, head: Any,
               action_weight: float = 0.0) -> float:
     """One Adam step on MSE(phi + adapter(tokens, phi), z_teacher), plus with ``action_weight`` > 0
     ``action_weight`` x MSE(head(proprio, that latent), head(proprio, z_teacher)) where ``head`` is the frozen
@@ -423,9 +423,16 @@ def adam_step(adapter: torch.nn.Module, optim: torch.optim.Optimizer, batch: Sam
 
 
 @torch.no_grad()
-def action_error(head: Any, proprio: torch.Tensor, z: torch.Tensor, z_teacher: torch.Tensor) -> float:
-    """MSE between the student actor's action means on ``z`` and on the teacher's z."""
-    return float(((head(proprio, z) - head(proprio, z_teacher)) ** 2).mean())
+def errors_to_teacher(head: Any, proprio: torch.Tensor, z_adapted: torch.Tensor, z_student: torch.Tensor,
+                      z_teacher: torch.Tensor) -> dict[str, float]:
+    """Mean squared errors over a batch: of the adapted and the student's latent against the teacher's z
+    (``latent_mse``, ``student_mse``), and of the student actor's action means on them (``head``, the frozen
+    student's ActorNet.head) against its action on the teacher's z (``action_mse``, ``student_action_mse``)."""
+    target = head(proprio, z_teacher)
+    return {"latent_mse": float(((z_adapted - z_teacher) ** 2).mean()),
+            "student_mse": float(((z_student - z_teacher) ** 2).mean()),
+            "action_mse": float(((head(proprio, z_adapted) - target) ** 2).mean()),
+            "student_action_mse": float(((head(proprio, z_student) - target) ** 2).mean())}
 
 
 def _save_checkpoint(out: Path, adapter: torch.nn.Module, optim: torch.optim.Optimizer, iteration: int,

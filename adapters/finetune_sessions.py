@@ -26,7 +26,7 @@ import torch
 from tqdm import tqdm
 
 from adapters.bundle import TouchUnavailable
-from adapters.finetune import Job, Result, TokenBuffer, adam_step, log_point
+from adapters.finetune import Job, Result, TokenBuffer, adam_step, errors_to_teacher, log_point
 from adapters.real_data import SessionInfo, check_sessions, session_files, session_samples
 from rotation.data.dataset import split_sessions
 from rotation.data.session import SessionError
@@ -144,18 +144,13 @@ def encode_sessions(job: Job, infos: Sequence[SessionInfo], what: str) -> TokenB
 
 @torch.no_grad()
 def latent_errors(adapter: torch.nn.Module, buf: TokenBuffer, head: Any) -> dict[str, float]:
-    """Over every sample of ``buf``: the MSE of phi + adapter and of phi against the teacher's z (``latent_mse``,
-    ``student_mse``), and of the student actor's action means (``head``) on them against its action on the
-    teacher's z (``action_mse``, ``student_action_mse``)."""
+    """adapters.finetune.errors_to_teacher over every sample of ``buf`` (phi + adapter as the adapted latent)."""
     sums = dict.fromkeys(("latent_mse", "student_mse", "action_mse", "student_action_mse"), 0.0)
     for i in range(0, buf.size, EVAL_BATCH):
         b = buf.batch(torch.arange(i, min(i + EVAL_BATCH, buf.size)))
         z = b.z_student + adapter(b.tokens, b.z_student)
-        target = head(b.proprio, b.z_teacher)
-        sums["latent_mse"] += float(((z - b.z_teacher) ** 2).mean(1).sum())
-        sums["student_mse"] += float(((b.z_student - b.z_teacher) ** 2).mean(1).sum())
-        sums["action_mse"] += float(((head(b.proprio, z) - target) ** 2).mean(1).sum())
-        sums["student_action_mse"] += float(((head(b.proprio, b.z_student) - target) ** 2).mean(1).sum())
+        for key, value in errors_to_teacher(head, b.proprio, z, b.z_student, b.z_teacher).items():
+            sums[key] += value * len(b.z_student)
     return {k: v / max(buf.size, 1) for k, v in sums.items()}
 
 

@@ -18,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from adapters.bundle import TouchUnavailable
-from adapters.finetune import Job, Result, TokenBuffer, action_error, adam_step, log_point
+from adapters.finetune import Job, Result, TokenBuffer, adam_step, errors_to_teacher, log_point
 from rotation.evaluate.metrics import EpisodeTracker, summarize
 from rotation.interrupt import StopSignals
 
@@ -78,10 +78,8 @@ def train_in_sim(job: Job) -> Result:
                     corr = adapter(tokens, z_student)
                 correction[:] = corr.numpy()
                 # errors on the fresh samples, before the adapter trains on them
-                _add(sums, "latent_mse", float(((z_student + corr - z_teacher) ** 2).mean()))
-                _add(sums, "student_mse", float(((z_student - z_teacher) ** 2).mean()))
-                _add(sums, "action_mse", action_error(head, proprio, z_student + corr, z_teacher))
-                _add(sums, "student_action_mse", action_error(head, proprio, z_student, z_teacher))
+                for key, value in errors_to_teacher(head, proprio, z_student + corr, z_student, z_teacher).items():
+                    _add(sums, key, value)
                 loss_sum = 0.0
                 adapter.train()
                 for _ in range(cfg.updates):

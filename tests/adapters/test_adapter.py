@@ -107,7 +107,8 @@ def test_the_action_matching_term_is_the_frozen_actors_error_and_trains_only_the
     # the head on the student's own latent is the student's action mean
     assert torch.allclose(head(batch.proprio, batch.z_student).clamp(-1, 1),
                           torch.as_tensor(policy.student.act_batch(groups)), atol=1e-6)
-    student_err = finetune.action_error(head, batch.proprio, batch.z_student, batch.z_teacher)
+    student_err = finetune.errors_to_teacher(head, batch.proprio, batch.z_student, batch.z_student,
+                                             batch.z_teacher)["action_mse"]
     assert student_err > 0
     latent = float(((batch.z_student - batch.z_teacher) ** 2).mean())
     optim = torch.optim.SGD(policy.adapter.parameters(), lr=0.0)  # lr 0: the returned loss at the zero adapter
@@ -120,7 +121,8 @@ def test_the_action_matching_term_is_the_frozen_actors_error_and_trains_only_the
         finetune.adam_step(policy.adapter, optim, batch, head, 10.0)
     with torch.no_grad():
         z = batch.z_student + policy.adapter(batch.tokens, batch.z_student)
-    assert finetune.action_error(head, batch.proprio, z, batch.z_teacher) < 0.1 * student_err
+    errors = finetune.errors_to_teacher(head, batch.proprio, z, batch.z_student, batch.z_teacher)
+    assert errors["action_mse"] < 0.1 * student_err and errors["student_action_mse"] == pytest.approx(student_err)
     assert all(p.grad is None for p in policy.student.net.parameters())
 
 
