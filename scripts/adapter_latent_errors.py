@@ -3,13 +3,16 @@
 The adapter is a regressor trained on the cups its DAgger run drew. Evaluated on cups outside that range, it can
 move the student's latent the wrong way. This script runs an adapter bundle under one evaluation condition, and at
 every touch refresh records three latents for every env: the student's own (phi), the adapted one (phi plus the
-correction) and the teacher's z from the privileged friction, mass and center of mass. It then groups them by the
-friction and the mass actually in force:
+correction) and the teacher's z from the privileged friction, mass and center of mass, and the frozen student
+actor's action mean on each of the three (same proprioception). A latent error only matters as far as it moves the
+action, so the action errors say which latent errors cost something. It then groups the samples by the friction
+and the mass actually in force:
 
 - ``errors.md`` / ``errors.json``: per bin, the samples, the mean squared error of the student's and the adapted
-  latent, and the mean of every latent dimension for the three (a dimension the adapter moves away from the
-  teacher's shows up there);
-- ``errors.png``: the two errors per friction bin and per mass bin.
+  latent to the teacher's z, the same for the actor's actions on them against its action on the teacher's z, and
+  the mean of every latent dimension for the three (a dimension the adapter moves away from the teacher's shows up
+  there);
+- ``errors.png``: the latent and the action errors per friction bin and per mass bin.
 
 The same condition and seed give the same cups as ``rotate evaluate`` with that seed (env i of a batch seeded s is
 an env seeded s + i), so the bins can be read beside an evaluation's ttf.
@@ -56,13 +59,17 @@ class Config:
 
 @dataclass
 class Samples:
-    """Per refresh and env: the three latents (M, Z) and the friction and mass in force (M,)."""
+    """Per refresh and env: the three latents (M, Z), the friction and mass in force (M,), and the student actor's
+    action means (M, A) on the three latents (None when not recorded)."""
 
     student: np.ndarray
     adapted: np.ndarray
     teacher: np.ndarray
     friction: np.ndarray
     mass: np.ndarray
+    action_student: np.ndarray | None = None
+    action_adapted: np.ndarray | None = None
+    action_teacher: np.ndarray | None = None
 
 
 def collect(cfg: Config) -> Samples:
@@ -87,7 +94,9 @@ def collect(cfg: Config) -> Samples:
     env = make_vec("cpu", job.env_config(ecfg, policy, cond.perturb, policy.env_needs), num_envs=cfg.num_envs,
                    seed=cfg.seed, nthread=None, device="cpu")
     i_fr, i_mass = PRIV_FIELDS.index("friction"), PRIV_FIELDS.index("mass")
-    rows: dict[str, list[np.ndarray]] = {k: [] for k in ("student", "adapted", "teacher", "friction", "mass")}
+    rows: dict[str, list[np.ndarray]] = {k: [] for k in ("student", "adapted", "teacher", "friction", "mass",
+                                                         "action_student", "action_adapted", "action_teacher")}
+    head = policy.student.net.head
     try:
         obs = env.reset(seed=cfg.seed)
         correction = np.zeros((cfg.num_envs, policy.config.latent_dim), np.float32)
@@ -96,12 +105,14 @@ def collect(cfg: Config) -> Samples:
             if k % policy.touch_every == 0:
                 correction = touch_correction(policy, obs, groups)
                 with torch.no_grad():
-                    z_student = policy.student_latent(groups).numpy()
+                    z_student = policy.student_latent(groups)
                     z_teacher = teacher.net.extractor.z(
-                        {key: torch.as_tensor(obs[key]) for key in teacher.config.obs_groups}).numpy()
-                rows["student"].append(z_student)
-                rows["adapted"].append(z_student + correction)
-                rows["teacher"].append(z_teacher)
+                        {key: torch.as_tensor(obs[key]) for key in teacher.config.obs_groups})
+                    z_adapted = z_student + torch.as_tensor(correction)
+                    proprio = policy.proprio_features(groups)
+                    for name, z in (("student", z_student), ("adapted", z_adapted), ("teacher", z_teacher)):
+                        rows[name].append(z.numpy())
+                        rows[f"action_{name}"].append(head(proprio, z).numpy())
                 rows["friction"].append(obs["priv"][:, i_fr].copy())
                 rows["mass"].append(obs["priv"][:, i_mass].copy())
             obs, _, terminated, truncated, _ = env.step(policy.act_batch(groups, correction=correction))
@@ -115,7 +126,8 @@ def collect(cfg: Config) -> Samples:
 
 
 def bin_table(samples: Samples, values: np.ndarray, edges: tuple[float, ...]) -> list[dict]:
-    """One row per non-empty bin of ``values``: range, samples, both errors, per-dimension means."""
+    """One row per non-empty bin of ``values``: range, samples, both latent errors (and both action errors when the
+    samples hold actions), per-dimension means."""
     bounds = [-np.inf, *edges, np.inf]
     rows = []
     for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
@@ -128,6 +140,10 @@ def bin_table(samples: Samples, values: np.ndarray, edges: tuple[float, ...]) ->
                      "mse_student": float(((s - t) ** 2).mean()), "mse_adapted": float(((a - t) ** 2).mean()),
                      "mean_student": s.mean(0).round(3).tolist(), "mean_adapted": a.mean(0).round(3).tolist(),
                      "mean_teacher": t.mean(0).round(3).tolist()})
+        if samples.action_teacher is not None:
+            target = samples.action_teacher[m]
+            rows[-1]["action_mse_student"] = float(((samples.action_student[m] - target) ** 2).mean())
+            rows[-1]["action_mse_adapted"] = float(((samples.action_adapted[m] - target) ** 2).mean())
     return rows
 
 
@@ -143,16 +159,20 @@ def markdown(cfg: Config, tables: dict[str, list[dict]], total: dict) -> str:
     lines = [f"# Latent errors of `{cfg.adapter}` under `{cfg.condition}`", "",
              f"{cfg.num_envs} envs x {cfg.steps} steps from seed {cfg.seed}; every touch refresh of every env is a "
              f"sample ({total['samples']} in all). Mean squared error to the teacher's z: student "
-             f"{total['mse_student']:.4f}, adapted {total['mse_adapted']:.4f}.", ""]
+             f"{total['mse_student']:.4f}, adapted {total['mse_adapted']:.4f}. The student actor's action mean on "
+             f"each latent against its action on the teacher's z: student {total['action_mse_student']:.5f}, "
+             f"adapted {total['action_mse_adapted']:.5f}.", ""]
     for name, unit in (("friction", ""), ("mass", " kg")):
         lines += [f"## By {name}", "",
-                  "| bin | samples | MSE student | MSE adapted | mean z: student / adapted / teacher |",
-                  "|---|---|---|---|---|"]
+                  "| bin | samples | latent MSE student | latent MSE adapted | action MSE student | action MSE adapted "
+                  "| mean z: student / adapted / teacher |",
+                  "|---|---|---|---|---|---|---|"]
         for row in tables[name]:
             means = " / ".join(" ".join(f"{v:+.2f}" for v in row[k])
                                for k in ("mean_student", "mean_adapted", "mean_teacher"))
             lines.append(f"| {_label(row, unit)} | {row['samples']} | {row['mse_student']:.4f} | "
-                         f"{row['mse_adapted']:.4f} | {means} |")
+                         f"{row['mse_adapted']:.4f} | {row['action_mse_student']:.5f} | "
+                         f"{row['action_mse_adapted']:.5f} | {means} |")
         lines.append("")
     return "\n".join(lines)
 
@@ -163,17 +183,19 @@ def plot(tables: dict[str, list[dict]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    for ax, (name, unit) in zip(axes, (("friction", ""), ("mass", " kg")), strict=True):
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7.2))
+    for col, (name, unit) in enumerate((("friction", ""), ("mass", " kg"))):
         rows = tables[name]
         x = np.arange(len(rows))
-        ax.bar(x - 0.2, [r["mse_student"] for r in rows], 0.4, label="student")
-        ax.bar(x + 0.2, [r["mse_adapted"] for r in rows], 0.4, label="student + adapter")
-        ax.set_xticks(x, [f"{_label(r, unit)}\n({r['samples']})" for r in rows])
-        ax.set_xlabel(f"{name} in force (samples)")
-        ax.set_ylabel("latent MSE to the teacher's z")
-        ax.grid(axis="y", alpha=0.3)
-    axes[0].legend()
+        for ax, key, what in ((axes[0, col], "mse", "latent MSE to the teacher's z"),
+                              (axes[1, col], "action_mse", "action MSE to the action on the teacher's z")):
+            ax.bar(x - 0.2, [r[f"{key}_student"] for r in rows], 0.4, label="student")
+            ax.bar(x + 0.2, [r[f"{key}_adapted"] for r in rows], 0.4, label="student + adapter")
+            ax.set_xticks(x, [f"{_label(r, unit)}\n({r['samples']})" for r in rows])
+            ax.set_xlabel(f"{name} in force (samples)")
+            ax.set_ylabel(what)
+            ax.grid(axis="y", alpha=0.3)
+    axes[0, 0].legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -196,7 +218,8 @@ def run(cfg: Config) -> dict:
     total = bin_table(samples, samples.mass, ())[0]
     cfg.out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, cfg.out / "config.json")
-    report = {"total": {k: total[k] for k in ("samples", "mse_student", "mse_adapted")}, **tables}
+    report = {"total": {k: total[k] for k in ("samples", "mse_student", "mse_adapted", "action_mse_student",
+                                              "action_mse_adapted")}, **tables}
     (cfg.out / "errors.json").write_text(json.dumps(report, indent=1) + "\n")
     (cfg.out / "errors.md").write_text(markdown(cfg, tables, report["total"]))
     plot(tables, cfg.out / "errors.png")

@@ -28,6 +28,20 @@ def test_bins_split_the_samples_and_measure_each_latent_against_the_teachers(err
     assert low["mse_student"] == pytest.approx(0.5) and low["mse_adapted"] == 0.0
     assert high["mse_student"] == pytest.approx(2.0) and high["mse_adapted"] == pytest.approx(0.5)
     assert high["mean_adapted"] == [0.0, 1.0] and high["mean_teacher"] == [0.0, 0.0]
+    assert "action_mse_student" not in low  # samples without actions: latent errors only
+
+
+def test_bins_measure_the_actions_on_each_latent_against_the_action_on_the_teachers(errors_script):
+    zeros = np.zeros((4, 2), np.float32)
+    action_teacher = np.array([[0, 0, 0], [1, 1, 1], [0, 0, 0], [1, 1, 1]], np.float32)
+    action_student = action_teacher + np.array([[3], [3], [1], [1]], np.float32)  # off by 3, then by 1
+    action_adapted = action_teacher + np.array([[1], [1], [0], [0]], np.float32)
+    samples = errors_script.Samples(zeros, zeros, zeros, friction=np.zeros(4), mass=np.array([0.1, 0.1, 0.3, 0.3]),
+                                    action_student=action_student, action_adapted=action_adapted,
+                                    action_teacher=action_teacher)
+    light, heavy = errors_script.bin_table(samples, samples.mass, (0.2,))
+    assert (light["action_mse_student"], light["action_mse_adapted"]) == (pytest.approx(9.0), pytest.approx(1.0))
+    assert (heavy["action_mse_student"], heavy["action_mse_adapted"]) == (pytest.approx(1.0), 0.0)
 
 
 def test_a_fresh_adapter_has_exactly_the_students_error_in_every_bin(errors_script, tmp_path):
@@ -45,6 +59,7 @@ def test_a_fresh_adapter_has_exactly_the_students_error_in_every_bin(errors_scri
     for row in report["friction"] + report["mass"]:
         assert row["mse_adapted"] == row["mse_student"] > 0.0  # zero correction: phi's own error
         assert row["mean_adapted"] == row["mean_student"]
+        assert row["action_mse_adapted"] == row["action_mse_student"] > 0.0  # same latent, same action
     assert {(row["low"], row["high"]) for row in report["friction"]} <= {(None, 0.3), (0.3, None)}
     assert (out / "errors.png").stat().st_size > 0 and "| bin |" in (out / "errors.md").read_text()
     assert errors_script.main(args) == 2  # the report is kept, not overwritten
