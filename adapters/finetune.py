@@ -33,6 +33,7 @@ windows and the teacher's z (adapters.real_data); the windows are encoded once i
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import pickle
@@ -109,6 +110,13 @@ class Config:
     """Weight of an action-matching term added to the latent MSE: the MSE between the frozen student actor's action
     mean on the adapted latent and on the teacher's z (same proprioception). It weights each latent direction by
     how much it moves the action; 0 = the latent MSE alone."""
+    anchor: str = ""
+    """An adapter bundle (directory or shipped name) whose corrections stand in for the teacher's z on cups lighter
+    than ``anchor_mass`` (simulation only): the target there is phi + the anchor's correction on the same tokens,
+    while heavier cups keep the teacher's z. With ``--init-from`` the same adapter, training moves the heavy-cup
+    corrections and holds the nominal-cup ones where the anchor had them. Empty: the teacher's z everywhere."""
+    anchor_mass: float = 0.2
+    """Object mass (kg) below which ``anchor`` sets the target."""
     hidden: tuple[int, ...] = (256, 128)
     """Hidden widths of the adapter's MLP g."""
     checkpoint_every: int = 20_000
@@ -169,6 +177,7 @@ class Config:
         check_int("buffer_size", self.buffer_size, 1, 1 << 24)
         check_number("lr", self.lr, 0.0, 1.0, low_open=True)
         check_number("action_weight", self.action_weight, 0.0, 1e6)
+        check_number("anchor_mass", self.anchor_mass, 0.0, 100.0, low_open=True)
         if not self.hidden or not all(isinstance(h, int) and 1 <= h <= 65_536 for h in self.hidden):
             raise ValueError(f"hidden must be widths in 1..65536, got {self.hidden}")
         check_int("checkpoint_every", self.checkpoint_every, 1, 10**12)
@@ -189,6 +198,9 @@ class Config:
             raise ValueError("--sessions trains Digit 360 adapters (imu, pressure); recorded skin sessions lack the "
                              "taxel positions the skin encoder reads (docs/skin.md): train a skin adapter in "
                              "simulation")
+        if self.sessions and self.anchor:
+            raise ValueError("--anchor sets the target by the simulated cup's mass; recorded sessions carry their "
+                             "own measured properties: leave --anchor out with --sessions")
         if self.sessions:
             windows = [MODALITY_WINDOWS[m] for m in groups]
             bad = [w for w in windows if w not in RECORDED_WINDOWS]
@@ -284,6 +296,8 @@ class Job:
     """Iteration (simulation: env steps / num_envs; sessions: epochs) of the checkpoint resumed from."""
     wall_before: float = 0.0
     """Wall time (s) of the run before the resumed checkpoint."""
+    anchor: torch.nn.Module | None = None
+    """The frozen ``cfg.anchor`` adapter, or None."""
     t_start: float = field(default_factory=time.perf_counter)
 
     @classmethod
@@ -306,11 +320,16 @@ class Job:
         if not cfg.sessions and policy.student.config.control_hz != cfg.env.control_hz:
             raise ValueError(f"env: control_hz {cfg.env.control_hz} differs from the student's "
                              f"{policy.student.config.control_hz}")
+        anchor = None
+        if cfg.anchor:  # a frozen copy of the adapter's network with the anchor's weights
+            anchor = copy.deepcopy(policy.adapter)
+            anchor.load_state_dict(_compatible_weights(policy, cfg.anchor, "anchor"), strict=True)
+            anchor.requires_grad_(False).eval()
         if cfg.init_from:
-            _init_adapter(policy, cfg)
+            policy.adapter.load_state_dict(_compatible_weights(policy, cfg.init_from, "init_from"), strict=True)
         student_sha = file_digest(student_weights(cfg.student))
         job = cls(cfg, out, checkpoints, teacher, policy, torch.optim.Adam(policy.adapter.parameters(), lr=cfg.lr),
-                  student_sha)
+                  student_sha, anchor=anchor)
         if cfg.resume:
             job._resume()
         return job
@@ -372,19 +391,20 @@ class Job:
         return Result(bundle_dir, history)
 
 
-def _init_adapter(policy: Any, cfg: Config) -> None:
-    """Start ``policy``'s adapter from the weights of the adapter bundle ``cfg.init_from``."""
+def _compatible_weights(policy: Any, name: str, option: str) -> dict[str, torch.Tensor]:
+    """The adapter weights of the bundle ``name`` (for ``option``), checked to fit ``policy``'s adapter: the same
+    encoder, modalities and network (it may name another student)."""
     try:
-        path, init_cfg, weights = read_adapter(cfg.init_from)
+        path, other, weights = read_adapter(name)
     except ValueError as err:
-        raise ValueError(f"init_from: {err}") from None
+        raise ValueError(f"{option}: {err}") from None
     want = policy.adapter_config
-    if init_cfg.encoder_sha256 != want.encoder_sha256 or init_cfg.net != want.net:
-        raise ValueError(f"init_from: adapter {path} reads encoder {init_cfg.encoder!r} ({init_cfg.encoder_sha256}) "
-                         f"with modalities {list(init_cfg.modalities)} and network {to_jsonable(init_cfg.net)}; this "
+    if other.encoder_sha256 != want.encoder_sha256 or other.net != want.net:
+        raise ValueError(f"{option}: adapter {path} reads encoder {other.encoder!r} ({other.encoder_sha256}) "
+                         f"with modalities {list(other.modalities)} and network {to_jsonable(other.net)}; this "
                          f"run has {want.encoder!r} ({want.encoder_sha256}), {list(want.modalities)}, "
                          f"{to_jsonable(want.net)}")
-    policy.adapter.load_state_dict(weights, strict=True)
+    return weights
 
 
 def config_from_args(args) -> Config:

@@ -19,8 +19,11 @@ from tqdm import tqdm
 
 from adapters.bundle import TouchUnavailable
 from adapters.finetune import Job, Result, TokenBuffer, adam_step, errors_to_teacher, log_point
+from envs.constants import PRIV_FIELDS
 from rotation.evaluate.metrics import EpisodeTracker, summarize
 from rotation.interrupt import StopSignals
+
+_MASS = PRIV_FIELDS.index("mass")
 
 
 def train_in_sim(job: Job) -> Result:
@@ -73,7 +76,7 @@ def train_in_sim(job: Job) -> Result:
                     tokens = policy.tokens(policy.env_windows(obs))
                 except TouchUnavailable as err:  # cannot happen in simulation unless the renderer breaks
                     raise RuntimeError(f"simulated touch unusable: {err}") from None
-                buffer.add(tokens, z_student, z_teacher, proprio)
+                buffer.add(tokens, z_student, anchored_target(job, obs["priv"], tokens, z_student, z_teacher), proprio)
                 with torch.no_grad():
                     corr = adapter(tokens, z_student)
                 correction[:] = corr.numpy()
@@ -139,6 +142,18 @@ def train_in_sim(job: Job) -> Result:
         card["final_action_mse"] = history[-1]["action_mse"]
         card["final_student_action_mse"] = history[-1]["student_action_mse"]
     return job.finish(card, history, signum, f"{done_iters * n} env steps", f"{total_iters * n}")
+
+
+def anchored_target(job: Job, priv: np.ndarray, tokens: dict, z_student: torch.Tensor,
+                    z_teacher: torch.Tensor) -> torch.Tensor:
+    """The regression target of a refresh's samples: the teacher's z, or with ``job.anchor`` on cups lighter than
+    ``cfg.anchor_mass`` (the privileged vector's mass) the student's latent plus the anchor's correction."""
+    if job.anchor is None:
+        return z_teacher
+    with torch.no_grad():
+        held = z_student + job.anchor(tokens, z_student)
+    light = torch.as_tensor(np.asarray(priv)[:, _MASS] < job.cfg.anchor_mass)
+    return torch.where(light[:, None], held, z_teacher)
 
 
 def _add(sums: dict[str, float], key: str, value: float) -> None:

@@ -245,6 +245,41 @@ def test_init_from_carries_an_adapter_to_another_student(tiny_run, tmp_path):
         finetune.Job.start_from(_tiny_cfg(tmp_path / "none", init_from=str(tmp_path)))
 
 
+def test_anchor_holds_light_cups_at_its_correction_and_heavy_ones_at_the_teachers_z(tiny_run, env_obs, tmp_path):
+    """--anchor: a frozen copy of another adapter whose correction is the target on cups lighter than anchor_mass;
+    the teacher's z stays the target on heavier ones, and everywhere without an anchor."""
+    from adapters.finetune_sim import anchored_target
+
+    out, result = tiny_run
+    job = finetune.Job.start_from(_tiny_cfg(tmp_path / "anchored", anchor=str(result.bundle_dir), anchor_mass=0.2))
+    trained = load_adapter(result.bundle_dir).adapter.state_dict()
+    for name, value in job.anchor.state_dict().items():
+        assert torch.equal(value, trained[name]), name
+    assert not any(p.requires_grad for p in job.anchor.parameters())  # frozen, and not what the optimizer steps
+    stepped = {id(p) for g in job.optim.param_groups for p in g["params"]}
+    assert stepped.isdisjoint(id(p) for p in job.anchor.parameters())
+    assert all(p.abs().sum() == 0 for p in job.policy.adapter.zero.parameters())  # the adapter itself starts at zero
+    _, obs = env_obs
+    policy = job.policy
+    tokens = policy.tokens(policy.env_windows(obs))
+    groups = {k: obs[k] for k in policy.config.obs_groups}
+    with torch.no_grad():
+        z_student = policy.student_latent(groups)
+        held = z_student + job.anchor(tokens, z_student)
+    assert not torch.allclose(held, z_student)  # the trained anchor corrects
+    z_teacher = torch.randn_like(z_student)
+    priv = np.array(obs["priv"], copy=True)
+    priv[:, 4] = [0.1, 0.3]  # envs.constants.PRIV_FIELDS: mass
+    target = anchored_target(job, priv, tokens, z_student, z_teacher)
+    assert torch.equal(target[0], held[0]) and torch.equal(target[1], z_teacher[1])
+    job.anchor = None
+    assert torch.equal(anchored_target(job, priv, tokens, z_student, z_teacher), z_teacher)
+    with pytest.raises(ValueError, match="anchor: .*modalities"):
+        finetune.Job.start_from(_tiny_cfg(tmp_path / "other", modalities="imu", anchor=str(result.bundle_dir)))
+    with pytest.raises(ValueError, match="leave --anchor out with --sessions"):
+        _tiny_cfg(tmp_path / "s", sessions=(tmp_path,), modalities="imu", anchor=str(result.bundle_dir))
+
+
 def _shipped(name):
     from rotation.policy.bundle import resolve_bundle
 
