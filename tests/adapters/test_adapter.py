@@ -14,6 +14,7 @@ from adapters import finetune
 from adapters.bundle import TouchUnavailable, build_adapted, load_adapter
 from adapters.model import AdapterNetConfig, TouchAdapter
 from envs.config import EnvConfig
+from envs.constants import PRIV_FIELDS
 from envs.core import RotateCupVec
 from rotation.evaluate import job
 from rotation.evaluate.rollout import run_episodes
@@ -269,7 +270,7 @@ def test_anchor_holds_light_cups_at_its_correction_and_heavy_ones_at_the_teacher
     assert not torch.allclose(held, z_student)  # the trained anchor corrects
     z_teacher = torch.randn_like(z_student)
     priv = np.array(obs["priv"], copy=True)
-    priv[:, 4] = [0.1, 0.3]  # envs.constants.PRIV_FIELDS: mass
+    priv[:, PRIV_FIELDS.index("mass")] = [0.1, 0.3]
     target = anchored_target(job, priv, tokens, z_student, z_teacher)
     assert torch.equal(target[0], held[0]) and torch.equal(target[1], z_teacher[1])
     job.anchor = None
