@@ -6,13 +6,13 @@ every touch refresh records three latents for every env: the student's own (phi)
 correction) and the teacher's z from the privileged friction, mass and center of mass, and the frozen student
 actor's action mean on each of the three (same proprioception). A latent error only matters as far as it moves the
 action, so the action errors say which latent errors cost something. It then groups the samples by the friction
-and the mass actually in force:
+and the mass actually in force, and by the time into the episode:
 
 - ``errors.md`` / ``errors.json``: per bin, the samples, the mean squared error of the student's and the adapted
   latent to the teacher's z, the same for the actor's actions on them against its action on the teacher's z, and
   the mean of every latent dimension for the three (a dimension the adapter moves away from the teacher's shows up
-  there);
-- ``errors.png``: the latent and the action errors per friction bin and per mass bin.
+  there); the time bins say whether the errors grow late in an episode, where the cup is lost;
+- ``errors.png``: the latent and the action errors per friction, mass and time bin.
 
 The same condition and seed give the same cups as ``rotate evaluate`` with that seed (env i of a batch seeded s is
 an env seeded s + i), so the bins can be read beside an evaluation's ttf.
@@ -51,6 +51,9 @@ class Config:
     """Inner edges of the friction bins."""
     mass_edges: tuple[float, ...] = (0.15, 0.25, 0.35)
     """Inner edges of the mass bins (kg)."""
+    time_edges: tuple[float, ...] = (6.4, 12.8)
+    """Inner edges of the time-into-episode bins (s; 6.4 s is where the shipped adapters' training episodes were
+    cut)."""
     torch_threads: int = 2
     """torch CPU threads."""
     out: Path = Path("runs/latent_errors")
@@ -59,14 +62,15 @@ class Config:
 
 @dataclass
 class Samples:
-    """Per refresh and env: the three latents (M, Z), the friction and mass in force (M,), and the student actor's
-    action means (M, A) on the three latents (None when not recorded)."""
+    """Per refresh and env: the three latents (M, Z), the friction and mass in force and the time into the episode
+    in s (M,), and the student actor's action means (M, A) on the three latents (None when not recorded)."""
 
     student: np.ndarray
     adapted: np.ndarray
     teacher: np.ndarray
     friction: np.ndarray
     mass: np.ndarray
+    time: np.ndarray | None = None
     action_student: np.ndarray | None = None
     action_adapted: np.ndarray | None = None
     action_teacher: np.ndarray | None = None
@@ -91,11 +95,12 @@ def collect(cfg: Config) -> Samples:
                          f"student a {policy.config.latent_dim}-dim one")
     cond = get_suite("perturbations", [cfg.condition])[0]
     ecfg = job.Config(policies={"adapter": cfg.adapter}, seed=cfg.seed, num_envs=cfg.num_envs)
-    env = make_vec("cpu", job.env_config(ecfg, policy, cond.perturb, policy.env_needs), num_envs=cfg.num_envs,
-                   seed=cfg.seed, nthread=None, device="cpu")
+    env_cfg = job.env_config(ecfg, policy, cond.perturb, policy.env_needs)
+    env = make_vec("cpu", env_cfg, num_envs=cfg.num_envs, seed=cfg.seed, nthread=None, device="cpu")
     i_fr, i_mass = PRIV_FIELDS.index("friction"), PRIV_FIELDS.index("mass")
-    rows: dict[str, list[np.ndarray]] = {k: [] for k in ("student", "adapted", "teacher", "friction", "mass",
+    rows: dict[str, list[np.ndarray]] = {k: [] for k in ("student", "adapted", "teacher", "friction", "mass", "time",
                                                          "action_student", "action_adapted", "action_teacher")}
+    elapsed = np.zeros(cfg.num_envs, np.int64)  # control steps since each env's episode began
     head = policy.student.net.head
     try:
         obs = env.reset(seed=cfg.seed)
@@ -115,10 +120,13 @@ def collect(cfg: Config) -> Samples:
                         rows[f"action_{name}"].append(head(proprio, z).numpy())
                 rows["friction"].append(obs["priv"][:, i_fr].copy())
                 rows["mass"].append(obs["priv"][:, i_mass].copy())
+                rows["time"].append(elapsed * env_cfg.control_dt)
             obs, _, terminated, truncated, _ = env.step(policy.act_batch(groups, correction=correction))
+            elapsed += 1
             done = np.flatnonzero(terminated | truncated)
             if len(done):
                 obs = env.reset(ids=done)
+                elapsed[done] = 0
                 correction[done] = 0.0  # a fresh episode is the student until its first refresh
     finally:
         env.close()
@@ -147,6 +155,11 @@ def bin_table(samples: Samples, values: np.ndarray, edges: tuple[float, ...]) ->
     return rows
 
 
+_BINNINGS = (("friction", ""), ("mass", " kg"), ("time", " s"))
+"""Report tables in order: what the samples are grouped by, and its unit."""
+_AXIS = {"friction": "friction in force", "mass": "mass in force", "time": "time into the episode"}
+
+
 def _label(row: dict, unit: str = "") -> str:
     if row["low"] is None:
         return f"< {row['high']:g}{unit}"
@@ -162,7 +175,9 @@ def markdown(cfg: Config, tables: dict[str, list[dict]], total: dict) -> str:
              f"{total['mse_student']:.4f}, adapted {total['mse_adapted']:.4f}. The student actor's action mean on "
              f"each latent against its action on the teacher's z: student {total['action_mse_student']:.5f}, "
              f"adapted {total['action_mse_adapted']:.5f}.", ""]
-    for name, unit in (("friction", ""), ("mass", " kg")):
+    for name, unit in _BINNINGS:
+        if name not in tables:
+            continue
         lines += [f"## By {name}", "",
                   "| bin | samples | latent MSE student | latent MSE adapted | action MSE student | action MSE adapted "
                   "| mean z: student / adapted / teacher |",
@@ -183,8 +198,9 @@ def plot(tables: dict[str, list[dict]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 2, figsize=(10, 7.2))
-    for col, (name, unit) in enumerate((("friction", ""), ("mass", " kg"))):
+    binnings = [(name, unit) for name, unit in _BINNINGS if name in tables]
+    fig, axes = plt.subplots(2, len(binnings), figsize=(5 * len(binnings), 7.2), squeeze=False)
+    for col, (name, unit) in enumerate(binnings):
         rows = tables[name]
         x = np.arange(len(rows))
         for ax, key, what in ((axes[0, col], "mse", "latent MSE to the teacher's z"),
@@ -192,7 +208,7 @@ def plot(tables: dict[str, list[dict]], path: Path) -> None:
             ax.bar(x - 0.2, [r[f"{key}_student"] for r in rows], 0.4, label="student")
             ax.bar(x + 0.2, [r[f"{key}_adapted"] for r in rows], 0.4, label="student + adapter")
             ax.set_xticks(x, [f"{_label(r, unit)}\n({r['samples']})" for r in rows])
-            ax.set_xlabel(f"{name} in force (samples)")
+            ax.set_xlabel(f"{_AXIS[name]} (samples)")
             ax.set_ylabel(what)
             ax.grid(axis="y", alpha=0.3)
     axes[0, 0].legend()
@@ -205,7 +221,7 @@ def run(cfg: Config) -> dict:
     if cfg.num_envs < 1 or cfg.steps < 1 or cfg.torch_threads < 1:
         raise ValueError(f"num_envs, steps and torch_threads must be >= 1, got {cfg.num_envs}, {cfg.steps}, "
                          f"{cfg.torch_threads}")
-    for name in ("friction_edges", "mass_edges"):
+    for name in ("friction_edges", "mass_edges", "time_edges"):
         edges = getattr(cfg, name)
         if list(edges) != sorted(set(edges)):
             raise ValueError(f"{name} must be strictly increasing, got {list(edges)}")
@@ -214,7 +230,8 @@ def run(cfg: Config) -> dict:
     torch.set_num_threads(cfg.torch_threads)
     samples = collect(cfg)
     tables = {"friction": bin_table(samples, samples.friction, cfg.friction_edges),
-              "mass": bin_table(samples, samples.mass, cfg.mass_edges)}
+              "mass": bin_table(samples, samples.mass, cfg.mass_edges),
+              "time": bin_table(samples, samples.time, cfg.time_edges)}
     total = bin_table(samples, samples.mass, ())[0]
     cfg.out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, cfg.out / "config.json")

@@ -49,6 +49,12 @@ def machine() -> str:
 
 def run(cfg: Config) -> Path:
     bundle = load_bundle(cfg.bundle)  # validates before anything is replaced
+    rows = []
+    if cfg.evaluation is not None:
+        label = cfg.label or cfg.name
+        rows = [r for r in json.loads(Path(cfg.evaluation).read_text())["rows"] if r["policy"] == label]
+        if not rows:
+            raise ValueError(f"{cfg.evaluation} has no rows for policy {label!r}")
     card = dict(bundle.config.card)
     dest = PACKAGE_POLICIES / cfg.name
     if dest.exists():
@@ -72,14 +78,16 @@ def run(cfg: Config) -> Path:
              f"- machine: {machine()}",
              f"- files: config.json, {weights} ({(dest / weights).stat().st_size / 1e6:.2f} MB)",
              ""]
-    if cfg.evaluation is not None:
-        label = cfg.label or cfg.name
-        rows = [r for r in json.loads(Path(cfg.evaluation).read_text())["rows"] if r["policy"] == label]
-        if not rows:
-            raise ValueError(f"{cfg.evaluation} has no rows for policy {label!r}")
-        lines += [f"## Evaluation ({rows[0]['episodes']} episodes per condition, `{cfg.evaluation}`)", "",
-                  "| condition | " + " | ".join(METRICS) + " |", "|---|" + "---|" * len(METRICS)]
-        lines += ["| " + r["condition"] + " | " + " | ".join(f"{r[m]:.3f}" for m in METRICS) + " |" for r in rows]
+    if rows:
+        if len({r["episodes"] for r in rows}) == 1:
+            lines += [f"## Evaluation ({rows[0]['episodes']} episodes per condition, `{cfg.evaluation}`)", "",
+                      "| condition | " + " | ".join(METRICS) + " |", "|---|" + "---|" * len(METRICS)]
+            lines += ["| " + r["condition"] + " | " + " | ".join(f"{r[m]:.3f}" for m in METRICS) + " |" for r in rows]
+        else:  # a pooled report: the conditions can hold different numbers of episodes
+            lines += [f"## Evaluation (`{cfg.evaluation}`)", "",
+                      "| condition | episodes | " + " | ".join(METRICS) + " |", "|---|---|" + "---|" * len(METRICS)]
+            lines += [f"| {r['condition']} | {r['episodes']} | " + " | ".join(f"{r[m]:.3f}" for m in METRICS) + " |"
+                      for r in rows]
         lines.append("")
     if cfg.notes:
         lines += ["## Notes", "", cfg.notes, ""]

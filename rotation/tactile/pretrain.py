@@ -176,7 +176,11 @@ def train(cfg: Config) -> dict[str, Any]:
     if cfg.torch_threads:
         torch.set_num_threads(cfg.torch_threads)
     try:
-        return _train(cfg, procs)
+        result = _train(cfg, procs)
+        # every rank finished before any tears the group down: gloo can abort a process whose peer is still
+        # sending when the group goes away ("terminate called without an active exception")
+        procs.barrier()
+        return result
     finally:
         torch.set_num_threads(threads)
         if procs.distributed and dist.is_initialized():

@@ -1,4 +1,5 @@
-"""scripts/adapter_latent_errors.py: an adapter's latent error to the teacher's z, binned by friction and mass."""
+"""scripts/adapter_latent_errors.py: an adapter's latent error to the teacher's z, binned by friction, mass and time
+into the episode."""
 
 from __future__ import annotations
 
@@ -50,13 +51,15 @@ def test_a_fresh_adapter_has_exactly_the_students_error_in_every_bin(errors_scri
     adapter.save(tmp_path / "adapter")
     out = tmp_path / "report"
     args = ["--adapter", str(tmp_path / "adapter"), "--condition", "friction_0.25", "--num-envs", "2", "--steps", "8",
-            "--seed", "5", "--out", str(out), "--friction-edges", "0.3"]
+            "--seed", "5", "--out", str(out), "--friction-edges", "0.3", "--time-edges", "0.1"]
     assert errors_script.main(args) == 0
     report = json.loads((out / "errors.json").read_text())
     assert report["total"]["samples"] == 2 * 2  # 2 envs x refreshes at steps 0 and 4
     assert sum(row["samples"] for row in report["friction"]) == 4
     assert sum(row["samples"] for row in report["mass"]) == 4
-    for row in report["friction"] + report["mass"]:
+    # refreshes at 0 s and at 4 x 0.05 s = 0.2 s (no episode ends in 8 steps): two samples on each side of 0.1 s
+    assert [(row["low"], row["high"], row["samples"]) for row in report["time"]] == [(None, 0.1, 2), (0.1, None, 2)]
+    for row in report["friction"] + report["mass"] + report["time"]:
         assert row["mse_adapted"] == row["mse_student"] > 0.0  # zero correction: phi's own error
         assert row["mean_adapted"] == row["mean_student"]
         assert row["action_mse_adapted"] == row["action_mse_student"] > 0.0  # same latent, same action
