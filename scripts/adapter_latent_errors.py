@@ -70,7 +70,7 @@ class Samples:
     teacher: np.ndarray
     friction: np.ndarray
     mass: np.ndarray
-    time: np.ndarray | None = None
+    time: np.ndarray
     action_student: np.ndarray | None = None
     action_adapted: np.ndarray | None = None
     action_teacher: np.ndarray | None = None
@@ -155,9 +155,9 @@ def bin_table(samples: Samples, values: np.ndarray, edges: tuple[float, ...]) ->
     return rows
 
 
-_BINNINGS = (("friction", ""), ("mass", " kg"), ("time", " s"))
-"""Report tables in order: what the samples are grouped by, and its unit."""
-_AXIS = {"friction": "friction in force", "mass": "mass in force", "time": "time into the episode"}
+_BINNINGS = (("friction", "", "friction in force"), ("mass", " kg", "mass in force"),
+             ("time", " s", "time into the episode"))
+"""Report tables in order: what the samples are grouped by, its unit, and the plot's axis label."""
 
 
 def _label(row: dict, unit: str = "") -> str:
@@ -175,9 +175,7 @@ def markdown(cfg: Config, tables: dict[str, list[dict]], total: dict) -> str:
              f"{total['mse_student']:.4f}, adapted {total['mse_adapted']:.4f}. The student actor's action mean on "
              f"each latent against its action on the teacher's z: student {total['action_mse_student']:.5f}, "
              f"adapted {total['action_mse_adapted']:.5f}.", ""]
-    for name, unit in _BINNINGS:
-        if name not in tables:
-            continue
+    for name, unit, _ in _BINNINGS:
         lines += [f"## By {name}", "",
                   "| bin | samples | latent MSE student | latent MSE adapted | action MSE student | action MSE adapted "
                   "| mean z: student / adapted / teacher |",
@@ -198,9 +196,8 @@ def plot(tables: dict[str, list[dict]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    binnings = [(name, unit) for name, unit in _BINNINGS if name in tables]
-    fig, axes = plt.subplots(2, len(binnings), figsize=(5 * len(binnings), 7.2), squeeze=False)
-    for col, (name, unit) in enumerate(binnings):
+    fig, axes = plt.subplots(2, len(_BINNINGS), figsize=(5 * len(_BINNINGS), 7.2))
+    for col, (name, unit, axis) in enumerate(_BINNINGS):
         rows = tables[name]
         x = np.arange(len(rows))
         for ax, key, what in ((axes[0, col], "mse", "latent MSE to the teacher's z"),
@@ -208,7 +205,7 @@ def plot(tables: dict[str, list[dict]], path: Path) -> None:
             ax.bar(x - 0.2, [r[f"{key}_student"] for r in rows], 0.4, label="student")
             ax.bar(x + 0.2, [r[f"{key}_adapted"] for r in rows], 0.4, label="student + adapter")
             ax.set_xticks(x, [f"{_label(r, unit)}\n({r['samples']})" for r in rows])
-            ax.set_xlabel(f"{_AXIS[name]} (samples)")
+            ax.set_xlabel(f"{axis} (samples)")
             ax.set_ylabel(what)
             ax.grid(axis="y", alpha=0.3)
     axes[0, 0].legend()

@@ -79,15 +79,12 @@ def run(cfg: Config) -> Path:
              f"- files: config.json, {weights} ({(dest / weights).stat().st_size / 1e6:.2f} MB)",
              ""]
     if rows:
-        if len({r["episodes"] for r in rows}) == 1:
-            lines += [f"## Evaluation ({rows[0]['episodes']} episodes per condition, `{cfg.evaluation}`)", "",
-                      "| condition | " + " | ".join(METRICS) + " |", "|---|" + "---|" * len(METRICS)]
-            lines += ["| " + r["condition"] + " | " + " | ".join(f"{r[m]:.3f}" for m in METRICS) + " |" for r in rows]
-        else:  # a pooled report: the conditions can hold different numbers of episodes
-            lines += [f"## Evaluation (`{cfg.evaluation}`)", "",
-                      "| condition | episodes | " + " | ".join(METRICS) + " |", "|---|---|" + "---|" * len(METRICS)]
-            lines += [f"| {r['condition']} | {r['episodes']} | " + " | ".join(f"{r[m]:.3f}" for m in METRICS) + " |"
-                      for r in rows]
+        pooled = len({r["episodes"] for r in rows}) > 1  # a pooled report's conditions can differ in episodes
+        columns = ["condition", *(["episodes"] if pooled else []), *METRICS]
+        where = f"`{cfg.evaluation}`" if pooled else f"{rows[0]['episodes']} episodes per condition, `{cfg.evaluation}`"
+        lines += [f"## Evaluation ({where})", "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+        lines += ["| " + " | ".join([r["condition"], *([str(r["episodes"])] if pooled else []),
+                                     *(f"{r[m]:.3f}" for m in METRICS)]) + " |" for r in rows]
         lines.append("")
     if cfg.notes:
         lines += ["## Notes", "", cfg.notes, ""]

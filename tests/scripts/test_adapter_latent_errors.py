@@ -22,7 +22,7 @@ def test_bins_split_the_samples_and_measure_each_latent_against_the_teachers(err
     student = np.array([[1, 0], [1, 0], [0, 2], [0, 2]], np.float32)
     adapted = np.array([[0, 0], [0, 0], [0, 1], [0, 1]], np.float32)
     samples = errors_script.Samples(student, adapted, teacher, friction=np.array([0.2, 0.5, 2.0, 2.5]),
-                                    mass=np.zeros(4))
+                                    mass=np.zeros(4), time=np.zeros(4))
     low, high = errors_script.bin_table(samples, samples.friction, (0.75, 1.5))  # the middle bin is empty
     assert (low["low"], low["high"], low["samples"]) == (None, 0.75, 2)
     assert (high["low"], high["high"], high["samples"]) == (1.5, None, 2)
@@ -38,7 +38,7 @@ def test_bins_measure_the_actions_on_each_latent_against_the_action_on_the_teach
     action_student = action_teacher + np.array([[3], [3], [1], [1]], np.float32)  # off by 3, then by 1
     action_adapted = action_teacher + np.array([[1], [1], [0], [0]], np.float32)
     samples = errors_script.Samples(zeros, zeros, zeros, friction=np.zeros(4), mass=np.array([0.1, 0.1, 0.3, 0.3]),
-                                    action_student=action_student, action_adapted=action_adapted,
+                                    time=np.zeros(4), action_student=action_student, action_adapted=action_adapted,
                                     action_teacher=action_teacher)
     light, heavy = errors_script.bin_table(samples, samples.mass, (0.2,))
     assert (light["action_mse_student"], light["action_mse_adapted"]) == (pytest.approx(9.0), pytest.approx(1.0))
