@@ -157,7 +157,8 @@ def bin_table(samples: Samples, values: np.ndarray, edges: tuple[float, ...]) ->
 
 _BINNINGS = (("friction", "", "friction in force"), ("mass", " kg", "mass in force"),
              ("time", " s", "time into the episode"))
-"""Report tables in order: what the samples are grouped by, its unit, and the plot's axis label."""
+"""Report tables in order: what the samples are grouped by (a Samples field, its inner edges Config.<name>_edges),
+its unit, and the plot's axis label."""
 
 
 def _label(row: dict, unit: str = "") -> str:
@@ -218,17 +219,16 @@ def run(cfg: Config) -> dict:
     if cfg.num_envs < 1 or cfg.steps < 1 or cfg.torch_threads < 1:
         raise ValueError(f"num_envs, steps and torch_threads must be >= 1, got {cfg.num_envs}, {cfg.steps}, "
                          f"{cfg.torch_threads}")
-    for name in ("friction_edges", "mass_edges", "time_edges"):
-        edges = getattr(cfg, name)
+    for name, _, _ in _BINNINGS:
+        edges = getattr(cfg, f"{name}_edges")
         if list(edges) != sorted(set(edges)):
-            raise ValueError(f"{name} must be strictly increasing, got {list(edges)}")
+            raise ValueError(f"{name}_edges must be strictly increasing, got {list(edges)}")
     if (cfg.out / "errors.json").exists():
         raise ValueError(f"{cfg.out} already holds a report; give another --out or remove it")
     torch.set_num_threads(cfg.torch_threads)
     samples = collect(cfg)
-    tables = {"friction": bin_table(samples, samples.friction, cfg.friction_edges),
-              "mass": bin_table(samples, samples.mass, cfg.mass_edges),
-              "time": bin_table(samples, samples.time, cfg.time_edges)}
+    tables = {name: bin_table(samples, getattr(samples, name), getattr(cfg, f"{name}_edges"))
+              for name, _, _ in _BINNINGS}
     total = bin_table(samples, samples.mass, ())[0]
     cfg.out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, cfg.out / "config.json")
