@@ -289,9 +289,11 @@ class AdaptiveKLPPO(RolloutPrefetch, PPO):
     the next rollout collected during the update (``overlap``; rotation.train.overlap)."""
 
     def _setup_model(self) -> None:
+        # a loaded model already holds its schedule (the current rate and the target), which SB3's setup would
+        # replace with a constant one at the starting rate: keep it, so a resume continues the schedule exactly
+        loaded = getattr(self, "lr_schedule", None)
         super()._setup_model()
-        if not isinstance(self.lr_schedule, KLSchedule):
-            self.lr_schedule = KLSchedule(float(self.learning_rate), 0.02)
+        self.lr_schedule = loaded if isinstance(loaded, KLSchedule) else KLSchedule(float(self.learning_rate), 0.02)
 
     critic_warmup: int = 0
     """Updates left that train only the critic (after --init-from: a fresh critic's first value estimates would

@@ -93,6 +93,24 @@ def test_resume_continues_the_step_count(tmp_path):
     assert load_bundle(first.out / "bundle").config.card["steps"] == 4096
 
 
+def test_a_checkpoint_keeps_the_adaptive_learning_rate_and_its_target(tmp_path):
+    """SB3's load rebuilds a constant schedule at the starting rate; the adaptive one (its current rate and its KL
+    target) must survive a save and load, or every resume restarts at the starting rate with the default target."""
+    cfg = _cfg(tmp_path, total_steps=1024, target_kl=0.05)
+    teacher.run(cfg)
+    ckpt = cfg.out / "checkpoints" / "last.zip"
+    model = AdaptiveKLPPO.load(ckpt, device="cpu")
+    assert isinstance(model.lr_schedule, KLSchedule) and model.lr_schedule.target == 0.05
+    model.lr_schedule.lr = 1.234e-4  # as if the rule had moved it
+    model.save(tmp_path / "moved.zip")
+    again = AdaptiveKLPPO.load(tmp_path / "moved.zip", device="cpu")
+    assert (again.lr_schedule.lr, again.lr_schedule.target) == (1.234e-4, 0.05)
+    assert again.lr_schedule(1.0) == 1.234e-4
+    # and the run resumes with its own target instead of being refused as a changed option
+    teacher.run(_cfg(tmp_path, total_steps=2048, target_kl=0.05, resume=ckpt))
+    assert AdaptiveKLPPO.load(ckpt, device="cpu").num_timesteps == 2048
+
+
 def test_freeze_encoder_keeps_z_through_init_from_and_resume(tmp_path):
     """A teacher continued with --freeze-encoder keeps the bundle's env-factor encoder bit for bit (so students and
     adapters trained on its z stay valid), also across a resume; the actor moves."""
