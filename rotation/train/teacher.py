@@ -293,7 +293,8 @@ class AdaptiveKLPPO(RolloutPrefetch, PPO):
         # replace with a constant one at the starting rate: keep it, so a resume continues the schedule exactly
         loaded = getattr(self, "lr_schedule", None)
         super()._setup_model()
-        self.lr_schedule = loaded if isinstance(loaded, KLSchedule) else KLSchedule(float(self.learning_rate), 0.02)
+        fresh = not isinstance(loaded, KLSchedule)
+        self.lr_schedule = KLSchedule(float(self.learning_rate), Config.target_kl) if fresh else loaded
 
     critic_warmup: int = 0
     """Updates left that train only the critic (after --init-from: a fresh critic's first value estimates would
