@@ -3,7 +3,9 @@
 - A job refuses to write into a folder that holds another run's outputs unless it resumes that run or the user
   asked to replace it (``--overwrite``, which deletes exactly those outputs first).
 - A resume compares its options with the run's saved ``config.json`` and refuses with the list of differences;
-  only options that change the run's length or its speed (``may_differ``) may change.
+  only options that change the run's length or its speed (``may_differ``) may change. ``config.json`` also records
+  a digest of the grasp cache the episodes start from (the options name only its path), and a resume refuses
+  another file at that path.
 - Checkpoints are written to a temporary file and renamed, so a crash leaves the previous one intact; a damaged
   latest checkpoint (a truncated file from an older version or a full disk) falls back to the newest intact
   earlier one, with a warning.
@@ -78,6 +80,38 @@ def refuse_differences(differences: list[str], where: str, may_differ: Iterable[
     if differences:
         raise ValueError(f"--resume: the options differ from the run's ({where}): {'; '.join(differences)}. Resume "
                          f"with the run's values; only {', '.join(sorted(may_differ))} may change")
+
+
+GRASPS_KEY = "grasp_cache_sha256"
+"""The key of the grasp cache's digest in a training run's config.json (beside the options)."""
+
+
+def run_record(cfg: Any) -> dict[str, Any]:
+    """What a training run's config.json holds: its options (a Config with object, hand and grasp_cache) and the
+    digest of the grasp cache its episodes start from."""
+    from rotation.configs import to_jsonable
+    from rotation.evaluate.finished import grasps_digest
+
+    return to_jsonable(cfg) | {GRASPS_KEY: grasps_digest(cfg, cfg.hand)}
+
+
+def save_run_record(cfg: Any, path: Path) -> None:
+    """Write :func:`run_record` as indented JSON (the run's config.json)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(run_record(cfg), indent=2) + "\n")
+
+
+def check_resume_record(saved: dict[str, Any], now: dict[str, Any], where: str, may_differ: Iterable[str]) -> None:
+    """Refuse a resume whose options (or grasp cache) differ from the run's record ``saved`` (read from ``where``).
+    A record written before the digest was kept has none, and its cache is not compared."""
+    old, new = saved.get(GRASPS_KEY), now.get(GRASPS_KEY)
+    if old is not None and new is not None and old != new:
+        cache = now.get("grasp_cache") or f"the shipped cache of {now.get('object')!r}"
+        raise ValueError(f"--resume: the grasp cache ({cache}) is not the file the run started from (SHA-256 "
+                         f"{new}..., the run's {old}..., recorded in {where}); a regenerated cache changes every "
+                         "episode's start. Resume with the run's cache, or start a new run from its bundle "
+                         "(--init-from)")
+    refuse_differences(config_differences(saved, now, {*may_differ, GRASPS_KEY}), where, may_differ)
 
 
 def save_atomically(write: Callable[[Path], None], path: Path) -> None:

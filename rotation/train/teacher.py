@@ -18,8 +18,9 @@ Writes checkpoints (`checkpoints/step_*.zip`, `checkpoints/last.zip`), `config.j
 curve `curves.jsonl` (flushed with each checkpoint) and the final policy bundle `bundle/` (weights + config, what
 evaluation and deploy load). An `--out` holding another run is refused unless `--resume` continues it or
 `--overwrite` replaces it; a resume takes the run's options the command line leaves out (and its folder as
-`--out`), and refuses options that differ from the run's (but the length and speed ones) and
-falls back from a damaged checkpoint to the previous intact one. Ctrl-C / SIGTERM stop at the next step, save the
+`--out`), and refuses options that differ from the run's (but the length and speed ones) and a grasp cache
+other than the file the run started from (config.json records its digest), and falls back from a damaged
+checkpoint to the previous intact one. Ctrl-C / SIGTERM stop at the next step, save the
 checkpoint, curves and bundle, and exit with status 130 / 143.
 """
 
@@ -44,20 +45,24 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from envs.config import EnvConfig, RandomizationConfig, RewardConfig
 from envs.objects import OBJECTS
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
-from rotation.configs import check_device, save_config, to_jsonable
+from rotation.configs import check_device, to_jsonable
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.bundle import PolicyBundle, load_bundle
 from rotation.policy.features import PrivilegedExtractor, StudentExtractor, StudentPPOPolicy, policy_kwargs
 from rotation.policy.networks import EnvFactorEncoderConfig, RunningNorm
 from rotation.train.overlap import RolloutPrefetch
 from rotation.train.runs import (
+    GRASPS_KEY,
     CurveLog,
     DamagedCheckpoint,
+    check_resume_record,
     check_run_dir,
     clear_outputs,
     config_differences,
     refuse_differences,
+    run_record,
     save_atomically,
+    save_run_record,
     with_fallback,
 )
 from rotation.train.vec_env import RotateCupSB3VecEnv
@@ -567,14 +572,13 @@ def run(cfg: Config) -> PolicyBundle:
     resuming_here = resume_dir is not None and resume_dir.resolve() == out.resolve()
     check_run_dir(out, RUN_OUTPUTS, overwrite=cfg.overwrite, resuming_here=resuming_here,
                   resume_hint=f"pass --resume {out / 'checkpoints' / 'last.zip'} to continue it")
-    now = to_jsonable(cfg)
+    now = run_record(cfg)
     if cfg.resume is not None:
         if not cfg.resume.is_file():
             raise ValueError(f"--resume {cfg.resume}: no such checkpoint")
         saved = resume_dir / "config.json" if resume_dir is not None else None
         if saved is not None and saved.is_file():
-            differences = config_differences(json.loads(saved.read_text()), now, RESUMABLE_CHANGES)
-            refuse_differences(differences, str(saved), RESUMABLE_CHANGES)
+            check_resume_record(json.loads(saved.read_text()), now, str(saved), RESUMABLE_CHANGES)
     torch.set_num_threads(cfg.torch_threads)
     torch.manual_seed(cfg.seed)
     env_cfg = cfg.env_config()
@@ -600,7 +604,7 @@ def run(cfg: Config) -> PolicyBundle:
             if removed:
                 print(f"{_role(cfg)}: --overwrite deleted {', '.join(removed)} in {out}")
         out.mkdir(parents=True, exist_ok=True)
-        save_config(cfg, out / "config.json")
+        save_run_record(cfg, out / "config.json")
         curves = CurveLog(out / "curves.jsonl")
         if resuming_here and (dropped := curves.trim(model.num_timesteps)):
             print(f"{_role(cfg)}: dropped {dropped} curve rows logged after step {model.num_timesteps} (not in the "
@@ -634,6 +638,7 @@ def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: 
         card = {"role": _role(cfg), "object": cfg.object, "steps": steps, "seed": cfg.seed,
                 "wall_time_s": round(wall, 1), "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out),
                                                                                        "resume": str(cfg.resume)}}
+        card[GRASPS_KEY] = run_record(cfg)[GRASPS_KEY]  # the cache's path alone does not show a regenerated file
         if resumed_from is not None:
             card["resumed_from"] = str(resumed_from)
         if cfg.student:  # what the fine-tune started from: the distilled student's own card (teacher, distillation)

@@ -35,18 +35,19 @@ from torch import nn
 from tqdm import tqdm
 
 from envs.config import EnvConfig
-from rotation.configs import to_jsonable
 from rotation.evaluate.metrics import UPRIGHT_TILT
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.bundle import ActorNet, BundleConfig, PolicyBundle, load_bundle
 from rotation.policy.features import PrivilegedExtractor
 from rotation.policy.networks import EnvFactorEncoderConfig, mlp
 from rotation.train.runs import (
+    GRASPS_KEY,
     CurveLog,
     DamagedCheckpoint,
-    config_differences,
-    refuse_differences,
+    check_resume_record,
+    run_record,
     save_atomically,
+    save_run_record,
     summary_writer,
 )
 
@@ -342,7 +343,6 @@ class WarpPPO:
 
 def train(cfg) -> PolicyBundle:
     """Train the teacher on the Warp backend (cfg: rotation.train.teacher.Config with backend 'warp')."""
-    from rotation.configs import save_config
     from rotation.sim_warp.core import RotateCupWarp, WarpConfig
     from rotation.train.runs import check_run_dir, clear_outputs
     from rotation.train.teacher import RESUMABLE_CHANGES, RUN_OUTPUTS
@@ -363,8 +363,7 @@ def train(cfg) -> PolicyBundle:
     if cfg.resume is not None:
         saved = resume_dir / "config.json" if resume_dir is not None else None
         if saved is not None and saved.is_file():
-            differences = config_differences(json.loads(saved.read_text()), to_jsonable(cfg), RESUMABLE_CHANGES)
-            refuse_differences(differences, str(saved), RESUMABLE_CHANGES)
+            check_resume_record(json.loads(saved.read_text()), run_record(cfg), str(saved), RESUMABLE_CHANGES)
         state = load_checkpoint(cfg.resume)
     if cfg.init_from is not None:
         init = load_bundle(cfg.init_from)
@@ -389,7 +388,7 @@ def train(cfg) -> PolicyBundle:
         if removed:
             print(f"teacher: --overwrite deleted {', '.join(removed)} in {out}")
     out.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, out / "config.json")
+    save_run_record(cfg, out / "config.json")
     curves = CurveLog(out / "curves.jsonl")
     if resuming_here and (dropped := curves.trim(steps)):
         print(f"teacher: dropped {dropped} curve rows logged after step {steps} (not in the checkpoint resumed from)")
@@ -435,7 +434,8 @@ def train(cfg) -> PolicyBundle:
     curves.append(rows)
     card = {"role": "teacher", "object": cfg.object, "steps": steps, "seed": cfg.seed, "wall_time_s": round(wall, 1),
             "backend": "warp", "learner": "rsl_rl PPO (rotation.train.teacher_warp)",
-            "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out), "resume": str(cfg.resume)}}
+            "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out), "resume": str(cfg.resume)},
+            GRASPS_KEY: run_record(cfg)[GRASPS_KEY]}
     if state is not None:
         card["resumed_from"] = str(cfg.resume)
     if init is not None:

@@ -226,6 +226,34 @@ def test_resume_with_other_ppo_options_is_refused_and_keeps_config(tmp_path):
         teacher.run(_cfg(tmp_path, total_steps=2048, resume=ckpt, clip_range=0.3))
 
 
+def test_resume_refuses_a_regenerated_grasp_cache_at_the_same_path(tmp_path):
+    """The options name the grasp cache by its path; config.json and the bundle's card also record its digest, so a
+    resume from a file regenerated in place (every episode would start elsewhere) is refused, not silently mixed."""
+    import shutil
+
+    from envs.grasps import default_cache_path
+
+    cache = tmp_path / "grasps_cup.npz"
+    shutil.copy(default_cache_path("cup"), cache)
+    first = _cfg(tmp_path, total_steps=1024, grasp_cache=str(cache))
+    teacher.run(first)
+    saved = json.loads((first.out / "config.json").read_text())
+    digest = saved[teacher.GRASPS_KEY]
+    assert len(digest) == 16 and load_bundle(first.out / "bundle").config.card[teacher.GRASPS_KEY] == digest
+    ckpt = first.out / "checkpoints" / "last.zip"
+    with np.load(cache) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["grasps"] = arrays["grasps"][:, ::-1].copy()  # the same path, the grasps in another order
+    np.savez(cache, **arrays)
+    with pytest.raises(ValueError, match=r"grasp cache \(.*grasps_cup\.npz\) is not the file the run started from"):
+        teacher.run(_cfg(tmp_path, total_steps=2048, grasp_cache=str(cache), resume=ckpt))
+    assert json.loads((first.out / "config.json").read_text()) == saved  # a refused resume writes nothing
+    # a run recorded before the digest was kept resumes as before (its cache cannot be compared)
+    (first.out / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k != teacher.GRASPS_KEY}))
+    teacher.run(_cfg(tmp_path, total_steps=2048, grasp_cache=str(cache), resume=ckpt))
+    assert json.loads((first.out / "config.json").read_text())[teacher.GRASPS_KEY] != digest
+
+
 def test_curves_are_on_disk_with_each_checkpoint(tmp_path, monkeypatch):
     """A crash (here an exception after the second checkpoint, as a SIGKILL would) keeps the curve rows so far."""
     original = teacher.Checkpoints.save
