@@ -312,6 +312,7 @@ def script_main(config_cls: type, run: Any, description: str | None, argv: list[
 
 
 def save_config(cfg: Any, path: str | Path) -> None:
-    """Write a config dataclass as indented JSON (beside a checkpoint or report)."""
+    """Write a config dataclass (or a dict, such as a training run's record) as indented JSON (beside a checkpoint or
+    report)."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(to_jsonable(cfg), indent=2) + "\n")

@@ -40,7 +40,7 @@ from rotation.configs import script_main
 
 STAGE2_PPO = ["--critic-warmup", "20", "--num-envs", "512", "--n-steps", "32", "--batch-size", "4096", "--n-epochs",
               "5", "--learning-rate", "3e-4", "--log-std-init", "-1.0", "--rotate-back-clip", "5", "--no-overlap"]
-"""The PPO options of stages 2-4 (the shipped teacher's CPU stages, with the backward clip at 5)."""
+"""The PPO options of stages 2-5 (the shipped teacher's CPU stages, with the backward clip at 5)."""
 
 STAGES: tuple[tuple[str, int, list[str]], ...] = (
     ("stage1", 340 * 2048 * 16, ["--num-envs", "2048", "--n-steps", "16", "--batch-size", "8192", "--n-epochs", "5",

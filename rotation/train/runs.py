@@ -87,18 +87,13 @@ GRASPS_KEY = "grasp_cache_sha256"
 
 
 def run_record(cfg: Any) -> dict[str, Any]:
-    """What a training run's config.json holds: its options (a Config with object, hand and grasp_cache) and the
-    digest of the grasp cache its episodes start from."""
+    """What a training run's config.json holds (written with rotation.configs.save_config): its options (a Config
+    with object, hand and grasp_cache) and the digest of the grasp cache its episodes start from. Computed once when
+    the run starts; the bundle card takes the same digest."""
     from rotation.configs import to_jsonable
     from rotation.evaluate.finished import grasps_digest
 
     return to_jsonable(cfg) | {GRASPS_KEY: grasps_digest(cfg, cfg.hand)}
-
-
-def save_run_record(cfg: Any, path: Path) -> None:
-    """Write :func:`run_record` as indented JSON (the run's config.json)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(run_record(cfg), indent=2) + "\n")
 
 
 def check_resume_record(saved: dict[str, Any], now: dict[str, Any], where: str, may_differ: Iterable[str]) -> None:

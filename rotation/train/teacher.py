@@ -45,7 +45,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from envs.config import EnvConfig, RandomizationConfig, RewardConfig
 from envs.objects import OBJECTS
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
-from rotation.configs import check_device, to_jsonable
+from rotation.configs import check_device, save_config, to_jsonable
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.bundle import PolicyBundle, load_bundle
 from rotation.policy.features import PrivilegedExtractor, StudentExtractor, StudentPPOPolicy, policy_kwargs
@@ -62,7 +62,6 @@ from rotation.train.runs import (
     refuse_differences,
     run_record,
     save_atomically,
-    save_run_record,
     with_fallback,
 )
 from rotation.train.vec_env import RotateCupSB3VecEnv
@@ -572,13 +571,13 @@ def run(cfg: Config) -> PolicyBundle:
     resuming_here = resume_dir is not None and resume_dir.resolve() == out.resolve()
     check_run_dir(out, RUN_OUTPUTS, overwrite=cfg.overwrite, resuming_here=resuming_here,
                   resume_hint=f"pass --resume {out / 'checkpoints' / 'last.zip'} to continue it")
-    now = run_record(cfg)
+    record = run_record(cfg)
     if cfg.resume is not None:
         if not cfg.resume.is_file():
             raise ValueError(f"--resume {cfg.resume}: no such checkpoint")
         saved = resume_dir / "config.json" if resume_dir is not None else None
         if saved is not None and saved.is_file():
-            check_resume_record(json.loads(saved.read_text()), now, str(saved), RESUMABLE_CHANGES)
+            check_resume_record(json.loads(saved.read_text()), record, str(saved), RESUMABLE_CHANGES)
     torch.set_num_threads(cfg.torch_threads)
     torch.manual_seed(cfg.seed)
     env_cfg = cfg.env_config()
@@ -589,7 +588,7 @@ def run(cfg: Config) -> PolicyBundle:
         if cfg.resume is not None:
             model, resumed_from = with_fallback(cfg.resume, _older_checkpoints(cfg.resume),
                                                 lambda p: load_checkpoint(p, env, cfg.device))
-            differences = config_differences(_checkpoint_options(model), {k: now[k] for k in PPO_OPTIONS}, ())
+            differences = config_differences(_checkpoint_options(model), {k: record[k] for k in PPO_OPTIONS}, ())
             refuse_differences(differences, f"recorded in {resumed_from}", RESUMABLE_CHANGES)
             env.seed(cfg.seed + model.num_timesteps)  # fresh, reproducible episodes after a resume
         else:
@@ -604,18 +603,18 @@ def run(cfg: Config) -> PolicyBundle:
             if removed:
                 print(f"{_role(cfg)}: --overwrite deleted {', '.join(removed)} in {out}")
         out.mkdir(parents=True, exist_ok=True)
-        save_run_record(cfg, out / "config.json")
+        save_config(record, out / "config.json")
         curves = CurveLog(out / "curves.jsonl")
         if resuming_here and (dropped := curves.trim(model.num_timesteps)):
             print(f"{_role(cfg)}: dropped {dropped} curve rows logged after step {model.num_timesteps} (not in the "
                   "checkpoint resumed from)")
-        return _train(cfg, model, env, env_cfg, curves, resumed_from)
+        return _train(cfg, model, env, env_cfg, curves, resumed_from, record[GRASPS_KEY])
     finally:
         env.close()
 
 
 def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: EnvConfig, curves: CurveLog,
-           resumed_from: Path | None) -> PolicyBundle:
+           resumed_from: Path | None, grasps_sha256: str) -> PolicyBundle:
     stats = EpisodeStats()
     with StopSignals() as stop:
         ckpt = Checkpoints(cfg.out / "checkpoints", cfg.checkpoint_every, stats, curves, stop)
@@ -638,7 +637,7 @@ def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: 
         card = {"role": _role(cfg), "object": cfg.object, "steps": steps, "seed": cfg.seed,
                 "wall_time_s": round(wall, 1), "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out),
                                                                                        "resume": str(cfg.resume)}}
-        card[GRASPS_KEY] = run_record(cfg)[GRASPS_KEY]  # the cache's path alone does not show a regenerated file
+        card[GRASPS_KEY] = grasps_sha256  # the cache's path alone does not show a regenerated file
         if resumed_from is not None:
             card["resumed_from"] = str(resumed_from)
         if cfg.student:  # what the fine-tune started from: the distilled student's own card (teacher, distillation)

@@ -47,7 +47,6 @@ from rotation.train.runs import (
     check_resume_record,
     run_record,
     save_atomically,
-    save_run_record,
     summary_writer,
 )
 
@@ -343,6 +342,7 @@ class WarpPPO:
 
 def train(cfg) -> PolicyBundle:
     """Train the teacher on the Warp backend (cfg: rotation.train.teacher.Config with backend 'warp')."""
+    from rotation.configs import save_config
     from rotation.sim_warp.core import RotateCupWarp, WarpConfig
     from rotation.train.runs import check_run_dir, clear_outputs
     from rotation.train.teacher import RESUMABLE_CHANGES, RUN_OUTPUTS
@@ -360,10 +360,11 @@ def train(cfg) -> PolicyBundle:
         raise ValueError(f"batch_size {cfg.batch_size} must divide num_envs x n_steps = {n * horizon} on the warp "
                          "backend (rsl_rl splits each rollout into equal minibatches)")
     state, init = None, None
+    record = run_record(cfg)
     if cfg.resume is not None:
         saved = resume_dir / "config.json" if resume_dir is not None else None
         if saved is not None and saved.is_file():
-            check_resume_record(json.loads(saved.read_text()), run_record(cfg), str(saved), RESUMABLE_CHANGES)
+            check_resume_record(json.loads(saved.read_text()), record, str(saved), RESUMABLE_CHANGES)
         state = load_checkpoint(cfg.resume)
     if cfg.init_from is not None:
         init = load_bundle(cfg.init_from)
@@ -388,7 +389,7 @@ def train(cfg) -> PolicyBundle:
         if removed:
             print(f"teacher: --overwrite deleted {', '.join(removed)} in {out}")
     out.mkdir(parents=True, exist_ok=True)
-    save_run_record(cfg, out / "config.json")
+    save_config(record, out / "config.json")
     curves = CurveLog(out / "curves.jsonl")
     if resuming_here and (dropped := curves.trim(steps)):
         print(f"teacher: dropped {dropped} curve rows logged after step {steps} (not in the checkpoint resumed from)")
@@ -435,7 +436,7 @@ def train(cfg) -> PolicyBundle:
     card = {"role": "teacher", "object": cfg.object, "steps": steps, "seed": cfg.seed, "wall_time_s": round(wall, 1),
             "backend": "warp", "learner": "rsl_rl PPO (rotation.train.teacher_warp)",
             "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out), "resume": str(cfg.resume)},
-            GRASPS_KEY: run_record(cfg)[GRASPS_KEY]}
+            GRASPS_KEY: record[GRASPS_KEY]}
     if state is not None:
         card["resumed_from"] = str(cfg.resume)
     if init is not None:
