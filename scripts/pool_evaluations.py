@@ -5,7 +5,10 @@ thing on more episodes. This pools them per (policy, condition): episode-weighte
 all episodes, and the net rotation rate as total rotation over total time in hand. With --reference and --baseline
 it adds, for every other policy, the share of the baseline's gap to the reference that it closes,
 (policy - baseline) / (reference - baseline), for ttf and vertical drift: how the tactile adapter's targets are
-stated.
+stated. It also compares each policy's rotation rate with the baseline's episode by episode:
+the net rate over the episodes that both kept in hand to the end (reports whose rows keep per-episode values). A
+policy that saves cups the baseline drops spends that extra time on hard cups, which lowers its net rate over all
+episodes; on the cups both kept, a lower rate means it really turns the cup slower.
 
     python scripts/pool_evaluations.py --results docs/results/adapter/student_rl2/seeds_800000 \\
         docs/results/adapter/student_rl2/seeds_1300000 --reference teacher --baseline student --out runs/pooled
@@ -37,7 +40,8 @@ SHARE_METRICS = {"ttf": "higher", "vertical_drift": "lower"}
 @dataclass
 class Config:
     results: tuple[Path, ...] = ()
-    """Evaluation report directories (each with results.json), on disjoint seed sets."""
+    """Evaluation report directories (each with results.json), on disjoint seed sets; DIR=NAME[,NAME...] takes only
+    those policies from that report (say, one whose other rows belong to another adapter under the same label)."""
     out: Path = Path("runs/pooled")
     """Output directory (refused if it already holds a pooled report)."""
     reference: str = ""
@@ -46,6 +50,18 @@ class Config:
     """Policy whose gap to the reference is measured (e.g. student)."""
     policies: tuple[str, ...] = ()
     """Pool only these policies (default: every policy in the reports)."""
+
+
+def _source(entry: Path) -> tuple[Path, set[str] | None]:
+    """A --results entry: the report directory, and the policies to take from it (None = all)."""
+    text = str(entry)
+    if "=" in text and not entry.exists():
+        directory, _, names = text.rpartition("=")
+        chosen = {n for n in names.split(",") if n}
+        if not directory or not chosen:
+            raise ValueError(f"--results {text!r}: expected DIR or DIR=NAME[,NAME...]")
+        return Path(directory), chosen
+    return entry, None
 
 
 def _read(path: Path) -> tuple[list[dict[str, Any]], range]:
@@ -106,6 +122,36 @@ def gap_shares(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], P
     return shares
 
 
+def paired_rates(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], Path]]], baseline: str
+                 ) -> list[dict[str, Any]]:
+    """Per condition and other policy: its net rotation rate and the baseline's over the episodes both kept to the
+    end (ttf 1), matched episode by episode (episode j of a report is the same episode for every policy). Uses the
+    seed sets where both rows keep per-episode values; a policy with none is left out."""
+    out = []
+    for (policy, cond), runs in groups.items():
+        if policy == baseline:
+            continue
+        theirs = {(s.start, s.stop): r for s, r, _ in groups.get((baseline, cond), [])}
+        rotation, time = np.zeros(2), np.zeros(2)
+        episodes = kept = 0
+        for span, row, _ in runs:
+            base = theirs.get((span.start, span.stop))
+            if base is None or "per_episode" not in row or "per_episode" not in base:
+                continue
+            mine, other = row["per_episode"], base["per_episode"]
+            both = (np.asarray(mine["ttf"]) >= 1.0) & (np.asarray(other["ttf"]) >= 1.0)
+            for i, values in enumerate((mine, other)):
+                rotation[i] += np.asarray(values["rotation_total"])[both].sum()
+                time[i] += np.asarray(values["in_hand_time"])[both].sum()
+            episodes, kept = episodes + len(both), kept + int(both.sum())
+        if episodes and kept:
+            rate, base_rate = rotation / time
+            out.append({"policy": policy, "condition": cond, "episodes": episodes, "kept_by_both": kept,
+                        "net_rotation_rate": float(rate), "baseline_net_rotation_rate": float(base_rate),
+                        "change": float(rate / base_rate - 1.0) if base_rate != 0 else None})
+    return out
+
+
 def run(cfg: Config) -> Path:
     if not cfg.results:
         raise ValueError("give the evaluation directories to pool with --results")
@@ -115,9 +161,13 @@ def run(cfg: Config) -> Path:
         raise ValueError(f"{cfg.out} already holds a pooled report; give another --out or remove it")
     groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], Path]]] = defaultdict(list)
     sets = []
-    for path in cfg.results:
+    for entry in cfg.results:
+        path, chosen = _source(entry)
         rows, span = _read(path)
-        rows = [r for r in rows if not cfg.policies or r["policy"] in cfg.policies]
+        if chosen is not None and (missing := chosen - {r["policy"] for r in rows}):
+            raise ValueError(f"{path} has no rows for {sorted(missing)}")
+        rows = [r for r in rows if (not cfg.policies or r["policy"] in cfg.policies)
+                and (chosen is None or r["policy"] in chosen)]
         sets.append(f"- `{path}`: seeds {span.start}-{span.stop - 1}, policies "
                     f"{', '.join(dict.fromkeys(r['policy'] for r in rows))}")
         for r in rows:
@@ -143,6 +193,7 @@ def run(cfg: Config) -> Path:
 
     pooled.sort(key=rank)
     shares = sorted(gap_shares(groups, cfg.reference, cfg.baseline), key=rank) if cfg.reference else []
+    paired = sorted(paired_rates(groups, cfg.baseline), key=rank) if cfg.baseline else []
 
     cfg.out.mkdir(parents=True, exist_ok=True)
     text = markdown_table(pooled).replace("# Evaluation", "# Pooled evaluation", 1)
@@ -155,10 +206,18 @@ def run(cfg: Config) -> Path:
         text += "".join(f"| {s['condition']} | {s['policy']} | {s['episodes']} | "
                         + " | ".join("-" if s[m] is None else f"{s[m]:.0%}" for m in SHARE_METRICS) + " |\n"
                         for s in shares)
+    if paired:
+        text += (f"\n## Rotation rate on the episodes both kept\n\nNet rotation rate (rad/s) over the episodes that "
+                 f"both the policy and the {cfg.baseline} kept in hand to the end, matched episode by episode.\n\n"
+                 f"| condition | policy | episodes | kept by both | policy | {cfg.baseline} | change |\n"
+                 "|---|---|---|---|---|---|---|\n")
+        text += "".join(f"| {p['condition']} | {p['policy']} | {p['episodes']} | {p['kept_by_both']} | "
+                        f"{p['net_rotation_rate']:.3f} | {p['baseline_net_rotation_rate']:.3f} | "
+                        + ("-" if p["change"] is None else f"{p['change']:+.1%}") + " |\n" for p in paired)
     text += "\n## Pooled reports\n\n" + "\n".join(sets) + "\n"
     (cfg.out / "results.md").write_text(text)
-    (cfg.out / "results.json").write_text(json.dumps(
-        {"rows": pooled, "shares": shares, "sources": [str(p) for p in cfg.results]}, indent=2) + "\n")
+    (cfg.out / "results.json").write_text(json.dumps({"rows": pooled, "shares": shares, "paired_rates": paired,
+                                                      "sources": [str(p) for p in cfg.results]}, indent=2) + "\n")
     plot_bars(cfg.out / "plots" / "bars.png", pooled, conditions)
     print(f"pooled {len(cfg.results)} reports into {len(pooled)} rows -> {cfg.out / 'results.md'}")
     return cfg.out

@@ -1,8 +1,10 @@
-"""The teacher from random weights on a CPU alone: five `rotate train-teacher` stages (docs/results/teacher_cpu_recipe).
+"""The teacher from random weights on a CPU alone, then its student: five `rotate train-teacher` stages, then
+`rotate train-student` and `rotate finetune-student` (docs/results/teacher_cpu_recipe).
 
 The shipped teacher's first stage ran on a GPU machine. This recipe needs none: on 2 CPU cores it took about 2.8 h
 (37.1 M environment steps) to a teacher that meets issue 8's targets on fresh seeds (net rate >= 0.30 rad/s, ttf
->= 0.90, upright >= 0.90 at nominal randomization). The stages:
+>= 0.90, upright >= 0.90 at nominal randomization), and 39 min more to a student from it that meets the student's
+(net rate >= 80% of the teacher's on the same episodes, ttf >= 0.85, upright >= 0.85). The stages:
 
 0. the grasp cache from before the hold check (`rotate grasps --hold-seconds 0`), a third of whose grasps cannot
    hold the cup by themselves: from grasps that slip, keeping the cup needs the fingers to move it, and stage 1
@@ -13,14 +15,23 @@ The shipped teacher's first stage ran on a GPU machine. This recipe needs none: 
 3. 5.0 M steps on the shipped, hold-checked grasps with a fall costing 60: the policy learns to hold the cup
    (ttf 0.98) and turns it slowly (0.22 rad/s);
 4. 12.0 M steps with a fall costing 35: it turns the cup faster again (0.5 rad/s) and keeps holding it;
-5. 2.0 M steps with a fall costing 60 again: it holds the cup longer (ttf 0.91 -> 0.95) at the same rate.
+5. 2.0 M steps with a fall costing 60 again: it holds the cup longer (ttf 0.91 -> 0.95) at the same rate;
+6. the student (folder student/): 6.0 M steps distilling stage 5's bundle, 64 envs (`rotate train-student`: phi
+   learns the teacher's latent from 30 steps of proprioception); it turns the cup as fast as the teacher but drops
+   it more (ttf 0.78-0.79);
+7. its RL fine-tune (folder student_rl/): 4.0 M steps of PPO on the student's actor, phi frozen, a fall costing 60
+   (`rotate finetune-student`, the shipped student's last stage): ttf 0.86-0.90 at 91-95% of the teacher's rate.
 
-Then the final bundle is evaluated at nominal randomization on fresh seeds. Each stage writes its own run folder
-under --out (checkpoints, curves, TensorBoard logs, bundle). Running the script again continues: a finished stage
-is skipped, a stopped one resumes from its last checkpoint. Ctrl-C stops the running stage with a checkpoint.
+Then the teacher and the final student are evaluated side by side at nominal randomization on fresh seeds (the same
+episodes for both, in evaluation_student/). The whole recipe took about 3.5 h on 2 cores: the teacher 2.83 h, the
+distillation 15.7 min, the RL fine-tune 23.2 min. --teacher-only stops after stage 5 and evaluates the teacher
+alone (in evaluation/). Each stage writes its own run folder under --out (checkpoints, curves, TensorBoard logs,
+bundle). Running the script again continues: a finished stage is skipped, a stopped one resumes from its last
+checkpoint. Ctrl-C stops the running stage with a checkpoint.
 
-    python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu              # about 2.8 h on 2 cores
-    python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu --dry-run    # the commands, run nothing
+    python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu                  # about 3.5 h on 2 cores
+    python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu --teacher-only   # the teacher alone, about 2.8 h
+    python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu --dry-run        # the commands, run nothing
     tensorboard --logdir runs/teacher_cpu
 
 Stage lengths are whole rollouts; a reproduction is not bit for bit the documented one (MuJoCo and torch differ
@@ -53,15 +64,32 @@ STAGES: tuple[tuple[str, int, list[str]], ...] = (
 """(run folder, environment steps, options): {grasps} is the stage-0 cache, {prev} the previous stage's bundle.
 Stages 3-5 start from the shipped hold-checked grasps, which evaluation uses."""
 
+STUDENT_STAGES: tuple[tuple[str, str, int, list[str]], ...] = (
+    ("student", "train-student", 6_000_000,
+     ["--teacher", "{prev}", "--out", "{run}", "--total-steps", "{steps}", "--num-envs", "64", "--seed", "0"]),
+    ("student_rl", "finetune-student", 4_000_000,
+     ["--student", "{prev}", "--out", "{run}", "--total-steps", "{steps}", "--checkpoint-every", "500000", "--seed",
+      "12", "--no-overlap", "--fall-reward", "-60"]),
+)
+"""(run folder, `rotate` job, environment steps, options) of the student's stages, the report's commands: {prev} is
+the previous stage's bundle (stage 5's for the distillation), {run} the stage's folder, {steps} its length. Both
+train in the default env (the shipped hold-checked grasps), as stage 5 did."""
+
+DISTILL_CHECKPOINTS = "ckpt_*.pt"
+"""train-student's checkpoints, in its run folder (rotation.train.student.CHECKPOINT_GLOB)."""
+
 
 @dataclass
 class Config:
     out: Path = Path("runs/teacher_cpu")
-    """Folder of the recipe's runs: grasps_unchecked/, stage1/ ... stage5/, evaluation/."""
+    """Folder of the recipe's runs: grasps_unchecked/, stage1/ ... stage5/, student/, student_rl/ and
+    evaluation_student/ (evaluation/ with --teacher-only)."""
     eval_seed: int = 3_300_000
     """First seed of the final evaluation (128 nominal episodes); keep it away from training seeds."""
     eval_episodes: int = 128
-    """Episodes of the final evaluation (0 skips it)."""
+    """Episodes of the final evaluation, per policy (0 skips it)."""
+    teacher_only: bool = False
+    """Stop after the teacher's stages (no student) and evaluate the teacher alone, in evaluation/."""
     progress: bool = True
     """Progress bars."""
     dry_run: bool = False
@@ -73,13 +101,67 @@ class Config:
             raise ValueError(f"eval_episodes must be >= 0, got {self.eval_episodes}")
 
 
-def _bundle_done(run_dir: Path, steps: int) -> bool:
-    """Whether ``run_dir`` holds the finished bundle of a stage of ``steps`` steps (not one saved by a stop)."""
+def _card(run_dir: Path) -> dict | None:
+    """The card of the bundle in ``run_dir`` (None without a readable one)."""
     try:
         card = json.loads((run_dir / "bundle" / "config.json").read_text())["card"]
     except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return card if isinstance(card, dict) else None
+
+
+def _bundle_done(run_dir: Path, steps: int) -> bool:
+    """Whether ``run_dir`` holds the finished bundle of a train-teacher or finetune-student stage of ``steps`` steps
+    (not one saved by a stop, whose card says "interrupted")."""
+    card = _card(run_dir)
+    try:
+        return card is not None and "interrupted" not in card and int(card.get("steps", 0)) >= steps
+    except (TypeError, ValueError):
         return False
-    return "interrupted" not in card and int(card.get("steps", 0)) >= steps
+
+
+def _distillation_done(run_dir: Path, steps: int) -> bool:
+    """Whether ``run_dir`` holds the finished bundle of a train-student stage of ``steps`` steps. Its card counts
+    "env_steps" and holds the run's config; a bundle saved by a stop says "interrupted". One that does not was
+    written only once the run reached its config's total_steps, which is what counts when a resume found nothing
+    left to train (it logs no point, so its card says env_steps 0)."""
+    card = _card(run_dir)
+    if card is None or "interrupted" in card:
+        return False
+    try:
+        config = card.get("config") or {}
+        return max(int(card.get("env_steps") or 0), int(config.get("total_steps") or 0)) >= steps
+    except (AttributeError, TypeError, ValueError):
+        return False
+
+
+def _student_stage(name: str, job: str, steps: int, options: list[str], run_dir: Path, prev: Path,
+                   progress: list[str]) -> tuple[str, list[str]] | None:
+    """(what, `rotate` arguments) of a student stage still to run, None when it is finished; a stopped one resumes
+    (--resume takes the run's own options, the teacher or student it started from included)."""
+    if job == "train-student":
+        if _distillation_done(run_dir, steps):
+            return None
+        ckpts = sorted(run_dir.glob(DISTILL_CHECKPOINTS))
+        if ckpts and (run_dir / "config.json").is_file():  # resumes from its latest intact checkpoint
+            return (f"{name}: resume at {ckpts[-1]}",
+                    [job, "--out", str(run_dir), "--resume", "--total-steps", str(steps), *progress])
+    else:
+        if _bundle_done(run_dir, steps):
+            return None
+        last = run_dir / "checkpoints" / "last.zip"
+        if last.is_file():
+            return f"{name}: resume at {last}", [job, "--resume", str(last), "--total-steps", str(steps), *progress]
+    filled = [a.format(prev=prev, run=run_dir, steps=steps) for a in options]
+    return f"{name}: {steps / 1e6:.2f} M steps", [job, *filled, *progress]
+
+
+def _evaluation(cfg: Config) -> tuple[Path, dict[str, Path]]:
+    """The final evaluation's folder and its policies (label -> bundle)."""
+    policies = {"teacher_cpu": cfg.out / STAGES[-1][0] / "bundle"}
+    if cfg.teacher_only:
+        return cfg.out / "evaluation", policies
+    return cfg.out / "evaluation_student", policies | {"student_cpu": cfg.out / STUDENT_STAGES[-1][0] / "bundle"}
 
 
 def commands(cfg: Config) -> list[tuple[str, list[str]]]:
@@ -106,13 +188,26 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
                         "--checkpoint-every", "1000000", *progress]
                 todo.append((f"{name}: {steps / 1e6:.2f} M steps", args))
         prev = run_dir / "bundle"
-    evaluation = out / "evaluation"
+    if not cfg.teacher_only:
+        for name, job, steps, options in STUDENT_STAGES:
+            run_dir = out / name
+            if (stage := _student_stage(name, job, steps, options, run_dir, prev, progress)) is not None:
+                todo.append(stage)
+            prev = run_dir / "bundle"
+    evaluation, policies = _evaluation(cfg)
     if cfg.eval_episodes and not (evaluation / "results.md").is_file():
-        todo.append(("evaluation: nominal, fresh seeds",
-                     ["evaluate", "--policy", f"teacher_cpu={prev}", "--conditions", "nominal", "--episodes",
-                      str(cfg.eval_episodes), "--num-envs", "32", "--seed", str(cfg.eval_seed), "--out",
-                      str(evaluation), *progress]))
+        todo.append((f"evaluation: {' and '.join(policies)}, nominal, fresh seeds",
+                     ["evaluate", *(a for label, path in policies.items() for a in ("--policy", f"{label}={path}")),
+                      "--conditions", "nominal", "--episodes", str(cfg.eval_episodes), "--num-envs", "32", "--seed",
+                      str(cfg.eval_seed), "--out", str(evaluation), *progress]))
     return todo
+
+
+def _result(cfg: Config) -> str:
+    """What the recipe made: the teacher's bundle, and the student's unless --teacher-only."""
+    _, policies = _evaluation(cfg)
+    return "; ".join(f"the {'teacher' if label == 'teacher_cpu' else 'student'} is {path}"
+                     for label, path in policies.items())
 
 
 def run(cfg: Config) -> int:
@@ -120,7 +215,7 @@ def run(cfg: Config) -> int:
 
     todo = commands(cfg)
     if not todo:
-        print(f"teacher_cpu_recipe: every stage is done; the teacher is {cfg.out / STAGES[-1][0] / 'bundle'}")
+        print(f"teacher_cpu_recipe: every stage is done; {_result(cfg)}")
         return 0
     for what, args in todo:
         print(f"teacher_cpu_recipe: {what}\n  rotate {shlex.join(args)}", flush=True)
@@ -132,8 +227,8 @@ def run(cfg: Config) -> int:
                   "continue", file=sys.stderr)
             return status
     if not cfg.dry_run:
-        print(f"teacher_cpu_recipe: done; the teacher is {cfg.out / STAGES[-1][0] / 'bundle'}"
-              + (f", evaluated in {cfg.out / 'evaluation' / 'results.md'}" if cfg.eval_episodes else ""))
+        print(f"teacher_cpu_recipe: done; {_result(cfg)}"
+              + (f"; evaluated in {_evaluation(cfg)[0] / 'results.md'}" if cfg.eval_episodes else ""))
     return 0
 
 

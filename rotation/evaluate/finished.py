@@ -23,6 +23,7 @@ from typing import Any
 
 from rotation.configs import to_jsonable
 from rotation.evaluate.metrics import METRICS
+from rotation.evaluate.report import json_text
 from rotation.policy.bundle import WEIGHTS_FILE, resolve_bundle
 
 PROGRESS_FILE = "progress.json"
@@ -138,7 +139,7 @@ def _write_atomically(path: Path, data: Any) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w") as f:
-            f.write(json.dumps(data, indent=2) + "\n")
+            f.write(json_text(data))
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -1,12 +1,15 @@
 """The evaluation report: results.json (rows + config), results.md (a table) and plots (matplotlib, Agg).
 
 A row is one (policy, condition): the condition's perturbation, the number of episodes and, for every metric in
-:data:`rotation.evaluate.metrics.METRICS`, the mean over episodes and ``<metric>_std``.
+:data:`rotation.evaluate.metrics.METRICS`, the mean over episodes and ``<metric>_std``. ``per_episode`` keeps the
+values of :data:`EPISODE_FIELDS` for each episode, in episode order (episode j was seeded seed + j for every policy),
+so two policies can be compared episode by episode (scripts/pool_evaluations.py's paired rates).
 """
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +18,9 @@ import numpy as np
 from rotation.configs import to_jsonable
 from rotation.evaluate.metrics import METRICS, EpisodeMetrics, summarize
 from rotation.evaluate.suites import NOMINAL, Condition, axis_level
+
+EPISODE_FIELDS = ("ttf", "rotation_total", "in_hand_time", "vertical_drift")
+"""Per-episode values a results row keeps (``row["per_episode"][field]``, one per episode)."""
 
 PLOT_AXES = {"friction": "friction scale", "mass": "added mass (kg)", "com": "CoM shift (m)"}
 
@@ -29,13 +35,22 @@ def make_row(policy: str, cond: Condition, episodes: list[EpisodeMetrics]) -> di
         row[key] = float(values.mean())
         row[f"{key}_std"] = float(values.std())
     row["net_rotation_rate"] = summarize(episodes)["net_rotation_rate"]
+    row["per_episode"] = {key: [round(float(getattr(e, key)), 5) for e in episodes] for key in EPISODE_FIELDS}
     return row
+
+
+def json_text(data: Any) -> str:
+    """Indented JSON with every list of numbers on one line (a row's per-episode values stay readable and small).
+    Only the lists json.dumps spread over lines are joined: their text starts with a raw newline, which no JSON
+    string can hold, so string values are never touched."""
+    text = json.dumps(data, indent=2)
+    return re.sub(r"\[(\n[^\[\]{}\"]*)\]", lambda m: "[" + " ".join(m.group(1).split()) + "]", text) + "\n"
 
 
 def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions: list[Condition]) -> None:
     """results.json, results.md and plots/<metric>.png under ``out``."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps({"rows": rows, "config": to_jsonable(config)}, indent=2) + "\n")
+    (out / "results.json").write_text(json_text({"rows": rows, "config": to_jsonable(config)}))
     (out / "results.md").write_text(markdown_table(rows))
     plot_metrics(out / "plots", rows, conditions)
     plot_bars(out / "plots" / "bars.png", rows, conditions)

@@ -16,6 +16,7 @@ from envs.config import Perturbation
 from envs.grasps import generate_grasps
 from rotation.evaluate import job
 from rotation.evaluate.metrics import METRICS
+from rotation.evaluate.report import EPISODE_FIELDS
 from rotation.evaluate.suites import get_suite, make_condition
 from rotation.policy.bundle import BundleConfig, PolicyBundle
 
@@ -54,6 +55,11 @@ def test_suite_report_is_well_formed(setup, tmp_path):
         assert {"friction_scale", "added_mass", "com_shift", *METRICS} <= set(r)
         assert all(np.isfinite(r[m]) for m in METRICS)
         assert 0.0 < r["ttf"] <= 1.0 and r["torque"] > 0 and r["lin_vel"] >= 0 and r["vertical_drift"] >= 0
+        per = r["per_episode"]  # each episode's values, in episode order: the means and the net rate follow
+        assert set(per) == set(EPISODE_FIELDS) and all(len(v) == 2 for v in per.values())
+        assert np.mean(per["ttf"]) == pytest.approx(r["ttf"], abs=1e-5)
+        assert sum(per["rotation_total"]) / sum(per["in_hand_time"]) == pytest.approx(r["net_rotation_rate"],
+                                                                                     abs=1e-4)
     by_cond = {r["condition"]: r for r in rows if r["policy"] == "teacher"}
     assert by_cond["friction_0.5+mass_+0.1kg"]["friction_scale"] == 0.5
     assert by_cond["friction_0.5+mass_+0.1kg"]["added_mass"] == 0.1
@@ -117,3 +123,14 @@ def test_cli_bad_policy_is_one_clear_line(capsys, tmp_path):
     assert main(["evaluate", "--policy", "x=nowhere", "--out", str(tmp_path), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("rotate evaluate: error: no bundle directory at 'nowhere'") and "Traceback" not in err
+
+
+def test_report_json_puts_number_lists_on_one_line_and_leaves_strings_alone():
+    from rotation.evaluate.report import json_text
+
+    data = {"ttf": [1.0, 0.25, -3e-05], "note": "keep [  1,  2 ] as written", "names": ["a", "b"], "empty": [],
+            "row": {"per_episode": {"ttf": [0.5]}}}
+    text = json_text(data)
+    assert json.loads(text) == data
+    assert '"ttf": [1.0, 0.25, -3e-05]' in text and '"ttf": [0.5]' in text
+    assert '"note": "keep [  1,  2 ] as written"' in text

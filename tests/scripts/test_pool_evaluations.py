@@ -55,9 +55,41 @@ def test_pools_disjoint_sets_and_shares_on_the_policys_own_episodes(pool, tmp_pa
     assert shares["other"]["ttf"] == pytest.approx(1.0)
     assert "| friction_0.25 | adapter | 40 | 50% | 50% |" in (out / "results.md").read_text()
     assert (out / "plots" / "bars.png").read_bytes()[:4] == b"\x89PNG"
+    picked = tmp_path / "picked"  # DIR=NAME,...: only those policies of that report
+    assert pool.main(["--results", f"{a}=teacher,adapter", str(b), "--out", str(picked)]) == 0
+    rows = {r["policy"]: r for r in json.loads((picked / "results.json").read_text())["rows"]}
+    assert rows["adapter"]["episodes"] == 40 and rows["student"]["episodes"] == 30
+    assert pool.main(["--results", f"{a}=oracle", "--out", str(tmp_path / "none")]) == 2
+    assert "no rows for ['oracle']" in capsys.readouterr().err
     only = tmp_path / "only"
     assert pool.main(["--results", str(a), str(b), str(c), "--policies", "teacher", "other", "--out", str(only)]) == 0
     assert [r["policy"] for r in json.loads((only / "results.json").read_text())["rows"]] == ["teacher", "other"]
+
+
+def test_paired_rates_compare_the_episodes_both_kept(pool, tmp_path):
+    def episodes(row: dict, ttf: list[float], rotation: list[float]) -> dict:
+        time = [20.0 * t for t in ttf]
+        return {**row, "per_episode": {"ttf": ttf, "rotation_total": rotation, "in_hand_time": time,
+                                       "vertical_drift": [0.01] * len(ttf)}}
+
+    teacher = _row("teacher", 1.0, 0.009, 4)
+    # episode 0: both keep it (student 10 rad, adapter 9 rad); 1: the student drops it; 2: both keep it (12, 12);
+    # 3: the adapter drops it. On the two both kept, the adapter turns 21 rad against the student's 22 in 40 s.
+    student = episodes(_row("student", 0.75, 0.011, 4), [1.0, 0.25, 1.0, 1.0], [10.0, 2.0, 12.0, 11.0])
+    adapter = episodes(_row("adapter", 0.75, 0.010, 4), [1.0, 1.0, 1.0, 0.5], [9.0, 4.0, 12.0, 5.0])
+    old = _row("adapter", 0.5, 0.010, 8)  # a report from before per-episode values: left out of the pairing
+    a = _report(tmp_path / "a", 100, 4, [teacher, student, adapter])
+    b = _report(tmp_path / "b", 200, 8, [_row("teacher", 0.9, 0.009, 8), _row("student", 0.5, 0.011, 8), old])
+    out = tmp_path / "pooled"
+    assert pool.main(["--results", str(a), str(b), "--reference", "teacher", "--baseline", "student",
+                      "--out", str(out)]) == 0
+    paired = {p["policy"]: p for p in json.loads((out / "results.json").read_text())["paired_rates"]}
+    assert set(paired) == {"adapter"}  # the teacher's row keeps no per-episode values
+    assert paired["adapter"]["episodes"] == 4 and paired["adapter"]["kept_by_both"] == 2
+    assert paired["adapter"]["net_rotation_rate"] == pytest.approx(21.0 / 40.0)
+    assert paired["adapter"]["baseline_net_rotation_rate"] == pytest.approx(22.0 / 40.0)
+    assert paired["adapter"]["change"] == pytest.approx(21.0 / 22.0 - 1.0)
+    assert "| friction_0.25 | adapter | 4 | 2 | 0.525 | 0.550 | -4.5% |" in (out / "results.md").read_text()
 
 
 def test_refuses_overlapping_seeds_and_bad_input(pool, tmp_path, capsys):

@@ -1,4 +1,5 @@
-"""scripts/teacher_cpu_recipe.py: the five CPU stages chain, skip what is finished and resume what was stopped."""
+"""scripts/teacher_cpu_recipe.py: the five teacher stages and the two student stages chain, skip what is finished
+and resume what was stopped."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ import pytest
 
 from envs.grasps import default_cache_path
 from rotation import cli
-from rotation.train import teacher
+from rotation.configs import save_config
+from rotation.evaluate import job as evaluate_job
+from rotation.policy.bundle import resolve_bundle
+from rotation.train import finetune_student, student, teacher
 
 
 @pytest.fixture(scope="module")
@@ -22,28 +26,81 @@ def _fake_bundle(path, card):
     (path / "config.json").write_text(json.dumps({"card": card}))
 
 
-def test_every_stage_is_a_valid_train_teacher_command(recipe, tmp_path):
+def _parsed(args):
+    """The config a `rotate` command line makes, parsed and validated by its job's own config_from_args."""
+    module = {"train-teacher": teacher, "train-student": student, "finetune-student": finetune_student,
+              "evaluate": evaluate_job}[args[0]]
+    return module.config_from_args(cli.build_parser(args[0]).parse_args(args))
+
+
+def _finished_teacher(recipe, out):
+    """Stage 0 and the five teacher stages, finished."""
+    (out / "grasps_unchecked").mkdir(parents=True)
+    (out / "grasps_unchecked" / "grasps_cup.npz").write_bytes(b"")
+    for name, steps, _ in recipe.STAGES:
+        _fake_bundle(out / name / "bundle", {"steps": steps})
+
+
+def test_every_stage_is_a_valid_command_of_its_job(recipe, tmp_path):
     out = tmp_path / "recipe"
     todo = recipe.commands(recipe.Config(out=out, progress=False))
     assert [what.split(":")[0] for what, _ in todo] == ["stage 0", "stage1", "stage2", "stage3", "stage4",
-                                                        "stage5", "evaluation"]
+                                                        "stage5", "student", "student_rl", "evaluation"]
     # with the files each stage reads in place, the options parse and validate as the job's own Config
     (out / "grasps_unchecked").mkdir(parents=True)
     shutil.copy(default_cache_path("cup"), out / "grasps_unchecked" / "grasps_cup.npz")
-    configs = []
     for name, _, _ in recipe.STAGES[:-1]:
         _fake_bundle(out / name / "bundle", {"steps": 1, "interrupted": "stopped"})  # not finished: still to run
+    distilled = shutil.copytree(resolve_bundle("student"), out / "student" / "bundle")  # the fine-tune loads it
+    config = json.loads((distilled / "config.json").read_text())
+    config["card"] = {"env_steps": 1, "interrupted": "stopped"}
+    (distilled / "config.json").write_text(json.dumps(config))
+    configs = {}
     for _, args in recipe.commands(recipe.Config(out=out, progress=False)):
-        if args[0] == "train-teacher":
-            configs.append(teacher.config_from_args(cli.build_parser("train-teacher").parse_args(args)))
-    assert [c.seed for c in configs] == [0, 3, 7, 11, 13]
-    assert [c.fall_reward for c in configs] == [-20.0, -20.0, -60.0, -35.0, -60.0]
-    assert [c.rotate_back_clip for c in configs] == [0.5, 5.0, 5.0, 5.0, 5.0]
+        configs.setdefault(args[0], []).append(_parsed(args))
+    assert list(configs) == ["train-teacher", "train-student", "finetune-student", "evaluate"]
+    stages = configs["train-teacher"]
+    assert [c.seed for c in stages] == [0, 3, 7, 11, 13]
+    assert [c.fall_reward for c in stages] == [-20.0, -20.0, -60.0, -35.0, -60.0]
+    assert [c.rotate_back_clip for c in stages] == [0.5, 5.0, 5.0, 5.0, 5.0]
     # stages 1-2 start from the grasps without the hold check, 3-5 from the shipped ones (which evaluation uses)
-    assert [bool(c.grasp_cache) for c in configs] == [True, True, False, False, False]
-    assert configs[0].init_from is None and [c.init_from for c in configs[1:]] == [
+    assert [bool(c.grasp_cache) for c in stages] == [True, True, False, False, False]
+    assert stages[0].init_from is None and [c.init_from for c in stages[1:]] == [
         out / name / "bundle" for name, _, _ in recipe.STAGES[:-1]]
-    assert sum(c.total_steps for c in configs) == 37_060_608
+    assert sum(c.total_steps for c in stages) == 37_060_608
+    # the student: the report's two commands, each from the bundle of the stage before it
+    [distill] = configs["train-student"]
+    assert (distill.teacher, distill.out) == (str(out / "stage5" / "bundle"), out / "student")
+    assert (distill.total_steps, distill.num_envs, distill.seed, distill.resume) == (6_000_000, 64, 0, False)
+    assert not distill.progress and not distill.env.grasp_cache  # the shipped grasps, as stage 5's
+    [rl] = configs["finetune-student"]
+    assert (rl.student, rl.out, rl.init_from) == (str(out / "student" / "bundle"), out / "student_rl", None)
+    assert (rl.total_steps, rl.checkpoint_every, rl.seed, rl.fall_reward) == (4_000_000, 500_000, 12, -60.0)
+    assert not rl.overlap and not rl.progress and not rl.grasp_cache
+    # teacher and final student on the same fresh seeds
+    [evaluation] = configs["evaluate"]
+    assert evaluation.policies == {"teacher_cpu": str(out / "stage5" / "bundle"),
+                                   "student_cpu": str(out / "student_rl" / "bundle")}
+    assert (evaluation.conditions, evaluation.episodes, evaluation.seed) == (("nominal",), 128, 3_300_000)
+    assert evaluation.out == out / "evaluation_student"
+
+
+def test_teacher_only_leaves_the_student_out_and_evaluates_the_teacher_alone(recipe, tmp_path, capsys):
+    out = tmp_path / "recipe"
+    assert recipe.main(["--out", str(out), "--teacher-only", "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    assert "rotate train-teacher" in printed and "student" not in printed and not out.exists()
+    todo = recipe.commands(recipe.Config(out=out, teacher_only=True))
+    assert [what.split(":")[0] for what, _ in todo] == ["stage 0", "stage1", "stage2", "stage3", "stage4",
+                                                        "stage5", "evaluation"]
+    evaluation = _parsed(todo[-1][1])
+    assert evaluation.policies == {"teacher_cpu": str(out / "stage5" / "bundle")}
+    assert evaluation.out == out / "evaluation"
+    # its evaluation is not the full recipe's: a later run without --teacher-only still evaluates the student
+    (out / "evaluation").mkdir(parents=True)
+    (out / "evaluation" / "results.md").write_text("# Evaluation\n")
+    assert recipe.commands(recipe.Config(out=out, teacher_only=True))[-1][0].startswith("stage5")
+    assert recipe.commands(recipe.Config(out=out))[-1][1][-1] == str(out / "evaluation_student")
 
 
 def test_finished_stages_are_skipped_and_a_stopped_one_resumes(recipe, tmp_path):
@@ -55,20 +112,73 @@ def test_finished_stages_are_skipped_and_a_stopped_one_resumes(recipe, tmp_path)
     _fake_bundle(out / "stage2" / "bundle", {"steps": 123, "interrupted": "stopped by SIGTERM"})
     (out / "stage2" / "checkpoints").mkdir()
     (out / "stage2" / "checkpoints" / "last.zip").write_bytes(b"")
-    todo = recipe.commands(recipe.Config(out=out, eval_episodes=0))
+    todo = recipe.commands(recipe.Config(out=out, eval_episodes=0, teacher_only=True))
     assert [what.split(":")[0] for what, _ in todo] == ["stage2", "stage3", "stage4", "stage5"]
     assert todo[0][1] == ["train-teacher", "--resume", str(out / "stage2" / "checkpoints" / "last.zip"),
                           "--total-steps", str(steps2)]
     assert "--init-from" in todo[1][1] and str(out / "stage2" / "bundle") in todo[1][1]
 
 
+def test_finished_student_stages_are_skipped_and_a_stopped_one_resumes(recipe, tmp_path):
+    out = tmp_path / "recipe"
+    _finished_teacher(recipe, out)
+    distill_steps, rl_steps = (steps for _, _, steps, _ in recipe.STUDENT_STAGES)
+    assert recipe.DISTILL_CHECKPOINTS == student.CHECKPOINT_GLOB
+
+    def todo():
+        cfg = recipe.Config(out=out, eval_episodes=0, progress=False)
+        return [(what.split(":")[0], args) for what, args in recipe.commands(cfg)]
+
+    # the distillation stopped (its bundle says so, beside its checkpoints): it resumes with the run's own options
+    distill = out / "student"
+    save_config(student.Config(teacher=str(out / "stage5" / "bundle"), out=distill, total_steps=distill_steps),
+                distill / "config.json")
+    (distill / "ckpt_000003125.pt").write_bytes(b"")
+    _fake_bundle(distill / "bundle", {"env_steps": 200_000, "interrupted": "stopped by SIGINT at 200000 of 6000000",
+                                      "config": {"total_steps": distill_steps}})
+    [(what, args), (what_rl, args_rl)] = todo()
+    assert (what, what_rl) == ("student", "student_rl")
+    assert args == ["train-student", "--out", str(distill), "--resume", "--total-steps", str(distill_steps),
+                    "--no-progress"]
+    resumed = _parsed(args)
+    assert resumed.resume and resumed.teacher == str(out / "stage5" / "bundle") and resumed.out == distill
+    assert args_rl[:3] == ["finetune-student", "--student", str(distill / "bundle")]
+    # finished: at the full length; also when a resume found nothing left to train (it logs no point)
+    for card in ({"env_steps": distill_steps, "config": {"total_steps": distill_steps}},
+                 {"env_steps": 0, "config": {"total_steps": distill_steps}}):
+        (distill / "bundle" / "config.json").write_text(json.dumps({"card": card}))
+        assert [what for what, _ in todo()] == ["student_rl"]
+    # the fine-tune stopped: it resumes from its last checkpoint; finished, nothing is left
+    rl = out / "student_rl"
+    _fake_bundle(rl / "bundle", {"steps": 1_015_808, "interrupted": "stopped by SIGTERM at 1015808 of 4000000"})
+    (rl / "checkpoints").mkdir()
+    (rl / "checkpoints" / "last.zip").write_bytes(b"")
+    assert todo() == [("student_rl", ["finetune-student", "--resume", str(rl / "checkpoints" / "last.zip"),
+                                      "--total-steps", str(rl_steps), "--no-progress"])]
+    (rl / "bundle" / "config.json").write_text(json.dumps({"card": {"steps": rl_steps + 14_080}}))
+    assert todo() == []
+    # a shorter stage is not the recipe's: it is not finished
+    (rl / "bundle" / "config.json").write_text(json.dumps({"card": {"steps": rl_steps // 2}}))
+    assert [what for what, _ in todo()] == ["student_rl"]
+
+
 def test_a_tiny_recipe_runs_end_to_end_and_a_second_call_has_nothing_left(recipe, tmp_path, monkeypatch, capsys):
-    """The real jobs, with the stages shrunk to a few updates: each stage starts from the previous one's bundle."""
+    """The real jobs, with the stages shrunk to a few updates: each stage starts from the previous one's bundle, and
+    stopped student stages resume from their checkpoints."""
     tiny = ["--num-envs", "8", "--n-steps", "16", "--batch-size", "64", "--n-epochs", "1", "--episode-steps", "30",
             "--no-overlap"]
     stages = tuple((name, 256, [*(o for o in options if o.startswith("--init-from") or o == "{prev}"), *tiny,
                                 "--seed", str(i)]) for i, (name, _, options) in enumerate(recipe.STAGES))
+    student_stages = (
+        ("student", "train-student", 64,
+         ["--teacher", "{prev}", "--out", "{run}", "--total-steps", "{steps}", "--num-envs", "4", "--checkpoint-every",
+          "32", "--log-every", "4", "--env.episode-steps", "30", "--seed", "0"]),
+        ("student_rl", "finetune-student", 256,
+         ["--student", "{prev}", "--out", "{run}", "--total-steps", "{steps}", *tiny, "--checkpoint-every", "128",
+          "--seed", "12", "--fall-reward", "-60"]),
+    )
     monkeypatch.setattr(recipe, "STAGES", stages)
+    monkeypatch.setattr(recipe, "STUDENT_STAGES", student_stages)
     out = tmp_path / "recipe"
     (out / "grasps_unchecked").mkdir(parents=True)
     shutil.copy(default_cache_path("cup"), out / "grasps_unchecked" / "grasps_cup.npz")
@@ -77,7 +187,38 @@ def test_a_tiny_recipe_runs_end_to_end_and_a_second_call_has_nothing_left(recipe
     assert [c["steps"] for c in cards] == [256] * 5
     assert [c["train_config"]["init_from"] for c in cards] == [None, *(str(out / n / "bundle") for n, _, _ in
                                                                      stages[:-1])]
-    assert "| nominal" in (out / "evaluation" / "results.md").read_text()
+    distilled = json.loads((out / "student" / "bundle" / "config.json").read_text())["card"]
+    assert (distilled["trained_by"], distilled["teacher"], distilled["env_steps"]) == (
+        "rotate train-student", str(out / "stage5" / "bundle"), 64)
+    finetuned = json.loads((out / "student_rl" / "bundle" / "config.json").read_text())["card"]
+    assert (finetuned["role"], finetuned["steps"]) == ("student", 256)
+    assert finetuned["finetuned_from"]["bundle"] == str(out / "student" / "bundle")
+    results = (out / "evaluation_student" / "results.md").read_text()
+    assert "| nominal" in results and "teacher_cpu" in results and "student_cpu" in results
     capsys.readouterr()
+    assert recipe.main(["--out", str(out), "--no-progress"]) == 0
+    assert "every stage is done" in capsys.readouterr().out
+
+    # both student stages stopped halfway (their bundles say so; the checkpoints after it are lost): they resume
+    ckpts = sorted((out / "student").glob("ckpt_*.pt"))
+    assert [p.name for p in ckpts] == ["ckpt_000000008.pt", "ckpt_000000016.pt"]
+    ckpts[-1].unlink()
+    rl_ckpts = out / "student_rl" / "checkpoints"
+    shutil.copy(rl_ckpts / "step_0000000128.zip", rl_ckpts / "last.zip")
+    (rl_ckpts / "step_0000000256.zip").unlink()
+    for name, card in (("student", distilled), ("student_rl", finetuned)):
+        (out / name / "bundle" / "config.json").write_text(
+            json.dumps({"card": card | {"interrupted": "stopped by SIGTERM"}}))
+    assert recipe.main(["--out", str(out), "--no-progress"]) == 0
+    said = [line for line in capsys.readouterr().out.splitlines() if line.startswith("teacher_cpu_recipe: ")]
+    assert said == [f"teacher_cpu_recipe: student: resume at {out / 'student' / 'ckpt_000000008.pt'}",
+                    f"teacher_cpu_recipe: student_rl: resume at {rl_ckpts / 'last.zip'}",
+                    f"teacher_cpu_recipe: done; the teacher is {out / 'stage5' / 'bundle'}; the student is "
+                    f"{out / 'student_rl' / 'bundle'}; evaluated in {out / 'evaluation_student' / 'results.md'}"]
+    distilled = json.loads((out / "student" / "bundle" / "config.json").read_text())["card"]
+    finetuned = json.loads((out / "student_rl" / "bundle" / "config.json").read_text())["card"]
+    assert "interrupted" not in distilled and distilled["env_steps"] == 64
+    assert "interrupted" not in finetuned and finetuned["steps"] == 256
+    assert finetuned["resumed_from"] == str(rl_ckpts / "last.zip")
     assert recipe.main(["--out", str(out), "--no-progress"]) == 0
     assert "every stage is done" in capsys.readouterr().out
