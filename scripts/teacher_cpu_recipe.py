@@ -135,10 +135,11 @@ def _distillation_done(run_dir: Path, steps: int) -> bool:
         return False
 
 
-def _student_stage(name: str, job: str, steps: int, options: list[str], run_dir: Path, prev: Path,
-                   progress: list[str]) -> tuple[str, list[str]] | None:
-    """(what, `rotate` arguments) of a student stage still to run, None when it is finished; a stopped one resumes
-    (--resume takes the run's own options, the teacher or student it started from included)."""
+def _stage(name: str, job: str, steps: int, options: list[str], run_dir: Path, progress: list[str], **fields: object
+           ) -> tuple[str, list[str]] | None:
+    """(what, `rotate` arguments) of a training stage still to run, None when it is finished; a stopped one resumes
+    (--resume takes the run's own options, the bundle or grasps it started from included). ``fields`` fill the
+    options' placeholders besides {run} and {steps}."""
     if job == "train-student":
         if _distillation_done(run_dir, steps):
             return None
@@ -146,13 +147,13 @@ def _student_stage(name: str, job: str, steps: int, options: list[str], run_dir:
         if ckpts and (run_dir / "config.json").is_file():  # resumes from its latest intact checkpoint
             return (f"{name}: resume at {ckpts[-1]}",
                     [job, "--out", str(run_dir), "--resume", "--total-steps", str(steps), *progress])
-    else:
+    else:  # train-teacher and finetune-student keep checkpoints/last.zip and a card counting "steps"
         if _bundle_done(run_dir, steps):
             return None
         last = run_dir / "checkpoints" / "last.zip"
         if last.is_file():
             return f"{name}: resume at {last}", [job, "--resume", str(last), "--total-steps", str(steps), *progress]
-    filled = [a.format(prev=prev, run=run_dir, steps=steps) for a in options]
+    filled = [a.format(run=run_dir, steps=steps, **fields) for a in options]
     return f"{name}: {steps / 1e6:.2f} M steps", [job, *filled, *progress]
 
 
@@ -175,25 +176,13 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
                      ["grasps", "--objects", "cup", "--hold-seconds", "0", "--out", str(grasps_dir)]))
     progress = [] if cfg.progress else ["--no-progress"]
     prev = None
-    for name, steps, options in STAGES:
+    stages = [(name, "train-teacher", steps, ["--out", "{run}", *options, "--total-steps", "{steps}",
+                                               "--checkpoint-every", "1000000"]) for name, steps, options in STAGES]
+    for name, job, steps, options in stages + ([] if cfg.teacher_only else list(STUDENT_STAGES)):
         run_dir = out / name
-        if not _bundle_done(run_dir, steps):
-            last = run_dir / "checkpoints" / "last.zip"
-            if last.is_file():  # a stopped stage: --resume takes the run's own options
-                args = ["train-teacher", "--resume", str(last), "--total-steps", str(steps), *progress]
-                todo.append((f"{name}: resume at {last}", args))
-            else:
-                filled = [a.format(grasps=grasps, prev=prev) for a in options]
-                args = ["train-teacher", "--out", str(run_dir), *filled, "--total-steps", str(steps),
-                        "--checkpoint-every", "1000000", *progress]
-                todo.append((f"{name}: {steps / 1e6:.2f} M steps", args))
+        if (stage := _stage(name, job, steps, options, run_dir, progress, grasps=grasps, prev=prev)) is not None:
+            todo.append(stage)
         prev = run_dir / "bundle"
-    if not cfg.teacher_only:
-        for name, job, steps, options in STUDENT_STAGES:
-            run_dir = out / name
-            if (stage := _student_stage(name, job, steps, options, run_dir, prev, progress)) is not None:
-                todo.append(stage)
-            prev = run_dir / "bundle"
     evaluation, policies = _evaluation(cfg)
     if cfg.eval_episodes and not (evaluation / "results.md").is_file():
         todo.append((f"evaluation: {' and '.join(policies)}, nominal, fresh seeds",
