@@ -313,7 +313,7 @@ def run(cfg: Config) -> dict[str, Any]:
     from rotation.deploy.recording import DeployRecorder
     from rotation.deploy.sensors import open_digit360, open_skin
     from rotation.deploy.touch import reads_touch, touch_sensors, wait_for_touch
-    from rotation.hardware.realtime import set_realtime_priority
+    from rotation.hardware.realtime import frozen_heap, set_realtime_priority
     from rotation.policy.bundle import load_bundle
 
     bundle = load_bundle(cfg.policy)
@@ -349,6 +349,8 @@ def run(cfg: Config) -> dict[str, Any]:
     try:
         signals.arm()
         with contextlib.ExitStack() as stack:
+            # a full GC pass over the loaded process would stall the drivers' threads past their watchdogs
+            stack.enter_context(frozen_heap())
             # the policy's small network gains nothing from more threads; they would compete with the drivers
             torch.set_num_threads(1)
             # the network traced for one observation: it runs without taking the interpreter's lock op by op

@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from rotation.hardware.realtime import frozen_heap
 from rotation.sim_hardware.allegro_emulator import AllegroEmulator
 from rotation.sim_hardware.digit360_emulator import Digit360Emulator
 from rotation.sim_hardware.leap_emulator import LeapEmulator
@@ -42,6 +43,14 @@ def short_gil_switch_interval():
     sys.setswitchinterval(5e-4)
     yield
     sys.setswitchinterval(previous)
+
+
+@pytest.fixture(autouse=True)
+def short_gc_passes():
+    """As in `rotate deploy`: the heap the earlier tests built is hidden from the cyclic GC, whose full pass over it
+    would stall the drivers' receive threads past their watchdogs (rotation.hardware.realtime.frozen_heap)."""
+    with frozen_heap():
+        yield
 
 
 @pytest.fixture
