@@ -1,8 +1,9 @@
-"""One-off: ttf of gain125 minus the shipped adapter's, episode by episode (episode j is seed s + j for both).
+"""One-off: ttf of a candidate minus the shipped adapter's, episode by episode (episode j is seed s + j for both).
 
-    python paired_ttf.py ADAPTER_REPORT:GAIN_REPORT [...]
+    python paired_ttf.py [--policy=NAME] ADAPTER_REPORT:CANDIDATE_REPORT [...]
 
-Each argument pairs a report holding the `adapter` rows with one holding the `gain125` rows on the same seeds.
+Each argument pairs a report holding the `adapter` rows with one holding the candidate's rows (NAME, default
+gain125) on the same seeds.
 """
 
 import json
@@ -22,12 +23,16 @@ def summary(d: np.ndarray) -> str:
     return f"{d.mean():+.4f} se {d.std(ddof=1) / np.sqrt(len(d)):.4f}"
 
 
+args = sys.argv[1:]
+name = "gain125"
+if args and args[0].startswith("--policy="):
+    name, args = args[0].split("=", 1)[1], args[1:]
 diffs: dict[str, list[np.ndarray]] = {c: [] for c in CONDITIONS}
-for pair in sys.argv[1:]:
+for pair in args:
     adapter_report, gain_report = pair.split(":")
     shipped, gain = rows(adapter_report), rows(gain_report)
     for cond in CONDITIONS:
-        d = (np.array(gain[(cond, "gain125")]["per_episode"]["ttf"])
+        d = (np.array(gain[(cond, name)]["per_episode"]["ttf"])
              - np.array(shipped[(cond, "adapter")]["per_episode"]["ttf"]))
         diffs[cond].append(d)
         print(adapter_report.split("/")[-1], cond, summary(d))
