@@ -29,6 +29,12 @@ windows and the teacher's z (adapters.real_data); the windows are encoded once i
 ``epochs`` passes of Adam steps train the adapter, with a held-out share of the sessions for validation::
 
     rotate finetune-adapter --sessions sessions/ --modalities imu,pressure --out runs/adapter_lab
+
+With ``--refit-head`` (adapters.refit_head) it trains nothing by gradient: it rolls an ``--init-from`` adapter out
+and solves its last, linear layer in closed form (ridge regression on its own hidden features, the strength chosen
+by cross-validation over whole episodes)::
+
+    rotate finetune-adapter --init-from adapter --refit-head --total-steps 76800 --out runs/adapter_refit
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import math
 import pickle
 import time
 import zipfile
@@ -117,6 +124,15 @@ class Config:
     corrections and holds the nominal-cup ones where the anchor had them. Empty: the teacher's z everywhere."""
     anchor_mass: float = 0.2
     """Object mass (kg) below which ``anchor`` sets the target."""
+    refit_head: bool = False
+    """Instead of Adam steps: roll the ``--init-from`` adapter out for ``total_steps`` env steps and solve its zero
+    layer (the last, linear one) by ridge regression on its own hidden features, every other weight kept
+    (adapters.refit_head; simulation only)."""
+    refit_lambdas: tuple[float, ...] = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1)
+    """Refit: ridge strengths tried (penalty lambda x samples x |W|^2); the one with the lowest held-out latent error
+    is used."""
+    refit_folds: int = 4
+    """Refit: cross-validation folds over whole episodes that choose the ridge strength."""
     hidden: tuple[int, ...] = (256, 128)
     """Hidden widths of the adapter's MLP g."""
     checkpoint_every: int = 20_000
@@ -198,6 +214,20 @@ class Config:
             raise ValueError("--sessions trains Digit 360 adapters (imu, pressure); recorded skin sessions lack the "
                              "taxel positions the skin encoder reads (docs/skin.md): train a skin adapter in "
                              "simulation")
+        check_int("refit_folds", self.refit_folds, 2, 100)
+        if not self.refit_lambdas or not all(isinstance(v, (int, float)) and math.isfinite(v) and 0 < v <= 1e6
+                                             for v in self.refit_lambdas):
+            raise ValueError(f"refit_lambdas must be numbers in (0, 1e6], got {list(self.refit_lambdas)}")
+        if self.refit_head:
+            clashes = [name for name, on in (("--sessions", bool(self.sessions)), ("--resume", self.resume),
+                                             ("--anchor", bool(self.anchor)),
+                                             ("--action-weight", self.action_weight > 0)) if on]
+            if clashes:
+                raise ValueError(f"--refit-head is one rollout and one closed-form fit in simulation; it takes no "
+                                 f"{', '.join(clashes)} (run it again to redo it)")
+            if not self.init_from:
+                raise ValueError("--refit-head refits the zero layer of a trained adapter: give it with --init-from "
+                                 "(e.g. --init-from adapter)")
         if self.sessions and self.anchor:
             raise ValueError("--anchor sets the target by the simulated cup's mass; recorded sessions carry their "
                              "own measured properties: leave --anchor out with --sessions")
@@ -420,6 +450,10 @@ def run(cfg: Config) -> Result:
         from adapters.finetune_sessions import train_on_sessions
 
         return train_on_sessions(job)
+    if cfg.refit_head:
+        from adapters.refit_head import refit_in_sim
+
+        return refit_in_sim(job)
     from adapters.finetune_sim import train_in_sim
 
     return train_in_sim(job)

@@ -67,15 +67,7 @@ def train_in_sim(job: Job) -> Result:
                 correction[:] = 0.0
             groups = {key: obs[key] for key in policy.config.obs_groups}
             if it % k == 0:
-                t_obs = {key: torch.as_tensor(obs[key]) for key in teacher.config.obs_groups}
-                with torch.no_grad():
-                    z_teacher = teacher.net.extractor.z(t_obs)
-                    z_student = policy.student_latent(groups)
-                    proprio = policy.proprio_features(groups)
-                try:
-                    tokens = policy.tokens(policy.env_windows(obs))
-                except TouchUnavailable as err:  # cannot happen in simulation unless the renderer breaks
-                    raise RuntimeError(f"simulated touch unusable: {err}") from None
+                z_teacher, z_student, proprio, tokens = refresh_inputs(policy, teacher, obs, groups)
                 buffer.add(tokens, z_student, anchored_target(job, obs["priv"], tokens, z_student, z_teacher), proprio)
                 with torch.no_grad():
                     corr = adapter(tokens, z_student)
@@ -142,6 +134,19 @@ def train_in_sim(job: Job) -> Result:
         card["final_action_mse"] = history[-1]["action_mse"]
         card["final_student_action_mse"] = history[-1]["student_action_mse"]
     return job.finish(card, history, signum, f"{done_iters * n} env steps", f"{total_iters * n}")
+
+
+@torch.no_grad()
+def refresh_inputs(policy: Any, teacher: Any, obs: dict[str, Any], groups: dict[str, Any]
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+    """What a touch refresh of the simulated env gives the adapter's training: the teacher's z, phi's latent, the
+    student actor's proprioceptive input and the frozen encoder's tokens of every env."""
+    z_teacher = teacher.net.extractor.z({key: torch.as_tensor(obs[key]) for key in teacher.config.obs_groups})
+    try:
+        tokens = policy.tokens(policy.env_windows(obs))
+    except TouchUnavailable as err:  # cannot happen in simulation unless the renderer breaks
+        raise RuntimeError(f"simulated touch unusable: {err}") from None
+    return z_teacher, policy.student_latent(groups), policy.proprio_features(groups), tokens
 
 
 def anchored_target(job: Job, priv: np.ndarray, tokens: dict, z_student: torch.Tensor,

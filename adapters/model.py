@@ -95,12 +95,16 @@ class TouchAdapter(nn.Module):
         pooled = self.pool(flat).view(len(parts), b, -1).transpose(0, 1)  # (B, S, D)
         return pooled + self.sample_embed.to(pooled.dtype)
 
-    def from_pooled(self, pooled: Tensor, z_student: Tensor) -> Tensor:
-        """(B, S, D) pooled features and the student's (B, Z) latent -> (B, Z) correction."""
+    def hidden(self, pooled: Tensor, z_student: Tensor) -> Tensor:
+        """(B, S, D) pooled features and the student's (B, Z) latent -> (B, H) g's output, the zero layer's input."""
         x = pooled.flatten(1)  # (B, S * D)
         if self.cfg.with_latent:
             x = torch.cat([x, z_student.to(x.dtype)], dim=-1)
-        return self.zero(self.g(x))
+        return self.g(x)
+
+    def from_pooled(self, pooled: Tensor, z_student: Tensor) -> Tensor:
+        """(B, S, D) pooled features and the student's (B, Z) latent -> (B, Z) correction."""
+        return self.zero(self.hidden(pooled, z_student))
 
     def forward(self, tokens: dict[str, dict[str, Tensor]], z_student: Tensor) -> Tensor:
         return self.from_pooled(self.pooled(tokens), z_student)

@@ -8,7 +8,10 @@ it adds, for every other policy, the share of the baseline's gap to the referenc
 stated. It also compares each policy's rotation rate with the baseline's episode by episode:
 the net rate over the episodes that both kept in hand to the end (reports whose rows keep per-episode values). A
 policy that saves cups the baseline drops spends that extra time on hard cups, which lowers its net rate over all
-episodes; on the cups both kept, a lower rate means it really turns the cup slower.
+episodes; on the cups both kept, a lower rate means it really turns the cup slower. With --paired-against NAME it
+adds, for every other policy, its per-episode difference to NAME in ttf and vertical drift, with the standard error
+of the mean difference: two policies judged on the same episodes differ by far less noise than their separate
+means suggest (one seed set of 128 episodes moves a gap share by 10-30 points, the paired difference much less).
 
     python scripts/pool_evaluations.py --results docs/results/adapter/student_rl2/seeds_800000 \\
         docs/results/adapter/student_rl2/seeds_1300000 --reference teacher --baseline student --out runs/pooled
@@ -50,6 +53,10 @@ class Config:
     """Policy whose gap to the reference is measured (e.g. student)."""
     policies: tuple[str, ...] = ()
     """Pool only these policies (default: every policy in the reports)."""
+    paired_against: str = ""
+    """Policy to compare every other one with episode by episode (e.g. the shipped adapter against a candidate):
+    mean per-episode difference in ttf and vertical drift and its standard error, on the seed sets where both rows
+    keep per-episode values."""
 
 
 def _source(entry: Path) -> tuple[Path, set[str] | None]:
@@ -152,6 +159,50 @@ def paired_rates(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any],
     return out
 
 
+PAIRED_METRICS = ("ttf", "vertical_drift")
+"""Per-episode values compared by --paired-against."""
+
+
+def paired_differences(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], Path]]], against: str
+                       ) -> list[dict[str, Any]]:
+    """Per condition and other policy: mean and standard error of (policy - ``against``) per episode, for each of
+    PAIRED_METRICS, over the seed sets where both rows keep per-episode values (a policy with none is left out)."""
+    out = []
+    for (policy, cond), runs in groups.items():
+        if policy == against:
+            continue
+        theirs = {(s.start, s.stop): r for s, r, _ in groups.get((against, cond), [])}
+        diffs: dict[str, list[np.ndarray]] = {m: [] for m in PAIRED_METRICS}
+        for span, row, _ in runs:
+            other = theirs.get((span.start, span.stop))
+            if other is None or "per_episode" not in row or "per_episode" not in other:
+                continue
+            for m in PAIRED_METRICS:
+                diffs[m].append(np.asarray(row["per_episode"][m], float) - np.asarray(other["per_episode"][m], float))
+        if not diffs["ttf"]:
+            continue
+        entry: dict[str, Any] = {"policy": policy, "condition": cond, "against": against}
+        for m, parts in diffs.items():
+            d = np.concatenate(parts)
+            entry["episodes"] = len(d)
+            entry[m] = float(d.mean())
+            entry[m + "_se"] = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else None
+        out.append(entry)
+    return out
+
+
+def _paired_markdown(paired: list[dict[str, Any]], against: str) -> str:
+    def cell(entry: dict[str, Any], m: str, scale: float, digits: int) -> str:
+        se = entry[m + "_se"]
+        return f"{entry[m] * scale:+.{digits}f}" + ("" if se is None else f" ± {se * scale:.{digits}f}")
+
+    text = (f"\n## Paired against {against}\n\nPer-episode difference (policy - {against}) on the same episodes, "
+            "mean ± standard error of the mean.\n\n| condition | policy | episodes | ttf | vertical drift (mm) |\n"
+            "|---|---|---|---|---|\n")
+    return text + "".join(f"| {p['condition']} | {p['policy']} | {p['episodes']} | {cell(p, 'ttf', 1.0, 3)} | "
+                          f"{cell(p, 'vertical_drift', 1000.0, 2)} |\n" for p in paired)
+
+
 def run(cfg: Config) -> Path:
     if not cfg.results:
         raise ValueError("give the evaluation directories to pool with --results")
@@ -194,6 +245,10 @@ def run(cfg: Config) -> Path:
     pooled.sort(key=rank)
     shares = sorted(gap_shares(groups, cfg.reference, cfg.baseline), key=rank) if cfg.reference else []
     paired = sorted(paired_rates(groups, cfg.baseline), key=rank) if cfg.baseline else []
+    if cfg.paired_against and not any(r["policy"] == cfg.paired_against for r in pooled):
+        raise ValueError(f"--paired-against {cfg.paired_against!r}: no such policy in these reports; they have "
+                         f"{sorted({r['policy'] for r in pooled})}")
+    against = sorted(paired_differences(groups, cfg.paired_against), key=rank) if cfg.paired_against else []
 
     cfg.out.mkdir(parents=True, exist_ok=True)
     text = markdown_table(pooled).replace("# Evaluation", "# Pooled evaluation", 1)
@@ -214,9 +269,12 @@ def run(cfg: Config) -> Path:
         text += "".join(f"| {p['condition']} | {p['policy']} | {p['episodes']} | {p['kept_by_both']} | "
                         f"{p['net_rotation_rate']:.3f} | {p['baseline_net_rotation_rate']:.3f} | "
                         + ("-" if p["change"] is None else f"{p['change']:+.1%}") + " |\n" for p in paired)
+    if against:
+        text += _paired_markdown(against, cfg.paired_against)
     text += "\n## Pooled reports\n\n" + "\n".join(sets) + "\n"
     (cfg.out / "results.md").write_text(text)
     (cfg.out / "results.json").write_text(json.dumps({"rows": pooled, "shares": shares, "paired_rates": paired,
+                                                      "paired_differences": against,
                                                       "sources": [str(p) for p in cfg.results]}, indent=2) + "\n")
     plot_bars(cfg.out / "plots" / "bars.png", pooled, conditions)
     print(f"pooled {len(cfg.results)} reports into {len(pooled)} rows -> {cfg.out / 'results.md'}")

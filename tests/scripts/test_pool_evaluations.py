@@ -92,6 +92,31 @@ def test_paired_rates_compare_the_episodes_both_kept(pool, tmp_path):
     assert "| friction_0.25 | adapter | 4 | 2 | 0.525 | 0.550 | -4.5% |" in (out / "results.md").read_text()
 
 
+def test_paired_against_differences_episode_by_episode(pool, tmp_path, capsys):
+    def episodes(row: dict, ttf: list[float], drift: list[float]) -> dict:
+        return {**row, "per_episode": {"ttf": ttf, "rotation_total": [1.0] * len(ttf),
+                                       "in_hand_time": [20.0 * t for t in ttf], "vertical_drift": drift}}
+
+    # the candidate's rows come from another report on the same seeds, as when it is evaluated alone later
+    a = _report(tmp_path / "a", 100, 4, [episodes(_row("adapter", 0.5, 0.010, 4), [0.5, 0.5, 0.5, 0.5],
+                                                   [0.010, 0.010, 0.010, 0.010])])
+    b = _report(tmp_path / "b", 100, 4, [episodes(_row("candidate", 0.6, 0.010, 4), [0.5, 0.6, 0.7, 0.6],
+                                                   [0.011, 0.010, 0.010, 0.010])])
+    c = _report(tmp_path / "c", 300, 4, [_row("candidate", 0.9, 0.010, 4)])  # no per-episode values: left out
+    out = tmp_path / "pooled"
+    assert pool.main(["--results", str(a), str(b), str(c), "--paired-against", "adapter", "--out", str(out)]) == 0
+    (entry,) = json.loads((out / "results.json").read_text())["paired_differences"]
+    assert entry["policy"] == "candidate" and entry["episodes"] == 4
+    d = np.array([0.0, 0.1, 0.2, 0.1])
+    assert entry["ttf"] == pytest.approx(0.1)
+    assert entry["ttf_se"] == pytest.approx(d.std(ddof=1) / 2.0)
+    assert entry["vertical_drift"] == pytest.approx(0.00025)
+    assert "| friction_0.25 | candidate | 4 | +0.100 ± 0.041 | +0.25 ± 0.25 |" in (out / "results.md").read_text()
+    assert pool.main(["--results", str(a), "--paired-against", "oracle", "--out", str(tmp_path / "o")]) == 2
+    assert "no such policy" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def test_refuses_overlapping_seeds_and_bad_input(pool, tmp_path, capsys):
     a = _report(tmp_path / "a", 100, 10, [_row("student", 0.4, 0.011, 10)])
     b = _report(tmp_path / "b", 105, 10, [_row("student", 0.5, 0.011, 10)])
