@@ -402,9 +402,11 @@ class Job:
         _save_checkpoint(self.out, self.policy.adapter, self.optim, iteration, self.student_sha, self.wall_time_s)
 
     def finish(self, card: dict[str, Any], history: list[dict[str, float]], signum: int | None, done: str,
-               of: str) -> Result:
-        """Save the adapter bundle with ``card`` (plus the common entries); raise Interrupted after a signal.
-        ``done`` / ``of``: how far it got and the total (e.g. '384 env steps' / '768')."""
+               of: str, after_stop: str = "saved the checkpoint and the bundle at {}; continue with --resume"
+               ) -> Result:
+        """Save the adapter bundle with ``card`` (plus the common entries); raise Interrupted after a signal, saying
+        ``after_stop`` (formatted with the bundle directory). ``done`` / ``of``: how far it got and the total (e.g.
+        '384 env steps' / '768')."""
         card = {"kind": "adapter", "trained_by": "rotate finetune-adapter", **card,
                 "wall_time_s": round(self.wall_time_s, 1), "teacher": self.cfg.teacher, "config": to_jsonable(self.cfg)}
         if signum:
@@ -414,7 +416,7 @@ class Job:
         bundle_dir = policy.save(self.out / "bundle")
         if signum:
             message = (f"finetune-adapter: interrupted by {SIGNAL_NAMES.get(signum, signum)} at {done} of {of}; "
-                       f"saved the checkpoint and the bundle at {bundle_dir}; continue with --resume")
+                       + after_stop.format(bundle_dir))
             print(message)
             raise Interrupted(signum, message)
         print(f"finetune-adapter: {done}; adapter bundle at {bundle_dir}")

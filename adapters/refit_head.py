@@ -134,7 +134,9 @@ def refit_in_sim(job: Job) -> Result:
                   f"episodes (lambda {lam:g}): held-out latent MSE "
                   f"{min(r['cv_latent_mse'] for r in table):.4f}, the adapter before {before:.4f}, the student "
                   f"{card['refit_head']['student_mse']:.4f} on the same samples")
-    return job.finish(card, history, signum, f"{done_iters * n} env steps", f"{total_iters * n}")
+    kept = "refit on the samples collected" if card["refit_head"] else "not refit: too few samples"
+    return job.finish(card, history, signum, f"{done_iters * n} env steps", f"{total_iters * n}",
+                      after_stop=f"saved the bundle at {{}} ({kept}); a refit has no resume, run it again in full")
 
 
 def ridge(h: np.ndarray, t: np.ndarray, lam: float) -> tuple[np.ndarray, np.ndarray]:

@@ -40,6 +40,8 @@ def test_cross_validation_holds_out_whole_episodes():
     assert [r["lambda"] for r in table] == [1e-6, 1e-3, 1.0, 100.0]
     assert lam >= 1.0
     assert table[0]["cv_latent_mse"] > 1.2 * min(r["cv_latent_mse"] for r in table)
+    *_, by_sample = ridge_by_episode_cv(h, t, np.arange(1000), (1e-6, 1e-3, 1.0, 100.0), folds=4)
+    assert by_sample == 1e-6  # every sample its own "episode": the split that the episode ids exist to avoid
     with pytest.raises(ValueError, match="3 episodes collected"):
         ridge_by_episode_cv(h[:75], t[:75], episodes[:75], (1.0,), folds=4)
 
@@ -84,3 +86,32 @@ def test_refit_options_are_checked(tmp_path):
         _tiny(tmp_path / "c", refit_head=True, init_from="adapter", refit_lambdas=(0.0,))
     with pytest.raises(ValueError, match="refit_folds"):
         _tiny(tmp_path / "d", refit_head=True, init_from="adapter", refit_folds=1)
+
+
+@pytest.mark.parametrize(("stop_at", "refit"), [(60, True), (3, False)])
+def test_a_stopped_refit_saves_what_it_has_and_says_so(trained, tmp_path, monkeypatch, stop_at, refit):
+    """Ctrl-C mid-rollout: the layer is refit on the samples so far (or kept, with too few episodes for the folds),
+    the bundle is saved and the stop is reported as an interruption with no --resume to offer."""
+    from adapters import refit_head
+    from rotation.interrupt import Interrupted
+
+    step = refit_head.EpisodeTracker.step
+    calls = {"n": 0}
+
+    def interrupted_step(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == stop_at:
+            raise KeyboardInterrupt
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(refit_head.EpisodeTracker, "step", interrupted_step)
+    cfg = _tiny(tmp_path / "stopped", init_from=str(trained), refit_head=True, refit_folds=4)
+    with pytest.raises(Interrupted, match="interrupted by SIGINT .*run it again in full") as err:
+        finetune.run(cfg)
+    assert err.value.exit_code == 130
+    assert ("refit on the samples collected" in str(err.value)) == refit
+    card = load_adapter(tmp_path / "stopped" / "bundle").adapter_config.card
+    assert "SIGINT" in card["interrupted"]
+    assert (card["refit_head"] is not None) == refit
+    before, after = load_adapter(trained).adapter.zero.weight, load_adapter(tmp_path / "stopped" / "bundle").adapter
+    assert torch.equal(after.zero.weight, before) != refit
