@@ -85,24 +85,15 @@ def train_in_sim(job: Job) -> Result:
                 refreshes += 1
             adapted = it * n >= cfg.student_steps
             actions = policy.act_batch(groups, correction=correction if adapted else None)
-            obs, reward, terminated, truncated, info = env.step(actions)
-            episodes += tracker.step(reward, terminated, truncated, info)
-            done = np.flatnonzero(terminated | truncated)
-            if len(done):
-                obs = env.reset(ids=done)
-                tracker.begin(obs, done)
-                correction[done] = 0.0  # a fresh episode starts as the student until its first touch refresh
+            obs, ended, _ = step_and_restart(env, tracker, actions, correction)
+            episodes += ended
             bar.update(n)
             if (it % k == 0 and refreshes % cfg.log_every == 0) or it + 1 == total_iters:
                 if refreshes:
                     now = time.perf_counter()
-                    point: dict[str, float] = {"iteration": it + 1, "env_steps": (it + 1) * n,
-                                               "adapted": float(adapted)}
-                    point.update({key: v / refreshes for key, v in sums.items()})
-                    point["steps_per_s"] = refreshes * k * n / max(now - t_log, 1e-9)
-                    if episodes:
-                        s = summarize(episodes)
-                        point.update(rotation_rate=s["rotation_rate"], ttf=s["ttf"], ep_length=s["length"])
+                    point = rollout_point({"iteration": it + 1, "env_steps": (it + 1) * n, "adapted": float(adapted),
+                                           "steps_per_s": refreshes * k * n / max(now - t_log, 1e-9)},
+                                          sums, refreshes, episodes)
                     log_point(writer, point, "env_steps")
                     history.append(point)
                     bar.set_postfix(latent_mse=f"{point['latent_mse']:.4f}",
@@ -134,6 +125,30 @@ def train_in_sim(job: Job) -> Result:
         card["final_action_mse"] = history[-1]["action_mse"]
         card["final_student_action_mse"] = history[-1]["student_action_mse"]
     return job.finish(card, history, signum, f"{done_iters * n} env steps", f"{total_iters * n}")
+
+
+def step_and_restart(env: Any, tracker: EpisodeTracker, actions: np.ndarray, correction: np.ndarray
+                     ) -> tuple[dict[str, Any], list, np.ndarray]:
+    """Step every env; reset the ones whose episode ended and zero their held correction (a fresh episode starts as
+    the student until its first touch refresh). Returns the observation, the ended episodes' records and the ids of
+    the envs that restarted."""
+    obs, reward, terminated, truncated, info = env.step(actions)
+    ended = tracker.step(reward, terminated, truncated, info)
+    done = np.flatnonzero(terminated | truncated)
+    if len(done):
+        obs = env.reset(ids=done)
+        tracker.begin(obs, done)
+        correction[done] = 0.0
+    return obs, ended, done
+
+
+def rollout_point(base: dict[str, float], sums: dict[str, float], refreshes: int, episodes: list) -> dict[str, float]:
+    """A log point: ``base``, the per-refresh means of ``sums`` and the rollout summary of the ended ``episodes``."""
+    point = {**base, **{key: v / refreshes for key, v in sums.items()}}
+    if episodes:
+        s = summarize(episodes)
+        point.update(rotation_rate=s["rotation_rate"], ttf=s["ttf"], ep_length=s["length"])
+    return point
 
 
 @torch.no_grad()

@@ -29,8 +29,8 @@ import torch
 from tqdm import tqdm
 
 from adapters.finetune import Job, Result, errors_to_teacher, log_point
-from adapters.finetune_sim import refresh_inputs
-from rotation.evaluate.metrics import EpisodeTracker, summarize
+from adapters.finetune_sim import refresh_inputs, rollout_point, step_and_restart
+from rotation.evaluate.metrics import EpisodeTracker
 from rotation.interrupt import StopSignals
 
 
@@ -77,23 +77,16 @@ def refit_in_sim(job: Job) -> Result:
                 for key, value in errors_to_teacher(head, proprio, z_student + corr, z_student, z_teacher).items():
                     sums[key] = sums.get(key, 0.0) + value
                 refreshes += 1
-            obs, reward, terminated, truncated, info = env.step(policy.act_batch(groups, correction=correction))
-            episodes += tracker.step(reward, terminated, truncated, info)
-            done = np.flatnonzero(terminated | truncated)
-            if len(done):
-                obs = env.reset(ids=done)
-                tracker.begin(obs, done)
-                correction[done] = 0.0  # a fresh episode starts as the student until its first touch refresh
-                episode[done] = next_id + np.arange(len(done))
-                next_id += len(done)
+            obs, ended, done = step_and_restart(env, tracker, policy.act_batch(groups, correction=correction),
+                                                correction)
+            episodes += ended
+            episode[done] = next_id + np.arange(len(done))
+            next_id += len(done)
             bar.update(n)
             done_iters = it + 1
             if refreshes and ((it % k == 0 and refreshes % cfg.log_every == 0) or done_iters == total_iters):
-                point: dict[str, float] = {"iteration": done_iters, "env_steps": done_iters * n}
-                point.update({key: v / refreshes for key, v in sums.items()})
-                if episodes:
-                    s = summarize(episodes)
-                    point.update(rotation_rate=s["rotation_rate"], ttf=s["ttf"], ep_length=s["length"])
+                point = rollout_point({"iteration": done_iters, "env_steps": done_iters * n}, sums, refreshes,
+                                      episodes)
                 log_point(writer, point, "env_steps")
                 history.append(point)
                 curves.append([point])  # on disk at once: the rollout is long and has no checkpoints
@@ -112,6 +105,7 @@ def refit_in_sim(job: Job) -> Result:
     card: dict[str, Any] = {"env_steps": done_iters * n, "refit_head": None}
     if features:
         h_all, t_all, ids = np.concatenate(features), np.concatenate(targets), np.concatenate(episode_ids)
+        n_episodes = len(np.unique(ids))
         before = float(((h_all @ adapter.zero.weight.detach().double().numpy().T
                          + adapter.zero.bias.detach().double().numpy() - t_all) ** 2).mean())
         try:
@@ -126,11 +120,11 @@ def refit_in_sim(job: Job) -> Result:
             with torch.no_grad():
                 adapter.zero.weight.copy_(torch.as_tensor(weight.T, dtype=adapter.zero.weight.dtype))
                 adapter.zero.bias.copy_(torch.as_tensor(bias, dtype=adapter.zero.bias.dtype))
-            card["refit_head"] = {"samples": int(len(h_all)), "episodes": int(len(np.unique(ids))),
+            card["refit_head"] = {"samples": int(len(h_all)), "episodes": n_episodes,
                                   "lambda": lam, "cv": table, "latent_mse_before": before,
                                   "student_mse": float((t_all**2).mean()),
                                   "fit_latent_mse": float(((h_all @ weight + bias - t_all) ** 2).mean())}
-            print(f"finetune-adapter: refit the zero layer on {len(h_all)} samples of {len(np.unique(ids))} "
+            print(f"finetune-adapter: refit the zero layer on {len(h_all)} samples of {n_episodes} "
                   f"episodes (lambda {lam:g}): held-out latent MSE "
                   f"{min(r['cv_latent_mse'] for r in table):.4f}, the adapter before {before:.4f}, the student "
                   f"{card['refit_head']['student_mse']:.4f} on the same samples")

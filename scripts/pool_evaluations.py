@@ -129,6 +129,20 @@ def gap_shares(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], P
     return shares
 
 
+def _episode_pairs(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], Path]]],
+                   runs: list[tuple[range, dict[str, Any], Path]], other: str, cond: str
+                   ) -> list[tuple[dict[str, Any], dict[str, Any]]]:
+    """The per-episode values of ``runs`` and of policy ``other`` under ``cond``, one pair per seed set both rows
+    cover and keep per-episode values for (episode j of a report is the same episode for every policy)."""
+    theirs = {(s.start, s.stop): r for s, r, _ in groups.get((other, cond), [])}
+    pairs = []
+    for span, row, _ in runs:
+        match = theirs.get((span.start, span.stop))
+        if match is not None and "per_episode" in row and "per_episode" in match:
+            pairs.append((row["per_episode"], match["per_episode"]))
+    return pairs
+
+
 def paired_rates(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], Path]]], baseline: str
                  ) -> list[dict[str, Any]]:
     """Per condition and other policy: its net rotation rate and the baseline's over the episodes both kept to the
@@ -138,14 +152,9 @@ def paired_rates(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any],
     for (policy, cond), runs in groups.items():
         if policy == baseline:
             continue
-        theirs = {(s.start, s.stop): r for s, r, _ in groups.get((baseline, cond), [])}
         rotation, time = np.zeros(2), np.zeros(2)
         episodes = kept = 0
-        for span, row, _ in runs:
-            base = theirs.get((span.start, span.stop))
-            if base is None or "per_episode" not in row or "per_episode" not in base:
-                continue
-            mine, other = row["per_episode"], base["per_episode"]
+        for mine, other in _episode_pairs(groups, runs, baseline, cond):
             both = (np.asarray(mine["ttf"]) >= 1.0) & (np.asarray(other["ttf"]) >= 1.0)
             for i, values in enumerate((mine, other)):
                 rotation[i] += np.asarray(values["rotation_total"])[both].sum()
@@ -171,14 +180,10 @@ def paired_differences(groups: dict[tuple[str, str], list[tuple[range, dict[str,
     for (policy, cond), runs in groups.items():
         if policy == against:
             continue
-        theirs = {(s.start, s.stop): r for s, r, _ in groups.get((against, cond), [])}
         diffs: dict[str, list[np.ndarray]] = {m: [] for m in PAIRED_METRICS}
-        for span, row, _ in runs:
-            other = theirs.get((span.start, span.stop))
-            if other is None or "per_episode" not in row or "per_episode" not in other:
-                continue
+        for mine, other in _episode_pairs(groups, runs, against, cond):
             for m in PAIRED_METRICS:
-                diffs[m].append(np.asarray(row["per_episode"][m], float) - np.asarray(other["per_episode"][m], float))
+                diffs[m].append(np.asarray(mine[m], float) - np.asarray(other[m], float))
         if not diffs["ttf"]:
             continue
         entry: dict[str, Any] = {"policy": policy, "condition": cond, "against": against}
