@@ -317,7 +317,8 @@ class PolicyBundle:
             **kw,  # type: ignore[arg-type]
         )
         net = ActorNet(config)
-        net.extractor.load_state_dict(extractor.state_dict())
+        skip = getattr(extractor, "bundle_skip", ())  # training-only parts (features.LatentMixExtractor)
+        net.extractor.load_state_dict({k: v for k, v in extractor.state_dict().items() if not k.startswith(skip)})
         net.actor.load_state_dict(policy_net.state_dict())
         net.action_mean.load_state_dict(policy.action_net.state_dict())
         return cls(config, net.cpu().float())

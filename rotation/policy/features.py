@@ -147,6 +147,51 @@ class StudentExtractor(LatentExtractor):
         return student
 
 
+LATENT_MIX_GROUP = "latent_mix"
+"""Training-only observation group (B, 1) of :class:`LatentMixExtractor`: the weight w of the teacher's z, drawn per
+episode by rotation.train.vec_env.RotateCupSB3VecEnv (``latent_mix``)."""
+
+
+class LatentMixExtractor(StudentExtractor):
+    """Student features whose latent is moved toward a frozen teacher's: ``z = phi + w (mu(priv) - phi)``.
+
+    For PPO fine-tuning of a student's actor (`rotate finetune-student --latent-mix P`) only. ``w`` comes per episode
+    from the ``latent_mix`` group: 0 in most episodes (the student's own latent, as it acts alone), uniform in
+    [0, 1] in a share P of them, the kind of partial correction a tactile adapter makes. Trained on its own latent
+    alone, an actor learns to distrust z where phi is often wrong (friction, mass) and then gains little when an
+    adapter corrects z; here it also meets informative latents and is rewarded for using them. The teacher's
+    env-factor encoder is frozen; a bundle keeps only the student's part (:attr:`bundle_skip`).
+    """
+
+    bundle_skip = ("teacher_encoder.",)
+    """State-dict prefixes that are not part of the student's acting path (PolicyBundle.from_sb3 drops them)."""
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        adaptation: AdaptationConfig | None = None,
+        norm_clip: float = 5.0,
+        teacher_encoder: EnvFactorEncoderConfig | None = None,
+    ) -> None:
+        super().__init__(observation_space, adaptation, norm_clip=norm_clip)
+        name = type(self).__name__
+        teacher_encoder = teacher_encoder or EnvFactorEncoderConfig(latent_dim=self.latent_dim)
+        if teacher_encoder.latent_dim != self.latent_dim:
+            raise ValueError(f"{name}: the teacher's latent has {teacher_encoder.latent_dim} dims, the student's "
+                             f"{self.latent_dim}")
+        _check_shape(_group_shape(observation_space, "priv", name), (teacher_encoder.in_dim,), "priv", name)
+        _check_shape(_group_shape(observation_space, LATENT_MIX_GROUP, name), (1,), LATENT_MIX_GROUP, name)
+        self.teacher_encoder = EnvFactorEncoder(teacher_encoder)
+        for p in self.teacher_encoder.parameters():
+            p.requires_grad_(False)
+
+    def z(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        phi = super().z(obs)  # (B, Z)
+        with torch.no_grad():
+            z_teacher = self.teacher_encoder(obs["priv"])  # (B, Z)
+        return phi + obs[LATENT_MIX_GROUP] * (z_teacher - phi)  # w (B, 1) broadcast over Z
+
+
 class StudentPPOPolicy(MultiInputActorCriticPolicy):
     """SB3 policy for PPO fine-tuning of a distilled student (`rotate finetune-student`): asymmetric actor-critic.
 

@@ -12,6 +12,13 @@ reads the privileged groups (rotation.policy.features.StudentPPOPolicy). The fre
     rotate finetune-student --student student --out runs/student_rl --total-steps 8000000
     rotate finetune-student --resume runs/student_rl/checkpoints/last.zip --total-steps 12000000
 
+With --latent-mix P the actor also trains on latents it will meet beside a tactile adapter: in a share P of the
+episodes its latent is moved from phi toward the teacher's z by a weight drawn uniformly in [0, 1]
+(rotation.policy.features.LatentMixExtractor; the teacher's env-factor encoder is read from --latent-teacher and
+stays out of the bundle). An actor fine-tuned on phi alone learns to act much the same whatever z says, which caps
+what any latent correction can buy; mixed in, it learns to use z, at the price of trusting phi more when alone
+(measured in docs/results/adapter/tried_latent_mix).
+
 Everything else works as in `rotate train-teacher` (the same PPO, checkpoints, curves, TensorBoard, --resume,
 --overwrite, signals); the result in `out/bundle` is a student bundle (latent source 'adaptation') that evaluate,
 view, collect and deploy load like any student.

@@ -48,7 +48,13 @@ from envs.validation import check_int, check_number, check_output_dir, check_see
 from rotation.configs import check_device, save_config, to_jsonable
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.bundle import PolicyBundle, load_bundle
-from rotation.policy.features import PrivilegedExtractor, StudentExtractor, StudentPPOPolicy, policy_kwargs
+from rotation.policy.features import (
+    LatentMixExtractor,
+    PrivilegedExtractor,
+    StudentExtractor,
+    StudentPPOPolicy,
+    policy_kwargs,
+)
 from rotation.policy.networks import EnvFactorEncoderConfig, RunningNorm
 from rotation.train.overlap import RolloutPrefetch
 from rotation.train.runs import (
@@ -162,6 +168,13 @@ class Config:
     """A distilled student bundle (directory or shipped name) to fine-tune with PPO instead of training a teacher
     (what `rotate finetune-student` sets): its actor learns on its own latent estimate, phi stays frozen, the critic
     reads the privileged groups (rotation.policy.features.StudentPPOPolicy). Empty = train a teacher."""
+    latent_mix: float = 0.0
+    """Student fine-tune only: share of episodes in which the actor's latent is moved toward the teacher's z by a
+    weight drawn uniformly in [0, 1] (rotation.policy.features.LatentMixExtractor); the other episodes use phi
+    alone. An actor trained on phi alone learns to distrust z and gains little when a tactile adapter corrects it;
+    0 = off."""
+    latent_teacher: str = "teacher"
+    """With --latent-mix: the teacher bundle whose env-factor encoder gives that z (the one phi was distilled from)."""
 
     def __post_init__(self) -> None:
         check_types(self)
@@ -180,6 +193,21 @@ class Config:
             if student.config.latent_source != "adaptation":
                 raise ValueError(f"student: {self.student} is not a student bundle (latent source "
                                  f"{student.config.latent_source!r}, want 'adaptation')")
+        check_number("latent_mix", self.latent_mix, 0.0, 1.0)
+        if self.latent_mix > 0:
+            if not self.student:
+                raise ValueError("latent_mix: for a student fine-tune (`rotate finetune-student`); a teacher already "
+                                 "acts on its own z")
+            try:
+                teacher = load_bundle(self.latent_teacher)
+            except ValueError as err:
+                raise ValueError(f"latent_teacher: {err}") from None
+            if teacher.config.latent_source != "privileged":
+                raise ValueError(f"latent_teacher: {self.latent_teacher} is not a teacher bundle (latent source "
+                                 f"{teacher.config.latent_source!r}, want 'privileged')")
+            if teacher.config.latent_dim != student.config.latent_dim:
+                raise ValueError(f"latent_teacher: its latent has {teacher.config.latent_dim} dims, the student's "
+                                 f"{student.config.latent_dim}")
         self.out = Path(self.out)
         if self.resume is not None:
             self.resume = Path(self.resume)
@@ -515,12 +543,20 @@ def build_student_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
     if list(scfg.actor_hidden) != list(cfg.net_arch):
         raise ValueError(f"net_arch {list(cfg.net_arch)} differs from the student's actor {list(scfg.actor_hidden)}; "
                          "give --net-arch " + " ".join(map(str, scfg.actor_hidden)))
-    kwargs = dict(policy_kwargs(norm_clip=scfg.norm_clip), features_extractor_class=StudentExtractor,
-                  features_extractor_kwargs=dict(adaptation=scfg.adaptation, norm_clip=scfg.norm_clip),
+    extractor_kwargs = dict(adaptation=scfg.adaptation, norm_clip=scfg.norm_clip)
+    teacher = load_bundle(cfg.latent_teacher) if cfg.latent_mix > 0 else None
+    if teacher is not None:
+        extractor_kwargs["teacher_encoder"] = teacher.net.extractor.encoder.cfg
+    kwargs = dict(policy_kwargs(norm_clip=scfg.norm_clip),
+                  features_extractor_class=LatentMixExtractor if teacher is not None else StudentExtractor,
+                  features_extractor_kwargs=extractor_kwargs,
                   critic_encoder=EnvFactorEncoderConfig(latent_dim=scfg.latent_dim))
     model = _new_ppo(cfg, env, StudentPPOPolicy, kwargs)
     policy = model.policy
-    policy.pi_features_extractor.load_state_dict(student.net.extractor.state_dict())
+    state = student.net.extractor.state_dict()
+    if teacher is not None:
+        state |= {f"teacher_encoder.{k}": v for k, v in teacher.net.extractor.encoder.state_dict().items()}
+    policy.pi_features_extractor.load_state_dict(state)
     policy.mlp_extractor.policy_net.load_state_dict(student.net.actor.state_dict())
     policy.action_net.load_state_dict(student.net.action_mean.state_dict())
     # the critic's proprio statistics start from the student's (they stay fixed while the critic warms up)
@@ -582,7 +618,7 @@ def run(cfg: Config) -> PolicyBundle:
     torch.manual_seed(cfg.seed)
     env_cfg = cfg.env_config()
     env = RotateCupSB3VecEnv(env_cfg, cfg.num_envs, seed=cfg.seed, reward_scale=cfg.reward_scale,
-                             obs_groups=obs_groups(cfg))
+                             obs_groups=obs_groups(cfg), latent_mix=cfg.latent_mix)
     try:
         resumed_from = None
         if cfg.resume is not None:

@@ -4,6 +4,10 @@ Auto-reset follows SB3's contract: a finished env is reset in the same step, its
 `infos[i]["terminal_observation"]`, and a time-limit end sets `infos[i]["TimeLimit.truncated"]` so PPO bootstraps
 it. Per-episode statistics (return, length, each reward term, rotation) are reported in `infos[i]["episode"]` when
 an episode ends, which SB3's logger and the training callbacks read.
+
+With ``latent_mix`` > 0 every observation also carries the training-only group ``latent_mix`` (N, 1): a weight drawn
+when each episode starts, 0 with probability 1 - latent_mix and uniform in [0, 1] otherwise, which
+rotation.policy.features.LatentMixExtractor blends the teacher's latent in with.
 """
 
 from __future__ import annotations
@@ -17,13 +21,14 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 from envs.config import EnvConfig
 from envs.core import RotateCupVec
 from rotation.evaluate.metrics import UPRIGHT_TILT
+from rotation.policy.features import LATENT_MIX_GROUP
 
 
 class RotateCupSB3VecEnv(VecEnv):
     """SB3 view of a :class:`RotateCupVec`; ``reward_scale`` multiplies rewards seen by the learner only."""
 
     def __init__(self, cfg: EnvConfig, num_envs: int, seed: int = 0, nthread: int | None = None,
-                 reward_scale: float = 1.0, obs_groups: tuple[str, ...] | None = None):
+                 reward_scale: float = 1.0, obs_groups: tuple[str, ...] | None = None, latent_mix: float = 0.0):
         self.core = RotateCupVec(cfg, num_envs=num_envs, seed=seed, nthread=nthread)
         space = self.core.single_observation_space
         # only the groups the learner reads: PPO's rollout buffer copies every group of every transition, and the
@@ -33,7 +38,15 @@ class RotateCupSB3VecEnv(VecEnv):
         if unknown or not self.obs_groups:
             raise ValueError(f"obs_groups must name some of the env's groups {sorted(space.spaces)}, got "
                              f"{list(self.obs_groups)}")
-        space = spaces.Dict({k: space.spaces[k] for k in self.obs_groups})
+        if not 0.0 <= latent_mix <= 1.0:
+            raise ValueError(f"latent_mix is a probability in [0, 1], got {latent_mix}")
+        self.latent_mix = float(latent_mix)
+        groups = {k: space.spaces[k] for k in self.obs_groups}
+        if self.latent_mix > 0:
+            groups[LATENT_MIX_GROUP] = spaces.Box(0.0, 1.0, (1,), np.float32)
+        self._mix_rng = np.random.default_rng([seed, 0x5EED])  # its own stream: the env's episodes stay the same
+        self._mix = np.zeros((num_envs, 1), np.float32)
+        space = spaces.Dict(groups)
         super().__init__(num_envs, space, self.core.single_action_space)
         self.reward_scale = float(reward_scale)
         self._seed = seed
@@ -47,6 +60,7 @@ class RotateCupSB3VecEnv(VecEnv):
     def reset(self):
         seed = self._seed if self._seed is not None else None
         self._seed = None  # later resets continue the episode counters
+        self._draw_mix(np.arange(self.num_envs))
         obs = self._select(self.core.reset(seed=seed))
         self._ep_return[:] = 0
         self._ep_rotation[:] = 0
@@ -88,11 +102,21 @@ class RotateCupSB3VecEnv(VecEnv):
             for v in self._ep_terms.values():
                 v[ids] = 0
             self.core._reset_ids(ids)
+            self._draw_mix(ids)
             obs = self._select(self.core._observe())
         return obs, (reward * self.reward_scale).astype(np.float32), done, infos
 
     def _select(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {k: obs[k] for k in self.obs_groups}
+        out = {k: obs[k] for k in self.obs_groups}
+        if self.latent_mix > 0:
+            out[LATENT_MIX_GROUP] = self._mix.copy()
+        return out
+
+    def _draw_mix(self, ids: np.ndarray) -> None:
+        """A new teacher-latent weight for the episodes starting in envs ``ids`` (0 unless latent_mix > 0)."""
+        if self.latent_mix > 0 and len(ids):
+            mixed = self._mix_rng.random(len(ids)) < self.latent_mix
+            self._mix[ids, 0] = np.where(mixed, self._mix_rng.random(len(ids)), 0.0)
 
     def close(self) -> None:
         self.core.close()
