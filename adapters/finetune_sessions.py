@@ -30,7 +30,7 @@ from adapters.finetune import Job, Result, TokenBuffer, adam_step, errors_to_tea
 from adapters.real_data import SessionInfo, check_sessions, session_files, session_samples
 from rotation.data.dataset import split_sessions
 from rotation.data.session import SessionError
-from rotation.interrupt import StopSignals
+from rotation.interrupt import StopSignals, end_loop
 
 ENCODE_BATCH = 64
 """Samples per frozen-encoder call while caching the tokens."""
@@ -94,9 +94,7 @@ def train_on_sessions(job: Job) -> Result:
         adapter.load_state_dict(kept)
         curves.append(history[flushed:])
     finally:
-        stop.__exit__(None, None, None)
-        bar.close()
-        writer.close()
+        end_loop(stop, bar, writer)
     signum = signum or stop.signum
 
     card = {"epochs": done, "samples": train.size, "val_samples": val.size if val is not None else 0,

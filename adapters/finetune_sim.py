@@ -21,7 +21,7 @@ from adapters.bundle import TouchUnavailable
 from adapters.finetune import Job, Result, TokenBuffer, adam_step, errors_to_teacher, log_point
 from envs.constants import PRIV_FIELDS
 from rotation.evaluate.metrics import EpisodeTracker, summarize
-from rotation.interrupt import StopSignals
+from rotation.interrupt import StopSignals, end_loop
 
 _MASS = PRIV_FIELDS.index("mass")
 
@@ -112,10 +112,7 @@ def train_in_sim(job: Job) -> Result:
         job.checkpoint(done_iters)
         curves.append(history[flushed:])
     finally:
-        stop.__exit__(None, None, None)
-        bar.close()
-        writer.close()
-        env.close()
+        end_loop(stop, bar, writer, env)
     signum = signum or stop.signum
 
     card: dict[str, Any] = {"env_steps": done_iters * n}

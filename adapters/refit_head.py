@@ -31,7 +31,7 @@ from tqdm import tqdm
 from adapters.finetune import Job, Result, errors_to_teacher, log_point
 from adapters.finetune_sim import refresh_inputs, rollout_point, step_and_restart
 from rotation.evaluate.metrics import EpisodeTracker
-from rotation.interrupt import StopSignals
+from rotation.interrupt import StopSignals, end_loop
 
 
 def refit_in_sim(job: Job) -> Result:
@@ -96,10 +96,7 @@ def refit_in_sim(job: Job) -> Result:
     except KeyboardInterrupt as err:
         signum = getattr(err, "signum", signal.SIGINT)
     finally:
-        stop.__exit__(None, None, None)
-        bar.close()
-        writer.close()
-        env.close()
+        end_loop(stop, bar, writer, env)
     signum = signum or stop.signum
 
     card: dict[str, Any] = {"env_steps": done_iters * n, "refit_head": None}

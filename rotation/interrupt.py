@@ -62,6 +62,14 @@ class StopSignals:
             raise Interrupted(self.signum, message)
 
 
+def end_loop(stop: StopSignals, *resources) -> None:
+    """The ``finally`` of a training loop run under ``stop`` (entered by hand so the loop is not nested once more):
+    restore the previous signal handlers, then close each resource (progress bar, TensorBoard writer, env) in order."""
+    stop.__exit__(None, None, None)
+    for resource in resources:
+        resource.close()
+
+
 def ignore_stop_signals(worker_id: int = 0) -> None:
     """DataLoader ``worker_init_fn``: loader workers ignore SIGINT and SIGTERM.
 

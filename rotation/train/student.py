@@ -41,7 +41,7 @@ from envs.constants import HISTORY_STEPS, PROPRIO_DIM
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import check_device, config_resuming_in_out, from_jsonable, save_config, to_jsonable
 from rotation.evaluate.metrics import EpisodeTracker, summarize
-from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
+from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals, end_loop
 from rotation.policy.bundle import PolicyBundle, load_bundle, resolve_bundle
 from rotation.policy.bundle_checks import timing_problems
 from rotation.policy.features import StudentExtractor
@@ -367,10 +367,7 @@ def run(cfg: Config) -> Result:
         _save_checkpoint(out, student, optim, done_iters, teacher_digest)
         curves.append(history[flushed:])
     finally:
-        stop.__exit__(None, None, None)
-        bar.close()
-        writer.close()
-        env.close()
+        end_loop(stop, bar, writer, env)
     signum = signum or stop.signum
 
     card = _card(cfg, teacher_digest, history)
