@@ -167,9 +167,7 @@ class AdaptedPolicy:
 
     def __init__(self, adapter_config: AdapterConfig, student: PolicyBundle, encoder: nn.Module,
                  adapter: TouchAdapter, path: str | None = None) -> None:
-        if student.config.latent_source != "adaptation":
-            raise BundleError(f"an adapter corrects a student (latent_source 'adaptation'), got "
-                              f"{student.config.latent_source!r}")
+        student.require("adaptation", "an adapter corrects a student")
         if adapter.cfg.latent_dim != student.config.latent_dim:
             raise BundleError(f"adapter latent size {adapter.cfg.latent_dim} != the student's "
                               f"{student.config.latent_dim}")

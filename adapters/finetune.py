@@ -338,9 +338,7 @@ class Job:
         check_run_dir(out, (*RUN_OUTPUTS, *checkpoints), overwrite=cfg.overwrite, resuming_here=cfg.resume,
                       resume_hint="pass --resume to continue it")
         torch.set_num_threads(cfg.torch_threads)
-        teacher = load_bundle(cfg.teacher)
-        if teacher.config.latent_source != "privileged":
-            raise ValueError(f"--teacher {cfg.teacher}: needs a teacher bundle (latent_source 'privileged')")
+        teacher = load_bundle(cfg.teacher).require("privileged", f"--teacher {cfg.teacher}")
         modalities = parse_groups(cfg.modalities, cfg.touch_kind)
         policy = build_adapted(cfg.student, cfg.encoder, modalities, touch_every=cfg.touch_every, hidden=cfg.hidden,
                                seed=cfg.seed)

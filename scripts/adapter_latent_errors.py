@@ -88,8 +88,7 @@ def collect(cfg: Config) -> Samples:
     policy, teacher = load_bundle(cfg.adapter), load_bundle(cfg.teacher)
     if not job.reads_touch(policy):
         raise ValueError(f"--adapter {cfg.adapter!r} is not an adapter bundle (it reads no touch)")
-    if teacher.config.latent_source != "privileged":
-        raise ValueError(f"--teacher {cfg.teacher!r} is not a teacher bundle (its latent is not privileged)")
+    teacher.require("privileged", f"--teacher {cfg.teacher!r}")
     if teacher.config.latent_dim != policy.config.latent_dim:
         raise ValueError(f"--teacher {cfg.teacher!r} has a {teacher.config.latent_dim}-dim latent, the adapter's "
                          f"student a {policy.config.latent_dim}-dim one")

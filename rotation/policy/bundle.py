@@ -50,6 +50,8 @@ SHIPPED_DIR = Path(__file__).resolve().parent.parent / "policies"
 
 LatentSource = Literal["privileged", "adaptation"]
 LATENT_GROUP: dict[str, str] = {"privileged": "priv", "adaptation": "proprio_hist"}
+ROLE: dict[str, str] = {"privileged": "teacher", "adaptation": "student"}
+"""What a bundle of each latent source is called in messages."""
 """Observation group the latent is computed from, per latent source."""
 
 
@@ -261,6 +263,14 @@ class PolicyBundle:
             out[key] = x if batched else x.unsqueeze(0)
         return out
 
+    def require(self, source: LatentSource, who: str) -> PolicyBundle:
+        """This bundle, if its latent comes from ``source``; else a BundleError that starts with ``who`` (the option
+        or step that needs it, e.g. ``"--teacher runs/x/bundle"``) and says which kind it is and which was wanted."""
+        if self.config.latent_source != source:
+            raise BundleError(f"{who}: not a {ROLE[source]} bundle (latent_source {self.config.latent_source!r}, "
+                              f"want {source!r})")
+        return self
+
     @torch.no_grad()
     def act(self, obs: dict[str, Any]) -> np.ndarray:
         """One observation (groups without a batch dim) -> (action_dim,) float32 action in [-1, 1]."""
@@ -326,9 +336,7 @@ class PolicyBundle:
     def to_student(self, adaptation: AdaptationConfig | None = None, card: dict[str, Any] | None = None
                    ) -> PolicyBundle:
         """A student bundle from this teacher: same actor and proprio normalization, fresh adaptation module."""
-        if self.config.latent_source != "privileged":
-            raise BundleError(f"to_student needs a teacher bundle (latent_source 'privileged'), got "
-                              f"{self.config.latent_source!r}")
+        self.require("privileged", "to_student")
         adaptation = adaptation or AdaptationConfig(latent_dim=self.config.latent_dim)
         config = replace(self.config, latent_source="adaptation", encoder=None, adaptation=adaptation, obs_groups={},
                          card=dict(card if card is not None else self.config.card))
@@ -346,12 +354,8 @@ class PolicyBundle:
         The oracle-latent student: a latent correction such as the tactile adapter can at best make the student
         act like this, so its evaluation bounds what any correction of this student's latent can gain.
         """
-        if self.config.latent_source != "adaptation":
-            raise BundleError(f"with_teacher_latent needs a student bundle (latent_source 'adaptation'), got "
-                              f"{self.config.latent_source!r}")
-        if teacher.config.latent_source != "privileged":
-            raise BundleError(f"with_teacher_latent needs a teacher bundle (latent_source 'privileged'), got "
-                              f"{teacher.config.latent_source!r}")
+        self.require("adaptation", "with_teacher_latent")
+        teacher.require("privileged", "with_teacher_latent")
         for name in ("proprio_shape", "latent_dim", "action_dim", "control_hz", "action_scale"):
             mine, theirs = getattr(self.config, name), getattr(teacher.config, name)
             if to_jsonable(mine) != to_jsonable(theirs):

@@ -263,10 +263,7 @@ def run(cfg: Config) -> Result:
                   resume_hint="pass --resume to continue it")
     torch.set_num_threads(cfg.torch_threads)
     teacher_dir = resolve_bundle(cfg.teacher)
-    teacher = load_bundle(teacher_dir)
-    if teacher.config.latent_source != "privileged":
-        raise ValueError(f"--teacher {cfg.teacher}: needs a teacher bundle (latent_source 'privileged'), got "
-                         f"{teacher.config.latent_source!r}")
+    teacher = load_bundle(teacher_dir).require("privileged", f"--teacher {cfg.teacher}")
     if cfg.adaptation.latent_dim != teacher.config.latent_dim:
         raise ValueError(f"adaptation.latent_dim {cfg.adaptation.latent_dim} != the teacher's latent size "
                          f"{teacher.config.latent_dim}")

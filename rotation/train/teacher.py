@@ -190,9 +190,7 @@ class Config:
                 student = load_bundle(self.student)
             except ValueError as err:  # a missing or broken bundle (BundleError)
                 raise ValueError(f"student: {err}") from None
-            if student.config.latent_source != "adaptation":
-                raise ValueError(f"student: {self.student} is not a student bundle (latent source "
-                                 f"{student.config.latent_source!r}, want 'adaptation')")
+            student.require("adaptation", f"student: {self.student}")
         check_number("latent_mix", self.latent_mix, 0.0, 1.0)
         if self.latent_mix > 0:
             if not self.student:
@@ -202,9 +200,7 @@ class Config:
                 teacher = load_bundle(self.latent_teacher)
             except ValueError as err:
                 raise ValueError(f"latent_teacher: {err}") from None
-            if teacher.config.latent_source != "privileged":
-                raise ValueError(f"latent_teacher: {self.latent_teacher} is not a teacher bundle (latent source "
-                                 f"{teacher.config.latent_source!r}, want 'privileged')")
+            teacher.require("privileged", f"latent_teacher: {self.latent_teacher}")
             if teacher.config.latent_dim != student.config.latent_dim:
                 raise ValueError(f"latent_teacher: its latent has {teacher.config.latent_dim} dims, the student's "
                                  f"{student.config.latent_dim}")
@@ -567,10 +563,7 @@ def build_student_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
 
 def init_actor(model: AdaptiveKLPPO, path: Path) -> None:
     """Copy a teacher bundle's acting path (normalization, encoder, actor MLP, action head) into ``model``."""
-    bundle = load_bundle(path)
-    if bundle.config.latent_source != "privileged":
-        raise ValueError(f"--init-from {path}: needs a teacher bundle (latent_source 'privileged'), got "
-                         f"{bundle.config.latent_source!r}")
+    bundle = load_bundle(path).require("privileged", f"--init-from {path}")
     policy = model.policy
     try:
         policy.features_extractor.load_state_dict(bundle.net.extractor.state_dict())

@@ -367,10 +367,7 @@ def train(cfg) -> PolicyBundle:
             check_resume_record(json.loads(saved.read_text()), record, str(saved), RESUMABLE_CHANGES)
         state = load_checkpoint(cfg.resume)
     if cfg.init_from is not None:
-        init = load_bundle(cfg.init_from)
-        if init.config.latent_source != "privileged":
-            raise ValueError(f"--init-from {cfg.init_from}: needs a teacher bundle (latent_source 'privileged'), got "
-                             f"{init.config.latent_source!r}")
+        init = load_bundle(cfg.init_from).require("privileged", f"--init-from {cfg.init_from}")
     steps = int(state["steps"]) if state is not None else 0
     torch.manual_seed(cfg.seed + steps)
     env_cfg = cfg.env_config()

@@ -88,7 +88,7 @@ def test_warp_teacher_starts_from_a_bundle_with_a_critic_warmup(tmp_path):
     assert bundle.config.card["init_from"]
     for (name, a), b in zip(start.net.state_dict().items(), bundle.net.state_dict().values(), strict=True):
         assert torch.equal(a, b), name
-    with pytest.raises(ValueError, match="needs a teacher bundle"):
+    with pytest.raises(ValueError, match="not a teacher bundle"):
         teacher.run(_warp_cfg(tmp_path, out=tmp_path / "s", init_from=resolve_bundle("student")))
 
 

@@ -70,7 +70,7 @@ def test_bad_input(setup, tmp_path):
         student.run(make_cfg(setup, tmp_path / "x", teacher="no_such_teacher"))
     (setup / "teacher_student").mkdir(exist_ok=True)
     load_bundle(setup / "teacher").to_student().save(setup / "teacher_student")
-    with pytest.raises(ValueError, match="needs a teacher bundle"):
+    with pytest.raises(ValueError, match="not a teacher bundle"):
         student.run(make_cfg(setup, tmp_path / "x", teacher=str(setup / "teacher_student")))
     with pytest.raises(ValueError, match="no checkpoint"):
         student.run(make_cfg(setup, tmp_path / "y", resume=True))
