@@ -48,7 +48,7 @@ class Config:
     """torch intra-op threads."""
     iters: int = 20
     """Timed calls per figure."""
-    touch_every: int = 8
+    touch_every: int = 4
     """Refresh period for ``amortized_ms`` (a given adapter bundle's own period overrides it)."""
     seed: int = 0
     """Seed of the random windows and observations."""

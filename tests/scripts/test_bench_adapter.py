@@ -12,6 +12,6 @@ def test_bench_adapter_tiny(load_script, capsys):
     assert bench.main(["--iters", "1", "--threads", "1"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert {"step_ms", "step_img_ms", "student_ms", "amortized_ms", "touch_every"} <= set(result)
-    assert result["step_ms"] > result["student_ms"] > 0 and result["touch_every"] == 8
+    assert result["step_ms"] > result["student_ms"] > 0 and result["touch_every"] == 4
     with pytest.raises(ValueError, match=">= 1"):
         bench.run(bench.Config(iters=0))
