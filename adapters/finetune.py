@@ -102,7 +102,9 @@ class Config:
     num_envs: int = 16
     """Simulations stepped together."""
     touch_every: int = 8
-    """Control steps between touch refreshes (also the adapter's refresh period at run time)."""
+    """Control steps between touch refreshes while training, written into the bundle as its refresh period at run
+    time; a shorter one can be set afterwards in the bundle's config.json (the shipped adapter trained with 8 and
+    runs with 4, which kept more cups: docs/results/adapter/tried_touch4)."""
     student_steps: int = 10_000
     """Env steps at the start during which the student acts alone (then student + adapter, DAgger)."""
     updates: int = 4
