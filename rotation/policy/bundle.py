@@ -50,9 +50,9 @@ SHIPPED_DIR = Path(__file__).resolve().parent.parent / "policies"
 
 LatentSource = Literal["privileged", "adaptation"]
 LATENT_GROUP: dict[str, str] = {"privileged": "priv", "adaptation": "proprio_hist"}
+"""Observation group the latent is computed from, per latent source."""
 ROLE: dict[str, str] = {"privileged": "teacher", "adaptation": "student"}
 """What a bundle of each latent source is called in messages."""
-"""Observation group the latent is computed from, per latent source."""
 
 
 class BundleError(ValueError):
