@@ -32,6 +32,10 @@ RESUMABLE_CHANGES = frozenset({"out", "resume", "progress", "nthread", "video", 
 """Config fields that do not change a single result row (threads of MuJoCo, where and whether videos are drawn):
 they may differ between a run and its continuation. Everything else must match."""
 
+LATER_FIELDS = {"touch_lag": 0}
+"""Config fields added after evaluations were first recorded, with their defaults: at its default such a field is
+left out of the identity, so an interrupted evaluation recorded before it existed still continues."""
+
 
 def weights_digest(policy: str) -> str:
     """First 16 hex digits of the SHA-256 of a bundle's weights (a path may hold a retrained policy later); for an
@@ -59,7 +63,8 @@ def grasps_digest(cfg: Any, hand: str = "digit360") -> str:
 def identity(cfg: Any, policies: dict[str, str], hand: str = "digit360") -> dict[str, Any]:
     """What the rows of an evaluation depend on: its config (without RESUMABLE_CHANGES), the policies' weights and
     the grasp cache (of ``hand``, the hand the episodes run on)."""
-    config = {k: v for k, v in to_jsonable(cfg).items() if k not in RESUMABLE_CHANGES}
+    config = {k: v for k, v in to_jsonable(cfg).items()
+              if k not in RESUMABLE_CHANGES and not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
     return {"config": config, "policy_weights": {name: weights_digest(path) for name, path in policies.items()},
             "grasps": {"cache": grasps_digest(cfg, hand)}}
 

@@ -89,6 +89,11 @@ class Config:
     resume: bool = False
     """Continue the evaluation in `out` (an interrupted one): keep its finished conditions, run the rest. Running
     the same command into the same `out` does this too; --resume also insists that there is something to continue."""
+    touch_lag: int = 0
+    """Control steps between the touch a tactile adapter's correction reads and the first action it changes; 0 = the
+    same step. A deploy acts on each correction from the first control step after its refresh finishes
+    (rotation.deploy.touch): 3 steps later on a 2-core CPU, where a refresh takes 95-120 ms after the policy has acted
+    on its step (the deploy summary's touch.first_correction_step is 3-4 there). Other policies ignore it."""
     backend: Literal["cpu", "warp"] = "cpu"
     """Physics backend: 'cpu' (MuJoCo on mujoco.batch threads) or 'warp' (MuJoCo Warp on `warp_device`, the [warp]
     extra). The simulated Digit 360 touch and --video run on the cpu backend only."""
@@ -109,6 +114,7 @@ class Config:
         check_int("video_size height", self.video_size[1], 16, 480, "pixels (MuJoCo's offscreen framebuffer)")
         check_int("nthread", self.nthread, 0, 1024, "(0 = one per CPU core)")
         check_int("torch_threads", self.torch_threads, 1, 1024)
+        check_int("touch_lag", self.touch_lag, 0, 10**6, "control steps")
         if self.com_shift is not None and (not isinstance(self.com_shift, tuple | list) or len(self.com_shift) != 3):
             raise ValueError(f"com_shift needs 3 values (X Y Z, m), got {self.com_shift!r}")
         if self.backend == "warp" and self.video:
@@ -167,6 +173,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--torch-threads", type=int, default=d.torch_threads, help="torch CPU threads (default 1)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=d.progress,
                         help="show a progress bar")
+    parser.add_argument("--touch-lag", type=int, default=d.touch_lag, metavar="STEPS",
+                        help="a tactile adapter's correction acts STEPS control steps after the touch it read, and "
+                        "the next refresh waits for it, as on a robot whose refresh takes that long (rotate deploy "
+                        "on a 2-core CPU: 3, its summary's touch.first_correction_step). "
+                        f"Default {d.touch_lag}: on the same step")
     parser.add_argument("--backend", choices=list(BACKENDS), default=d.backend, help=BACKEND_HELP)
     parser.add_argument("--warp-device", default=d.warp_device,
                         help=f"device of the warp backend: cuda, cuda:N or cpu (default {d.warp_device})")
@@ -188,7 +199,8 @@ def config_from_args(args: argparse.Namespace) -> Config:
         seed=args.seed, out=args.out, num_envs=args.num_envs, object=args.object, grasp_cache=args.grasp_cache,
         episode_steps=args.episode_steps, randomize=args.randomize, video=args.video,
         video_size=tuple(args.video_size), nthread=args.nthread, torch_threads=args.torch_threads,
-        progress=args.progress, resume=args.resume, backend=args.backend, warp_device=args.warp_device,
+        progress=args.progress, resume=args.resume, touch_lag=args.touch_lag, backend=args.backend,
+        warp_device=args.warp_device,
     )
 
 
@@ -315,7 +327,7 @@ def _run_condition(cfg: Config, cond: Condition, bundles: dict[str, PolicyBundle
             bar.set_postfix(condition=cond.name, policy=name)
             hook = recorder.hook(name) if recorder is not None else None
             episodes = run_episodes(bundle, env, cfg.episodes, cfg.seed, on_frame=hook,
-                                    on_episode=lambda: bar.update(1))
+                                    on_episode=lambda: bar.update(1), touch_lag=cfg.touch_lag)
             rows.append(make_row(name, cond, episodes))
         if recorder is not None:
             recorder.write(out / "videos" / f"{cond.name}.mp4", fps=_video_fps(first))

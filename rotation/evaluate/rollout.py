@@ -20,12 +20,20 @@ FrameHook = Callable[[RotateCupVec], None]
 
 
 def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: int,
-                 on_frame: FrameHook | None = None, on_episode: Callable[[], None] | None = None
-                 ) -> list[EpisodeMetrics]:
+                 on_frame: FrameHook | None = None, on_episode: Callable[[], None] | None = None,
+                 touch_lag: int = 0) -> list[EpisodeMetrics]:
     """Run ``episodes`` episodes (episode j seeded ``seed + j``) in chunks of ``env.num_envs``; one metrics entry
-    per episode, in episode order. Each env runs one episode per chunk; finished envs are no longer acted for."""
+    per episode, in episode order. Each env runs one episode per chunk; finished envs are no longer acted for.
+
+    A tactile adapter's correction is refreshed every ``touch_every`` control steps and held in between. With
+    ``touch_lag`` 0 a refresh acts at once, on the step whose touch it read; with ``touch_lag`` L it acts from L
+    steps later, and the next refresh starts when it is due and the previous one has landed (never two at once),
+    as in ``rotate deploy``, where a refresh runs beside the control loop (rotation.deploy.touch). The student acts
+    alone until the first correction lands."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if isinstance(touch_lag, bool) or not isinstance(touch_lag, int) or touch_lag < 0:
+        raise ValueError(f"touch_lag must be a whole number of control steps >= 0, got {touch_lag!r}")
     n = env.num_envs
     touch_every = getattr(bundle, "touch_every", 0)  # a tactile adapter (adapters.bundle.AdaptedPolicy)
     if touch_every and any(getattr(env.cfg, k) != v for k, v in bundle.env_needs.items()):
@@ -41,14 +49,24 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
             on_frame(env)
         actions = np.zeros((n, env.single_action_space.shape[0]), dtype=np.float32)
         correction = np.zeros((n, bundle.config.latent_dim), dtype=np.float32) if touch_every else None
+        in_flight: tuple[int, np.ndarray, np.ndarray] | None = None  # (step it lands, envs, their correction)
+        due = 0
         k = 0
         while active.any():
             idx = np.flatnonzero(active)
             actions[:] = 0.0
             groups = {key: obs[key][idx] for key in bundle.config.obs_groups}
             if correction is not None:
-                if k % touch_every == 0:  # refresh the touch correction, hold it in between
-                    correction[idx] = touch_correction(bundle, obs, groups, idx)
+                if in_flight is not None and in_flight[0] <= k:  # a refresh lands: hold it until the next one
+                    correction[in_flight[1]] = in_flight[2]
+                    in_flight = None
+                if in_flight is None and k >= due:  # refresh the touch correction from this step's touch
+                    due = k + touch_every
+                    fresh = touch_correction(bundle, obs, groups, idx)
+                    if touch_lag:
+                        in_flight = (k + touch_lag, idx, fresh)
+                    else:
+                        correction[idx] = fresh
                 actions[idx] = bundle.act_batch(groups, correction=correction[idx])
             else:
                 actions[idx] = bundle.act_batch(groups)
