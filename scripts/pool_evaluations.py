@@ -44,7 +44,8 @@ SHARE_METRICS = {"ttf": "higher", "vertical_drift": "lower"}
 class Config:
     results: tuple[Path, ...] = ()
     """Evaluation report directories (each with results.json), on disjoint seed sets; DIR=NAME[,NAME...] takes only
-    those policies from that report (say, one whose other rows belong to another adapter under the same label)."""
+    those policies from that report (say, one whose other rows belong to another adapter under the same label), and
+    LABEL:NAME among them pools that report's NAME rows as LABEL (one policy evaluated under another label there)."""
     out: Path = Path("runs/pooled")
     """Output directory (refused if it already holds a pooled report)."""
     reference: str = ""
@@ -59,14 +60,19 @@ class Config:
     keep per-episode values."""
 
 
-def _source(entry: Path) -> tuple[Path, set[str] | None]:
-    """A --results entry: the report directory, and the policies to take from it (None = all)."""
+def _source(entry: Path) -> tuple[Path, dict[str, str] | None]:
+    """A --results entry: the report directory, and the policies to take from it, each with the label it is pooled
+    under (None = all, as labelled)."""
     text = str(entry)
     if "=" in text and not entry.exists():
         directory, _, names = text.rpartition("=")
-        chosen = {n for n in names.split(",") if n}
-        if not directory or not chosen:
-            raise ValueError(f"--results {text!r}: expected DIR or DIR=NAME[,NAME...]")
+        chosen = {}
+        for item in filter(None, names.split(",")):
+            label, _, name = item.rpartition(":")
+            chosen[name] = label or name
+        if not directory or not chosen or not all(chosen) or len(set(chosen.values())) < len(chosen):
+            raise ValueError(f"--results {text!r}: expected DIR or DIR=NAME[,NAME...], a NAME as LABEL:NAME to pool "
+                             "it under another label (each label once)")
         return Path(directory), chosen
     return entry, None
 
@@ -220,12 +226,14 @@ def run(cfg: Config) -> Path:
     for entry in cfg.results:
         path, chosen = _source(entry)
         rows, span = _read(path)
-        if chosen is not None and (missing := chosen - {r["policy"] for r in rows}):
+        if chosen is not None and (missing := set(chosen) - {r["policy"] for r in rows}):
             raise ValueError(f"{path} has no rows for {sorted(missing)}")
-        rows = [r for r in rows if (not cfg.policies or r["policy"] in cfg.policies)
-                and (chosen is None or r["policy"] in chosen)]
-        sets.append(f"- `{path}`: seeds {span.start}-{span.stop - 1}, policies "
-                    f"{', '.join(dict.fromkeys(r['policy'] for r in rows))}")
+        if chosen is not None:
+            rows = [{**r, "policy": chosen[r["policy"]]} for r in rows if r["policy"] in chosen]
+        rows = [r for r in rows if not cfg.policies or r["policy"] in cfg.policies]
+        renamed = {label: name for name, label in (chosen or {}).items() if label != name}
+        sets.append(f"- `{path}`: seeds {span.start}-{span.stop - 1}, policies " + ", ".join(
+            f"{p} (its {renamed[p]})" if p in renamed else p for p in dict.fromkeys(r["policy"] for r in rows)))
         for r in rows:
             key = (r["policy"], r["condition"])
             for other, _, where in groups[key]:

@@ -64,6 +64,17 @@ def test_pools_disjoint_sets_and_shares_on_the_policys_own_episodes(pool, tmp_pa
     only = tmp_path / "only"
     assert pool.main(["--results", str(a), str(b), str(c), "--policies", "teacher", "other", "--out", str(only)]) == 0
     assert [r["policy"] for r in json.loads((only / "results.json").read_text())["rows"]] == ["teacher", "other"]
+    relabelled = tmp_path / "relabelled"  # LABEL:NAME: c's `other` pooled with a's adapter, as adapter
+    assert pool.main(["--results", f"{a}=teacher,student,adapter", f"{c}=adapter:other", "--out",
+                      str(relabelled)]) == 0
+    report = json.loads((relabelled / "results.json").read_text())
+    rows = {r["policy"]: r for r in report["rows"]}
+    assert set(rows) == {"teacher", "student", "adapter"}
+    assert rows["adapter"]["episodes"] == 40 and rows["adapter"]["ttf"] == pytest.approx((10 * 0.6 + 30 * 0.9) / 40)
+    assert "policies adapter (its other)" in (relabelled / "results.md").read_text()
+    for bad in (f"{a}=x:teacher,x:student", f"{a}=x:", f"{a}=:"):
+        assert pool.main(["--results", bad, "--out", str(tmp_path / "bad")]) == 2
+        assert "LABEL:NAME" in capsys.readouterr().err
 
 
 def test_paired_rates_compare_the_episodes_both_kept(pool, tmp_path):
