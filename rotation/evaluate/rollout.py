@@ -12,6 +12,7 @@ from collections.abc import Callable
 import numpy as np
 
 from envs.core import RotateCupVec
+from envs.validation import check_int
 from rotation.evaluate.metrics import EpisodeMetrics, EpisodeTracker
 from rotation.policy.bundle import PolicyBundle
 
@@ -32,8 +33,7 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
     alone until the first correction lands."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    if isinstance(touch_lag, bool) or not isinstance(touch_lag, int) or touch_lag < 0:
-        raise ValueError(f"touch_lag must be a whole number of control steps >= 0, got {touch_lag!r}")
+    check_int("touch_lag", touch_lag, 0, unit="control steps")
     n = env.num_envs
     touch_every = getattr(bundle, "touch_every", 0)  # a tactile adapter (adapters.bundle.AdaptedPolicy)
     if touch_every and any(getattr(env.cfg, k) != v for k, v in bundle.env_needs.items()):
