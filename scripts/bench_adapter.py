@@ -11,6 +11,7 @@ Figures (medians over ``iters`` timed calls after 2 untimed ones, ``threads`` to
 
 - ``step_ms``: a touch step with every modality (image, audio, IMU, pressure); the target is under 50 ms on 2 cores;
 - ``step_img_ms``: the same with the image-only adapter;
+- ``step_imu_pressure_ms``: the same with an IMU + pressure adapter (the streams deploy reads from a real Digit 360);
 - ``student_ms``: a step of the student alone (what the steps between refreshes cost);
 - ``amortized_ms``: the mean step cost at the adapter's refresh period, (step + (touch_every - 1) x student) /
   touch_every.
@@ -85,7 +86,8 @@ def run(cfg: Config) -> dict:
         policies = {"step_ms": load_adapter(cfg.adapter)}
     else:
         policies = {"step_ms": build_adapted("student", cfg.encoder, ("img", "mic", "imu", "pressure")),
-                    "step_img_ms": build_adapted("student", cfg.encoder, ("img",))}
+                    "step_img_ms": build_adapted("student", cfg.encoder, ("img",)),
+                    "step_imu_pressure_ms": build_adapted("student", cfg.encoder, ("imu", "pressure"))}
     first = next(iter(policies.values()))
     touch_every = first.touch_every if cfg.adapter else cfg.touch_every
     obs = {k: rng.normal(0.0, 0.3, (1, *shape)).astype(np.float32) for k, shape in first.config.obs_groups.items()}
