@@ -51,7 +51,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions:
     """results.json, results.md and plots/<metric>.png under ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json_text({"rows": rows, "config": to_jsonable(config)}))
-    lag = getattr(config, "touch_lag", 0)
+    lag = config.touch_lag
     touch_note = (f"\nA tactile adapter's correction acted {lag} control step{'s' * (lag != 1)} after the touch it "
                   f"read (--touch-lag {lag}); the other policies do not read touch.\n" if lag else "")
     (out / "results.md").write_text(markdown_table(rows) + touch_note)
