@@ -14,8 +14,9 @@
 a shipped name such as adapter), which is its student plus a latent correction from the Digit 360 fingertips,
 refreshed every ``touch_every`` steps on its own thread and held in between (rotation.deploy.touch). On an emulated
 hand it starts the emulated fingertips itself (no --digit360 needed); on a real hand --digit360 must name a sensor
-for every fingertip the adapter reads, and the sensors must stream every window it reads (today IMU and pressure:
-deploy does not open a Digit 360's camera or microphones), else the run is refused before anything starts. When
+for every fingertip the adapter reads, and the sensors must stream every window it reads, else the run is refused
+before anything starts: IMU and pressure come from a sensor's serial stream; for an adapter that reads the image or
+the audio, deploy opens the camera and microphones it finds on each sensor's USB hub (the ``hardware`` extra). When
 touch is unusable (a stalled or missing stream, non-finite embeddings, a correction older than 3 refresh periods,
 at least 1 s) the adapter's student acts alone, with one warning, until touch is back.
 
@@ -311,7 +312,7 @@ def run(cfg: Config) -> dict[str, Any]:
     from rotation.deploy.loop import ControlLoop, LoopConfig
     from rotation.deploy.policy import check_deployable
     from rotation.deploy.recording import DeployRecorder
-    from rotation.deploy.sensors import open_digit360, open_skin
+    from rotation.deploy.sensors import check_media_extras, find_media, open_digit360, open_skin
     from rotation.deploy.touch import reads_touch, touch_sensors, wait_for_touch
     from rotation.hardware.realtime import frozen_heap, set_realtime_priority
     from rotation.policy.bundle import load_bundle
@@ -323,8 +324,11 @@ def run(cfg: Config) -> dict[str, Any]:
     setup = HandSetup(hand=cfg.hand, can=cfg.can, port=cfg.port, baud=cfg.baud, gain_scale=cfg.gain_scale,
                       control_hz=hz, object=cfg.object, grasp=cfg.grasp, sim_transport=cfg.sim_transport)
     digit_specs = parse_digit360(cfg.digit360, setup.emulated)
+    media: dict[str, Any] = {}
     if touch:  # the sensors the adapter reads, checked (or, emulated, started) before anything else
-        digit_specs = touch_sensors(bundle, cfg.policy, digit_specs, setup.emulated)
+        media = find_media(digit_specs, tuple(bundle.windows))  # real sensors' cameras and microphones it reads
+        digit_specs = touch_sensors(bundle, cfg.policy, digit_specs, setup.emulated, media)
+        check_media_extras(media)
     _check_before_start(cfg)
     loop_cfg = LoopConfig(control_hz=hz, duration_s=cfg.duration, policy_budget=cfg.policy_budget,
                           hold_limit_s=cfg.hold_limit_s, status_every_s=cfg.status_every_s)
@@ -366,7 +370,8 @@ def run(cfg: Config) -> dict[str, Any]:
                 sys.setswitchinterval(5e-4)
             sched = set_realtime_priority(cfg.rt_priority)
             physics = emulated_physics(setup)  # emulation: the hand's world, which the emulated fingertips sense
-            readers = open_digit360(digit_specs, stack, physics)  # before the hand: the hand leaves first on exit
+            # before the hand: the hand leaves first on exit
+            readers = open_digit360(digit_specs, stack, physics, media)
             if touch:  # the windows fill while the motors are off (a hand holding its pose meanwhile lets go)
                 took = wait_for_touch(bundle, readers)
                 if took is not None:

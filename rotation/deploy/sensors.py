@@ -13,7 +13,8 @@ The sensors are recorded: their serial streams (accelerometer 400 Hz, pressure 2
 ``digit360/<finger>/{imu,pressure}`` (images and audio are not recorded). Their Sparsh-X windows (image, audio, IMU,
 pressure; rotation.hardware.digit360_window) are read by a touch-reading policy (rotation.deploy.touch) through
 ``reader.window()`` of each finger's reader; emulated sensors give all four modalities, a real one its serial
-streams (IMU and pressure: deploy does not open the camera or microphones yet; :func:`digit360_windows`).
+streams (IMU and pressure) and, when the policy reads the image or the audio, its camera and microphones, found on
+the sensor's own USB hub (:func:`find_media`; OpenCV and sounddevice, the ``hardware`` extra).
 A sensor that stops streaming leaves a gap in its streams and a log line; it does not stop the hand.
 
 ``--skin`` names the Xela skin's ``xela_server`` (a ws:// URL; ``sim`` starts the local stand-in server,
@@ -109,24 +110,69 @@ def check_digit360(specs: dict[str, str]) -> None:
 SIM_WINDOWS = ("image", "audio", "imu", "pressure")
 """Sparsh-X windows of an emulated fingertip beside an emulated hand (its camera and microphones are emulated)."""
 SERIAL_WINDOWS = ("imu", "pressure")
-"""Sparsh-X windows of a sensor that :func:`open_digit360` opens by serial number or tty: its serial streams only
-(deploy does not open a Digit 360's camera or microphones yet)."""
+"""Sparsh-X windows of a sensor's serial stream: what :func:`open_digit360` opens for a serial number or a tty path,
+plus the camera (``image``) and microphones (``audio``) that :func:`find_media` found for it."""
 
 
-def digit360_windows(value: str, emulated: bool) -> tuple[str, ...]:
+def digit360_windows(value: str, emulated: bool, devices: Any = None) -> tuple[str, ...]:
     """The windows in ``reader.window()`` of the sensor that :func:`open_digit360` starts for one ``--digit360``
-    entry (``value``: 'sim', a serial or a tty path) beside an emulated (``emulated``) or a real hand."""
-    return SIM_WINDOWS if value == "sim" and emulated else SERIAL_WINDOWS
+    entry (``value``: 'sim', a serial or a tty path) beside an emulated (``emulated``) or a real hand;
+    ``devices``: that sensor's camera and microphones to open (rotation.hardware.digit360.Digit360Devices)."""
+    if value == "sim" and emulated:
+        return SIM_WINDOWS
+    extra = () if devices is None else (("image",) if devices.camera else ()) + (("audio",) if devices.audio else ())
+    return (*extra, *SERIAL_WINDOWS)
 
 
-def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack,
-                  physics: HandPhysics | None = None) -> dict[str, Any]:
+def find_media(specs: dict[str, str], windows: tuple[str, ...], sysfs: str = "/sys") -> dict[str, Any]:
+    """{finger: Digit360Devices} for the real sensors in ``specs`` when ``windows`` (what a policy reads) include
+    the image or the audio: the camera and microphones on each sensor's USB hub
+    (rotation.hardware.digit360.find_digit360_devices), only those the windows need. A sensor that is not connected
+    (``check_digit360`` says so before the start) or a tty that is not a Digit 360's finds nothing."""
+    wanted = {"image", "audio"} & set(windows)
+    real = {finger: value for finger, value in specs.items() if value != "sim"}
+    if not wanted or not real:
+        return {}
+    from rotation.hardware.digit360 import Digit360Devices, find_digit360_devices, find_digit360_ports
+
+    out = {}
+    for finger, value in real.items():
+        ports = [value] if value.startswith("/") else [tty for tty, _ in find_digit360_ports(value)]
+        found = find_digit360_devices(ports[0], sysfs) if ports else Digit360Devices()
+        out[finger] = Digit360Devices(camera=found.camera if "image" in wanted else None,
+                                      audio=found.audio if "audio" in wanted else None)
+        log.info("digit360 %s (%s): camera %s, microphones %s", finger, value, out[finger].camera or "-",
+                 out[finger].audio or "-")
+    return out
+
+
+def check_media_extras(media: dict[str, Any]) -> None:
+    """ValueError (the install command) unless the libraries that read the cameras and microphones in ``media``
+    import: OpenCV and sounddevice, the ``hardware`` extra. Run before anything starts."""
+    needs = {"cv2": any(d.camera for d in media.values()), "sounddevice": any(d.audio for d in media.values())}
+    missing = []
+    for module, needed in needs.items():
+        if needed:
+            try:
+                __import__(module)
+            except (ImportError, OSError) as err:  # sounddevice raises OSError without the PortAudio library
+                missing.append(f"{module} ({err})")
+    if missing:
+        raise ValueError(f"--digit360: reading the sensors' cameras and microphones needs {', '.join(missing)}: "
+                         "pip install 'tactile-rotation[hardware]' (sounddevice also needs the PortAudio library, "
+                         "e.g. apt install libportaudio2)")
+
+
+def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: HandPhysics | None = None,
+                  media: dict[str, Any] | None = None) -> dict[str, Any]:
     """Start one reader per finger (and its emulator for 'sim') inside ``stack``; {finger: Digit360}. A sensor that
-    does not open raises :class:`SensorError` naming the finger.
+    does not open (its data tty, or the camera or microphones it is given) raises :class:`SensorError` naming the
+    finger.
 
     ``physics``: the emulated hand (rotation.deploy.hands.emulated_physics); a 'sim' sensor then senses its finger
     of that hand and its reader gets the emulated camera and microphones. Without it, 'sim' sensors stream the
-    emulator's synthetic readings (IMU and pressure only).
+    emulator's synthetic readings (IMU and pressure only). ``media``: {finger: Digit360Devices} of real sensors
+    (:func:`find_media`), whose camera and microphones their readers open beside the serial stream.
     """
     if not specs:
         return {}
@@ -135,7 +181,7 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack,
     readers: dict[str, Any] = {}
     epoch = time.monotonic()  # one device clock for the emulated fingertips of the hand: they sample it together
     for finger, value in specs.items():
-        media = None
+        rendered = None  # an emulated sensor's camera and microphones
         try:
             if value == "sim":
                 from rotation.sim_hardware.digit360_emulator import Digit360Emulator
@@ -143,13 +189,14 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack,
                 emulator = Digit360Emulator() if physics is None else Digit360Emulator(physics=physics, finger=finger,
                                                                                        epoch=epoch)
                 cfg = Digit360Config(port=stack.enter_context(emulator).path)
-                media = emulator.media
-            elif value.startswith("/"):
-                cfg = Digit360Config(port=value)
+                rendered = emulator.media
             else:
-                cfg = Digit360Config(serial_number=value)
-            readers[finger] = stack.enter_context(Digit360(cfg, name=f"digit360-{finger}", media=media))
-        except OSError as err:  # pyserial's SerialException is an OSError
+                devices = (media or {}).get(finger)
+                where = {"port": value} if value.startswith("/") else {"serial_number": value}
+                cfg = Digit360Config(**where, camera=getattr(devices, "camera", None),
+                                     audio_device=getattr(devices, "audio", None))
+            readers[finger] = stack.enter_context(Digit360(cfg, name=f"digit360-{finger}", media=rendered))
+        except (OSError, ImportError) as err:  # pyserial's SerialException is an OSError
             raise SensorError(f"digit360 {finger} ({value}) did not open: {err}") from err
         log.info("digit360 %s: %s", finger, value if value != "sim" else f"emulated on {cfg.port}")
     return readers

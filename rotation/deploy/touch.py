@@ -31,7 +31,8 @@ counted in ``fallback_steps``), as it does whenever touch is unusable.
 
 Which sensors a touch-reading policy needs (:func:`touch_sensors`) is checked before anything starts: on an emulated
 hand without ``--digit360`` the emulated fingertips are started for it; on a real hand every fingertip the adapter
-reads must be named by ``--digit360`` and stream every window it reads, else it is a ValueError (motors never on).
+reads must be named by ``--digit360`` and stream every window it reads (the serial streams, and the camera and
+microphones found on each sensor's USB hub when the adapter reads them), else it is a ValueError (motors never on).
 """
 
 from __future__ import annotations
@@ -75,13 +76,15 @@ def reads_touch(policy: Any) -> bool:
     return all(hasattr(policy, name) for name in ("correction", "fingers", "windows", "touch_every"))
 
 
-def touch_sensors(policy: Any, name: str, specs: dict[str, str], emulated: bool) -> dict[str, str]:
+def touch_sensors(policy: Any, name: str, specs: dict[str, str], emulated: bool,
+                  media: Mapping[str, Any] | None = None) -> dict[str, str]:
     """The ``--digit360`` sensors to open for ``policy`` ({finger: spec}, as rotation.deploy.sensors.parse_digit360).
 
     Emulated hand without ``--digit360``: emulated fingertips on every finger ('sim', logged). Otherwise every
-    fingertip the adapter reads must be named and its sensor must give every window the adapter reads; ValueError
-    (naming the fingers or windows, and the fix) when not, before anything is started. A skin adapter (Sparsh-skin)
-    is refused the same way: deploy reads Digit 360 fingertips only.
+    fingertip the adapter reads must be named and its sensor must give every window the adapter reads (a real
+    sensor: its serial streams, plus the camera and microphones in ``media``, rotation.deploy.sensors.find_media);
+    ValueError (naming the fingers or windows, and the fix) when not, before anything is started. A skin adapter
+    (Sparsh-skin) is refused the same way: deploy reads Digit 360 fingertips only.
     """
     if getattr(policy, "sensor", "digit360") != "digit360":
         raise ValueError(f"policy {name!r} reads the Xela skin; deploy runs Digit 360 adapters only (a skin adapter "
@@ -98,14 +101,18 @@ def touch_sensors(policy: Any, name: str, specs: dict[str, str], emulated: bool)
                          f"{', '.join(policy.fingers)}, but {given}: name a Digit 360 for each of "
                          f"{', '.join(missing)} (e.g. --digit360 {','.join(f'{f}=SERIAL' for f in policy.fingers)})"
                          + ("" if emulated else ", or deploy the student alone (--policy student)"))
-    gaps = {f: [w for w in policy.windows if w not in digit360_windows(specs[f], emulated)] for f in policy.fingers}
+    media = media or {}
+    gives = {f: digit360_windows(specs[f], emulated, media.get(f)) for f in policy.fingers}
+    gaps = {f: [w for w in policy.windows if w not in gives[f]] for f in policy.fingers}
     gaps = {f: w for f, w in gaps.items() if w}
     if gaps:
-        lacking = "; ".join(f"{f}={specs[f]} gives {', '.join(digit360_windows(specs[f], emulated))}, not "
-                            f"{', '.join(w)}" for f, w in gaps.items())
+        lacking = "; ".join(f"{f}={specs[f]} gives {', '.join(gives[f])}, not {', '.join(w)}" for f, w in gaps.items())
+        where = "" if emulated and all(specs[f] == "sim" for f in gaps) else (
+            " (a real sensor's camera and microphones are found on the USB hub of its data tty: is the whole sensor "
+            "plugged in, and not only its serial port?)")
         raise ValueError(f"policy {name!r} reads the touch windows {', '.join(policy.windows)}, which its "
-                         f"--digit360 sensors do not all stream ({lacking}). Deploy an adapter that reads only what "
-                         "the sensors give (e.g. imu, pressure), or the student alone")
+                         f"--digit360 sensors do not all stream ({lacking}){where}. Deploy an adapter that reads "
+                         "only what the sensors give (e.g. imu, pressure), or the student alone")
     return specs
 
 

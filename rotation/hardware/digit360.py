@@ -50,6 +50,8 @@ log = logging.getLogger(__name__)
 PROTO = str(Path(__file__).with_name("digit360.proto"))
 USB_VENDOR = 0x2833
 USB_PRODUCT_DATA = 0x4001
+USB_PRODUCT_HUBS = (0x6500, 0x6502)
+"""Product ids of the USB hub that each Digit 360 is (its camera, microphones and data tty are its children)."""
 ACC_PER_G = 4096.0
 """Raw accelerometer counts per g (reference/sparsh.md: linear acceleration / 4096)."""
 
@@ -77,6 +79,61 @@ def find_digit360_ports(serial_number: str | None = None) -> list[tuple[str, str
 
 
 @dataclass(frozen=True)
+class Digit360Devices:
+    """The camera and microphones of one Digit 360, as :class:`Digit360Config` takes them (None: not found)."""
+
+    camera: str | None = None
+    """V4L2 capture node, e.g. ``/dev/video2`` (OpenCV opens it by path)."""
+    audio: str | None = None
+    """sounddevice input device: the name substring ``(hw:N,0)`` of the sensor's ALSA card N."""
+
+
+def _usb_id(path: Path, name: str) -> int | None:
+    try:
+        return int((path / name).read_text().strip(), 16)
+    except (OSError, ValueError):
+        return None
+
+
+def _node_number(path: Path) -> int:
+    digits = "".join(ch for ch in path.name if ch.isdigit())
+    return int(digits) if digits else 1 << 30
+
+
+def find_digit360_devices(port: str, sysfs: str | Path = "/sys") -> Digit360Devices:
+    """The camera and microphones on the same USB hub as the Digit 360 whose data tty is ``port``.
+
+    A Digit 360 is a USB hub (vendor 0x2833, product 0x6500 or 0x6502) whose children are the data tty, a UVC
+    camera and a USB audio device (reference: hardware.md, section 4). Linux's sysfs links each tty, V4L2 node and
+    ALSA card to its USB interface (``<sysfs>/class/{tty,video4linux,sound}/<node>/device``); the camera and the
+    microphones of a sensor are the ones whose interface lies under the hub above its tty. A camera has several
+    V4L2 nodes (capture, metadata): the capture one has ``index`` 0. Nothing found: None in that field (a tty that
+    is not a Digit 360's, e.g. a pseudo-terminal, has neither). ``sysfs``: another root (tests).
+    """
+    root = Path(sysfs)
+    tty = root / "class" / "tty" / Path(port).resolve().name / "device"
+    if not tty.exists():
+        return Digit360Devices()
+    hub = None
+    for parent in tty.resolve().parents:
+        if _usb_id(parent, "idVendor") == USB_VENDOR and _usb_id(parent, "idProduct") in USB_PRODUCT_HUBS:
+            hub = parent
+            break
+    if hub is None:
+        return Digit360Devices()
+
+    def under_hub(node: Path) -> bool:
+        link = node / "device"
+        return link.exists() and hub in link.resolve().parents
+
+    cameras = [n for n in sorted((root / "class" / "video4linux").glob("video*"), key=_node_number)
+               if under_hub(n) and (not (n / "index").exists() or (n / "index").read_text().strip() == "0")]
+    cards = [n for n in sorted((root / "class" / "sound").glob("card*"), key=_node_number) if under_hub(n)]
+    return Digit360Devices(camera=f"/dev/{cameras[0].name}" if cameras else None,
+                           audio=f"(hw:{_node_number(cards[0])},0)" if cards else None)
+
+
+@dataclass(frozen=True)
 class Digit360Config:
     """One fingertip sensor."""
 
@@ -92,6 +149,9 @@ class Digit360Config:
     """Tick rate of the device's ``ts`` fields (microseconds)."""
     stale_timeout_s: float = 0.1
     """Newest serial sample older than this (s) -> SensorStale from window()."""
+    media_stale_timeout_s: float = 0.5
+    """Newest camera frame or audio block older than this (s) -> SensorStale from window() (a frozen camera or a
+    silent audio stream never passes its last frames off as the present)."""
     reconnect_s: float = 0.5
     """Retry period (s) for reopening the data tty after a disconnect."""
     read_every_s: float = 0.005
@@ -106,8 +166,10 @@ class Digit360Config:
             raise ValueError("Digit360Config: set serial_number (USB discovery) or port")
         if not self.buffer_s > 1.2:
             raise ValueError(f"Digit360Config.buffer_s must exceed the 1.12 s pressure window, got {self.buffer_s}")
-        if not self.stale_timeout_s > 0 or not self.reconnect_s > 0 or not self.device_clock_hz > 0:
-            raise ValueError("Digit360Config: stale_timeout_s, reconnect_s and device_clock_hz must be > 0")
+        if not (self.stale_timeout_s > 0 and self.media_stale_timeout_s > 0 and self.reconnect_s > 0
+                and self.device_clock_hz > 0):
+            raise ValueError("Digit360Config: stale_timeout_s, media_stale_timeout_s, reconnect_s and device_clock_hz "
+                             "must be > 0")
         if not 0 <= self.read_every_s < self.stale_timeout_s:
             raise ValueError(f"Digit360Config: read_every_s must be in [0, stale_timeout_s), got {self.read_every_s}")
 
@@ -183,11 +245,15 @@ class Digit360:
 
     def __enter__(self) -> Digit360:
         self._open_serial()  # fail loudly at start if the sensor is not there
-        self._start(self._serial_loop, "serial")
-        if self.cfg.camera is not None:
-            self._start(self._camera_loop, "camera")
-        if self.cfg.audio_device is not None:
-            self._open_audio()
+        try:
+            self._start(self._serial_loop, "serial")
+            if self.cfg.camera is not None:
+                self._start(self._camera_loop, "camera")
+            if self.cfg.audio_device is not None:
+                self._open_audio()
+        except BaseException:
+            self.close()  # no reader thread outlives a sensor that did not open
+            raise
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -222,6 +288,15 @@ class Digit360:
         if serial_only:
             return dw.sparshx_window(None, None, self.imu, self.pressure, t_end)
         if self.media is None:
+            for what, buf in (("camera frame", self.image), ("audio block", self.audio)):
+                if buf is None:
+                    continue
+                if not len(buf):
+                    raise dw.WindowNotReady(f"{self.name}: no {what} yet")
+                media_age = now - buf.newest_time()
+                if media_age > self.cfg.media_stale_timeout_s:
+                    raise SensorStale(f"{self.name}: newest {what} is {media_age:.3f} s old "
+                                      f"(> {self.cfg.media_stale_timeout_s} s)")
             return dw.sparshx_window(self.image, self.audio, self.imu, self.pressure, t_end)
         image, audio, t_frame = self.media.media_window(t_end)
         serial = dw.sparshx_window(None, None, self.imu, self.pressure, t_frame)
@@ -316,9 +391,13 @@ class Digit360:
             t = t_last - (frames - 1 - np.arange(frames)) / dw.AUDIO_RATE
             self.audio.extend(t, indata)  # type: ignore[union-attr]
 
-        self._audio_stream = sd.InputStream(samplerate=dw.AUDIO_RATE, channels=2, dtype="int16",
-                                            device=self.cfg.audio_device, callback=callback)
-        self._audio_stream.start()
+        try:
+            stream = sd.InputStream(samplerate=dw.AUDIO_RATE, channels=2, dtype="int16",
+                                    device=self.cfg.audio_device, callback=callback)
+            stream.start()
+        except Exception as err:  # PortAudioError, or ValueError for a device name that matches no input device
+            raise OSError(f"{self.name}: microphones {self.cfg.audio_device!r} did not open: {err}") from err
+        self._audio_stream = stream
 
     def _camera_loop(self) -> None:
         try:
@@ -329,14 +408,24 @@ class Digit360:
         cap = cv2.VideoCapture(self.cfg.camera)
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, 1280)  # the vendor encoder node requests 1280x720
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, 720)
+        failing = False  # one error line per failure streak, one info line when frames come back
         try:
             while not self._stop.is_set():
-                ok, frame = cap.read()
+                ok, frame = cap.read() if cap.isOpened() else (False, None)
                 t = time.monotonic()
                 if not ok:
-                    log.error("%s: camera read failed; retrying in %.1f s", self.name, self.cfg.reconnect_s)
+                    if not failing:
+                        log.error("%s: camera %s gives no frame (%s); retrying every %.1f s", self.name,
+                                  self.cfg.camera, "read failed" if cap.isOpened() else "did not open",
+                                  self.cfg.reconnect_s)
+                    failing = True
                     self._stop.wait(self.cfg.reconnect_s)
+                    if not cap.isOpened():
+                        cap.open(self.cfg.camera)
                     continue
+                if failing:
+                    log.info("%s: camera frames are back", self.name)
+                    failing = False
                 h, w = frame.shape[:2]
                 s = min(h, w)  # centre square crop of the fisheye image, then 224 x 224
                 crop = frame[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s]

@@ -1,0 +1,289 @@
+"""A real Digit 360's camera and microphones in deploy: found on the sensor's USB hub (sysfs), opened by its reader
+(OpenCV, sounddevice) when the policy reads the image or the audio, and refused before the start when they are
+not there or their libraries are missing.
+
+The USB devices themselves cannot be plugged into a test machine: sysfs is a tree of directories and links built
+as Linux lays it out, and OpenCV and sounddevice are stand-ins that deliver frames and 48 kHz int16 blocks from
+their own threads at the real rates, as the libraries do. The serial streams are the Digit 360 emulator's.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import sys
+import threading
+import time
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from adapters.bundle import build_adapted
+from rotation.cli import main
+from rotation.deploy.sensors import check_media_extras, digit360_windows, find_media, open_digit360
+from rotation.deploy.touch import touch_sensors
+from rotation.hardware import digit360
+from rotation.hardware.digit360 import Digit360Devices, SensorStale, find_digit360_devices
+from rotation.hardware.digit360_window import WindowNotReady
+from rotation.sim_hardware.digit360_emulator import Digit360Emulator
+
+ENCODER = "sparshx-tinier-sim"
+FINGERS = ("index", "middle", "ring", "thumb")
+
+
+# ------------------------------------------------------------------------------------------ sysfs
+def _write(path: Path, **files: str) -> Path:
+    path.mkdir(parents=True, exist_ok=True)
+    for name, text in files.items():
+        (path / name).write_text(text + "\n")
+    return path
+
+
+def _link(node: Path, target: Path) -> None:
+    node.mkdir(parents=True, exist_ok=True)
+    os.symlink(os.path.relpath(target, node), node / "device")
+
+
+def fake_sysfs(root: Path) -> Path:
+    """Two Digit 360 hubs on a root hub (data tty, camera with a capture and a metadata node, audio card), a
+    webcam and a USB serial adapter of other makers, laid out as Linux's sysfs links them."""
+    usb = _write(root / "devices" / "pci0000:00" / "0000:00:14.0" / "usb1", idVendor="1d6b", idProduct="0002")
+    for hub, tty, videos, card in (("1-2", "ttyACM0", (2, 3), 1), ("1-3", "ttyACM1", (4, 5), 10)):
+        h = _write(usb / hub, idVendor="2833", idProduct="6500" if hub == "1-2" else "6502")
+        data = _write(h / f"{hub}.1", idVendor="2833", idProduct="4001") / f"{hub}.1:1.0"
+        cam = _write(h / f"{hub}.2", idVendor="2833", idProduct="b015") / f"{hub}.2:1.0"
+        mic = _write(h / f"{hub}.3", idVendor="2833", idProduct="5001") / f"{hub}.3:1.0"
+        for d in (data, cam, mic):
+            d.mkdir()
+        _link(root / "class" / "tty" / tty, data)
+        for index, n in enumerate(videos):
+            _link(root / "class" / "video4linux" / f"video{n}", cam)
+            _write(root / "class" / "video4linux" / f"video{n}", index=str(index))
+        _link(root / "class" / "sound" / f"card{card}", mic)
+    webcam = _write(usb / "1-4", idVendor="046d", idProduct="0825") / "1-4:1.0"
+    webcam.mkdir()
+    _link(root / "class" / "video4linux" / "video0", webcam)
+    _write(root / "class" / "video4linux" / "video0", index="0")
+    adapter = _write(usb / "1-5", idVendor="0403", idProduct="6001") / "1-5:1.0"
+    adapter.mkdir()
+    _link(root / "class" / "tty" / "ttyUSB0", adapter)
+    _link(root / "class" / "sound" / "card0", root / "devices" / "pci0000:00" / "0000:00:1f.3")
+    return root
+
+
+def test_a_sensors_camera_and_microphones_are_the_ones_on_its_hub(tmp_path):
+    sysfs = fake_sysfs(tmp_path / "sys")
+    assert find_digit360_devices("/dev/ttyACM0", sysfs) == Digit360Devices("/dev/video2", "(hw:1,0)")
+    assert find_digit360_devices("/dev/ttyACM1", sysfs) == Digit360Devices("/dev/video4", "(hw:10,0)")
+    assert find_digit360_devices("/dev/ttyUSB0", sysfs) == Digit360Devices()  # a tty of another maker
+    assert find_digit360_devices("/dev/pts/7", sysfs) == Digit360Devices()  # a pseudo-terminal: not in sysfs
+
+
+def test_find_media_takes_only_what_the_policy_reads(tmp_path, monkeypatch):
+    sysfs = str(fake_sysfs(tmp_path / "sys"))
+    monkeypatch.setattr(digit360, "find_digit360_ports",
+                        lambda serial=None: [("/dev/ttyACM0", "D360-A")] if serial == "D360-A" else [])
+    specs = {"index": "D360-A", "thumb": "/dev/ttyACM1", "ring": "D360-GONE", "middle": "sim"}
+    assert find_media(specs, ("imu", "pressure"), sysfs) == {}  # serial streams only: nothing to find
+    media = find_media(specs, ("image", "pressure"), sysfs)
+    assert media == {"index": Digit360Devices("/dev/video2", None), "thumb": Digit360Devices("/dev/video4", None),
+                     "ring": Digit360Devices()}  # a sensor that is not connected finds nothing
+    media = find_media(specs, ("image", "audio", "imu", "pressure"), sysfs)
+    assert media["thumb"] == Digit360Devices("/dev/video4", "(hw:10,0)")
+    assert digit360_windows("D360-A", False, media["index"]) == ("image", "audio", "imu", "pressure")
+    assert digit360_windows("D360-GONE", False, media["ring"]) == ("imu", "pressure")
+
+
+def test_touch_sensors_accept_a_real_sensor_with_its_camera_and_microphones():
+    policy = types.SimpleNamespace(fingers=("index", "thumb"), windows=("image", "audio", "pressure"), touch_every=4)
+    specs = {"index": "D360-A", "thumb": "D360-B"}
+    both = {"index": Digit360Devices("/dev/video2", "(hw:1,0)"), "thumb": Digit360Devices("/dev/video4", "(hw:2,0)")}
+    assert touch_sensors(policy, "a", specs, emulated=False, media=both) == specs
+    no_mic = {**both, "thumb": Digit360Devices("/dev/video4", None)}
+    with pytest.raises(ValueError, match="thumb=D360-B gives image, imu, pressure, not audio.*USB hub"):
+        touch_sensors(policy, "a", specs, emulated=False, media=no_mic)
+
+
+# ------------------------------------------------------------------------------------------ library stand-ins
+class Microphones:
+    """sounddevice stand-in: each ``InputStream`` calls back from its own thread with 10 ms blocks of 2-channel
+    int16 audio at 48 kHz (channel 0 counts samples modulo 20,000 from -10,000, channel 1 is its negative)."""
+
+    block = 480
+
+    def __init__(self, fail: tuple[str, ...] = ()) -> None:
+        self.opened: list[dict] = []
+        self.fail = fail
+        self.module = types.ModuleType("sounddevice")
+        self.module.InputStream = self.stream
+
+    def stream(self, *, samplerate, channels, dtype, device, callback):
+        if device in self.fail:
+            raise ValueError(f"No input device matching {device!r}")
+        self.opened.append({"samplerate": samplerate, "channels": channels, "dtype": dtype, "device": device})
+        return _Stream(callback, self.block)
+
+
+class _Stream:
+    def __init__(self, callback, block: int) -> None:
+        self.callback, self.block = callback, block
+        self.stopped = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="fake-portaudio", daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def _run(self) -> None:
+        n, t0 = 0, time.monotonic()
+        while not self.stopped.wait(max(0.0, t0 + (n + self.block) / 48_000 - time.monotonic())):
+            ch0 = ((n + np.arange(self.block)) % 20_000 - 10_000).astype(np.int16)
+            self.callback(np.stack([ch0, -ch0], axis=1), self.block, None, None)
+            n += self.block
+
+    def stop(self) -> None:
+        self.stopped.set()
+        self.thread.join()
+
+    def close(self) -> None:
+        pass
+
+
+class Cameras:
+    """OpenCV stand-in: ``VideoCapture(path)`` of a known path gives 1280 x 720 BGR frames at 30 fps, frame k
+    uniform (B, G, R) = (10, 20, k mod 256)."""
+
+    def __init__(self, paths: tuple[str, ...]) -> None:
+        self.paths, self.opened, self.captures = paths, [], []
+        m = types.ModuleType("cv2")
+        m.CAP_PROP_FRAME_WIDTH, m.CAP_PROP_FRAME_HEIGHT, m.INTER_AREA, m.COLOR_BGR2RGB = 3, 4, 3, 4
+        m.VideoCapture = self.capture
+        m.resize = lambda img, size, interpolation=None: img[
+            (np.arange(size[1]) * img.shape[0] // size[1])[:, None], np.arange(size[0]) * img.shape[1] // size[0]]
+        m.cvtColor = lambda img, code: np.ascontiguousarray(img[..., ::-1])
+        self.module = m
+
+    def capture(self, path):
+        self.opened.append(path)
+        self.captures.append(_Capture(path in self.paths))
+        return self.captures[-1]
+
+
+class _Capture:
+    def __init__(self, ok: bool) -> None:
+        self.ok, self.k, self.t0 = ok, 0, time.monotonic()
+        self.frozen = False  # True: every read fails, as from a camera that stopped
+
+    def isOpened(self) -> bool:  # noqa: N802 (OpenCV's name)
+        return self.ok
+
+    def open(self, path) -> bool:
+        return self.ok
+
+    def set(self, prop, value) -> bool:
+        return True
+
+    def read(self):
+        time.sleep(max(0.0, self.t0 + self.k / 30 - time.monotonic()))
+        if self.frozen:
+            time.sleep(0.05)
+            return False, None
+        frame = np.empty((720, 1280, 3), np.uint8)
+        frame[...] = (10, 20, self.k % 256)
+        self.k += 1
+        return True, frame
+
+    def release(self) -> None:
+        self.ok = False
+
+
+def ready_window(reader, timeout_s: float = 5.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return reader.window()
+        except (WindowNotReady, SensorStale):  # no serial sample yet, or not enough history
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+
+
+def test_a_real_sensors_reader_gives_its_camera_and_microphones(monkeypatch):
+    mics, cams = Microphones(), Cameras(("/dev/video2",))
+    monkeypatch.setitem(sys.modules, "sounddevice", mics.module)
+    monkeypatch.setitem(sys.modules, "cv2", cams.module)
+    with contextlib.ExitStack() as stack:
+        emu = stack.enter_context(Digit360Emulator())
+        readers = open_digit360({"index": emu.path}, stack,
+                                media={"index": Digit360Devices("/dev/video2", "(hw:1,0)")})
+        w = ready_window(readers["index"])
+        cams.captures[0].frozen = True  # the camera stops: its last frames are not passed off as the present
+        time.sleep(0.7)
+        with pytest.raises(SensorStale, match="newest camera frame is .* s old"):
+            readers["index"].window()
+    assert mics.opened == [{"samplerate": 48_000, "channels": 2, "dtype": "int16", "device": "(hw:1,0)"}]
+    assert cams.opened == ["/dev/video2"]
+    assert w["image"].shape == (6, 224, 224) and w["audio"].shape == (2, 27_000)
+    assert w["imu"].shape == (224, 3) and w["pressure"].shape == (224, 1)
+    image = w["image"].astype(int)  # channel-major [R(t-5), R(t), G(t-5), G(t), B(t-5), B(t)]
+    assert np.all((image[1] - image[0]) % 256 == 5) and np.all(image[2:4] == 20) and np.all(image[4:] == 10)
+    audio = w["audio"].astype(int)  # 27,000 consecutive samples, the two microphones kept apart
+    assert np.all((np.diff(audio[0]) + 20_000) % 20_000 == 1) and np.array_equal(audio[1], -audio[0])
+
+
+def test_microphones_that_do_not_open_fail_the_sensor_without_a_leak(monkeypatch):
+    from rotation.deploy.sensors import SensorError
+
+    monkeypatch.setitem(sys.modules, "sounddevice", Microphones(fail=("(hw:9,0)",)).module)
+    with contextlib.ExitStack() as stack:
+        emu = stack.enter_context(Digit360Emulator())
+        with pytest.raises(SensorError, match=r"digit360 thumb .*microphones '\(hw:9,0\)' did not open"):
+            open_digit360({"thumb": emu.path}, stack, media={"thumb": Digit360Devices(None, "(hw:9,0)")})
+
+
+def test_missing_libraries_are_named_before_the_start(monkeypatch):
+    monkeypatch.setitem(sys.modules, "sounddevice", None)  # the import fails, as without the extra
+    monkeypatch.setitem(sys.modules, "cv2", None)
+    check_media_extras({})  # serial streams only: nothing to import
+    both = {"index": Digit360Devices("/dev/video2", None), "thumb": Digit360Devices(None, "(hw:1,0)")}
+    with pytest.raises(ValueError, match=r"needs cv2 \(.*\), sounddevice \(.*\): pip install 'tactile-rotation"):
+        check_media_extras(both)
+
+
+# ------------------------------------------------------------------------------------------ deploy, end to end
+@pytest.fixture(scope="module")
+def audio_adapter(tmp_path_factory, policy) -> str:
+    """A fresh adapter on the audio and the pressure (zero correction: it acts as its student)."""
+    path = tmp_path_factory.mktemp("adapter") / "audio_pressure"
+    build_adapted(policy, ENCODER, ("mic", "pressure"), touch_every=4).save(path)
+    return str(path)
+
+
+def test_deploy_opens_each_named_sensors_microphones_for_an_audio_adapter(audio_adapter, capsys, hand_hook,
+                                                                           monkeypatch):
+    mics = Microphones()
+    monkeypatch.setitem(sys.modules, "sounddevice", mics.module)
+    with contextlib.ExitStack() as stack:
+        emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
+        cards = {emu.path: f"(hw:{i + 1},0)" for i, emu in enumerate(emus.values())}
+        monkeypatch.setattr(digit360, "find_digit360_devices",
+                            lambda port, sysfs="/sys": Digit360Devices(None, cards[port]))
+        code = main(["deploy", "--hand", "sim-allegro", "--policy", audio_adapter, "--duration", "1.5",
+                     "--digit360", ",".join(f"{f}={emu.path}" for f, emu in emus.items())])
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert sorted(m["device"] for m in mics.opened) == sorted(cards.values())
+    rate_fault = summary["fault"] is not None and "could not hold 20 Hz" in summary["fault"]
+    assert (code == 0 and summary["fault"] is None) or (rate_fault and code == 1), summary["fault"]
+    assert summary["touch"]["adapter_steps"] > 0  # the adapter read the microphones' windows
+
+
+def test_deploy_refuses_an_audio_adapter_when_no_microphones_are_found(audio_adapter, capsys, hand_hook):
+    with contextlib.ExitStack() as stack:
+        emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
+        code = main(["deploy", "--hand", "sim-allegro", "--policy", audio_adapter, "--duration", "1",
+                     "--digit360", ",".join(f"{f}={emu.path}" for f, emu in emus.items())])
+    err = capsys.readouterr().err
+    assert code == 2 and "gives imu, pressure, not audio" in err and "USB hub" in err  # a pty has no hub
+    assert hand_hook.opened is None  # nothing was started
