@@ -326,6 +326,7 @@ def run(cfg: Config) -> dict[str, Any]:
     digit_specs = parse_digit360(cfg.digit360, setup.emulated)
     media: dict[str, Any] = {}
     if touch:  # the sensors the adapter reads, checked (or, emulated, started) before anything else
+        check_digit360(digit_specs)  # a sensor that is not there is named as such, not as one without a camera
         media = find_media(digit_specs, tuple(bundle.windows))  # real sensors' cameras and microphones it reads
         digit_specs = touch_sensors(bundle, cfg.policy, digit_specs, setup.emulated, media)
         check_media_extras(media)

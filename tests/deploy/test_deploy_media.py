@@ -286,4 +286,8 @@ def test_deploy_refuses_an_audio_adapter_when_no_microphones_are_found(audio_ada
                      "--digit360", ",".join(f"{f}={emu.path}" for f, emu in emus.items())])
     err = capsys.readouterr().err
     assert code == 2 and "gives imu, pressure, not audio" in err and "USB hub" in err  # a pty has no hub
+    code = main(["deploy", "--hand", "sim-allegro", "--policy", audio_adapter, "--duration", "1",
+                 "--digit360", "D360-A,D360-B,D360-C,D360-NOT-HERE"])
+    err = capsys.readouterr().err  # a serial that is not connected is named as such
+    assert code == 2 and "thumb=D360-NOT-HERE (no connected Digit 360 has this USB serial)" in err
     assert hand_hook.opened is None  # nothing was started
