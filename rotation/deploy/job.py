@@ -260,7 +260,6 @@ def _check_before_start(cfg: Config) -> None:
     """Everything that can be checked without touching the hardware (ValueError: bad input)."""
     if cfg.record:
         _check_record_path(Path(cfg.record), cfg.overwrite)
-    check_digit360(parse_digit360(cfg.digit360, emulated=cfg.hand.startswith("sim-")))
     check_skin(parse_skin(cfg.skin, emulated=cfg.hand.startswith("sim-")))
     if cfg.hand.startswith("sim-"):
         from envs.grasps import load_default_cache
@@ -324,9 +323,9 @@ def run(cfg: Config) -> dict[str, Any]:
     setup = HandSetup(hand=cfg.hand, can=cfg.can, port=cfg.port, baud=cfg.baud, gain_scale=cfg.gain_scale,
                       control_hz=hz, object=cfg.object, grasp=cfg.grasp, sim_transport=cfg.sim_transport)
     digit_specs = parse_digit360(cfg.digit360, setup.emulated)
+    check_digit360(digit_specs)  # first: a sensor that is not there is named as such, not as one without a camera
     media: dict[str, Any] = {}
     if touch:  # the sensors the adapter reads, checked (or, emulated, started) before anything else
-        check_digit360(digit_specs)  # a sensor that is not there is named as such, not as one without a camera
         media = find_media(digit_specs, tuple(bundle.windows))  # real sensors' cameras and microphones it reads
         digit_specs = touch_sensors(bundle, cfg.policy, digit_specs, setup.emulated, media)
         check_media_extras(media)

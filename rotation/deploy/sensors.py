@@ -135,10 +135,11 @@ def find_media(specs: dict[str, str], windows: tuple[str, ...], sysfs: str = "/s
         return {}
     from rotation.hardware.digit360 import Digit360Devices, find_digit360_devices, find_digit360_ports
 
+    ttys = {serial: tty for tty, serial in find_digit360_ports()}  # one scan of the USB serial ports for all
     out = {}
     for finger, value in real.items():
-        ports = [value] if value.startswith("/") else [tty for tty, _ in find_digit360_ports(value)]
-        found = find_digit360_devices(ports[0], sysfs) if ports else Digit360Devices()
+        port = value if value.startswith("/") else ttys.get(value)
+        found = find_digit360_devices(port, sysfs) if port else Digit360Devices()
         out[finger] = Digit360Devices(camera=found.camera if "image" in wanted else None,
                                       audio=found.audio if "audio" in wanted else None)
         log.info("digit360 %s (%s): camera %s, microphones %s", finger, value, out[finger].camera or "-",

@@ -84,8 +84,9 @@ def test_a_sensors_camera_and_microphones_are_the_ones_on_its_hub(tmp_path):
 
 def test_find_media_takes_only_what_the_policy_reads(tmp_path, monkeypatch):
     sysfs = str(fake_sysfs(tmp_path / "sys"))
+    connected = [("/dev/ttyACM0", "D360-A")]  # (tty, USB serial), as the real function lists them
     monkeypatch.setattr(digit360, "find_digit360_ports",
-                        lambda serial=None: [("/dev/ttyACM0", "D360-A")] if serial == "D360-A" else [])
+                        lambda serial=None: [p for p in connected if serial in (None, p[1])])
     specs = {"index": "D360-A", "thumb": "/dev/ttyACM1", "ring": "D360-GONE", "middle": "sim"}
     assert find_media(specs, ("imu", "pressure"), sysfs) == {}  # serial streams only: nothing to find
     media = find_media(specs, ("image", "pressure"), sysfs)
