@@ -52,8 +52,7 @@ from typing import Any, Literal
 
 import torch
 
-from adapters.bundle import MODALITY_WINDOWS, build_adapted, file_digest, read_adapter, student_weights
-from adapters.real_data import RECORDED_WINDOWS
+from adapters.bundle import build_adapted, file_digest, read_adapter, student_weights
 from envs.config import EnvConfig, RandomizationConfig
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import config_resuming_in_out, from_jsonable, save_config, to_jsonable
@@ -163,8 +162,9 @@ class Config:
     """Show a progress bar."""
     sessions: tuple[Path, ...] = ()
     """Train on recorded sessions instead of simulation: .h5 session files, or directories searched for them. Each
-    needs joints/position, joints/target, every fingertip's Digit 360 streams the adapter reads (imu, pressure) and
-    the measured object properties (`rotate deploy --digit360 ... --record FILE --properties ...`; docs/adapter.md)."""
+    needs joints/position, joints/target, every fingertip's Digit 360 streams the adapter reads (imu and pressure;
+    image and audio from `--record-media`) and the measured object properties (`rotate deploy --digit360 ... --record
+    FILE --properties ...`; docs/adapter.md)."""
     epochs: int = 30
     """Sessions: passes over the training samples."""
     sample_every: int = 2
@@ -185,7 +185,7 @@ class Config:
         for name in ("student", "teacher", "encoder"):
             if not getattr(self, name):
                 raise ValueError(f"{name}: give a shipped name or a path")
-        groups = parse_groups(self.modalities, self.touch_kind)
+        parse_groups(self.modalities, self.touch_kind)  # validates them
         check_int("total_steps", self.total_steps, 1, 10**12)
         check_int("num_envs", self.num_envs, 1, 4096)
         check_int("touch_every", self.touch_every, 1, 1000)
@@ -233,13 +233,6 @@ class Config:
         if self.sessions and self.anchor:
             raise ValueError("--anchor sets the target by the simulated cup's mass; recorded sessions carry their "
                              "own measured properties: leave --anchor out with --sessions")
-        if self.sessions:
-            windows = [MODALITY_WINDOWS[m] for m in groups]
-            bad = [w for w in windows if w not in RECORDED_WINDOWS]
-            if bad:
-                raise ValueError(f"modalities: recorded sessions hold the Digit 360 {' and '.join(RECORDED_WINDOWS)} "
-                                 f"streams (deploy records no images or audio), not {', '.join(bad)}: give "
-                                 "--modalities pressure, imu or imu,pressure with --sessions")
 
 
     @property

@@ -10,12 +10,16 @@ or an emulated hand) gives, for every ``every``-th control step k (row k of ``jo
   recorded: the first recorded position stands in for it, so the observations of steps 0..29 (whose history still
   holds start frames) match the loop's to the hand's stillness, and from step 30 on they match exactly (to the
   float32 rounding of the recorded joints).
-- ``windows``: per fingertip, the Sparsh-X windows the adapter reads (IMU (224, 3) g and pressure (224, 1) hPa, the
-  streams deploy records), made as a deployed adapter's reader makes them (rotation.hardware.digit360
-  ``Digit360.window(serial_only=True)``): ending at the older of the newest IMU and pressure samples at or before
-  t_k, resampled by rotation.hardware.digit360_window.series_from_samples. A step is skipped when any fingertip's
-  window is not ready (the first ~1.1 s, a gap) or its sensor is stale (newest sample older than the reader's
-  ``stale_timeout_s``): there the deployed adapter acts as the student alone.
+- ``windows``: per fingertip, the Sparsh-X windows the adapter reads, made as a deployed adapter's reader makes them
+  (rotation.hardware.digit360 ``Digit360.window``) from the streams deploy records. IMU (224, 3) g and pressure
+  (224, 1) hPa (the serial streams) end at the older of the newest IMU and pressure samples at or before t_k (and
+  of the newest audio sample, when the adapter reads the audio), resampled by
+  rotation.hardware.digit360_window.series_from_samples. With the image (a session recorded with ``--record-media``
+  or by an adapter that reads it), every window ends at the newest camera frame at or before t_k: the image is that
+  frame and the one 5 frames before it, (2, 224, 224, 3) uint8 RGB; the audio is the 27,000 samples up to the
+  window's end, (2, 27000) int16. A step is skipped when any fingertip's window is not ready (the first ~1.1 s, a
+  gap) or its sensor is stale (newest serial sample older than the reader's ``stale_timeout_s``, newest frame or
+  audio sample older than its ``media_stale_timeout_s``): there the deployed adapter acts as the student alone.
 - ``z``: the target, the teacher's env-factor encoder on the privileged vector (envs.constants.PRIV_FIELDS) built
   from the session's measured properties (rotation.data.properties: scale, mass, friction, com).
 
@@ -49,7 +53,7 @@ import torch
 from envs import constants as C
 from envs.config import RandomizationConfig
 from envs.observation import ProprioHistory
-from rotation.data.dataset import find_sessions
+from rotation.data.dataset import center_resize, find_sessions
 from rotation.data.properties import check_properties
 from rotation.data.session import SessionError, SessionReader
 from rotation.hardware import digit360_window as dw
@@ -59,9 +63,14 @@ log = logging.getLogger(__name__)
 
 Position = Literal["fit", "average", "recorded"]
 POSITIONS: tuple[str, ...] = ("fit", "average", "recorded")
-RECORDED_WINDOWS: dict[str, float] = {"imu": dw.IMU_RATE, "pressure": dw.PRESSURE_RATE}
-"""Windows a recorded session gives (the Digit 360 serial streams ``digit360/<finger>/<window>`` that deploy
-records) -> their rate (Hz). Deploy records no images or audio."""
+SERIAL_WINDOWS: dict[str, float] = {"imu": dw.IMU_RATE, "pressure": dw.PRESSURE_RATE}
+"""The Digit 360 serial streams (``digit360/<finger>/<window>``, recorded by every deploy with --digit360) -> their
+rate (Hz)."""
+MEDIA_WINDOWS = ("image", "audio")
+"""The camera frames and microphones (``digit360/<finger>/image``, ``audio``), recorded by deploy with
+--record-media or for an adapter that reads them."""
+RECORDED_WINDOWS = (*MEDIA_WINDOWS, *SERIAL_WINDOWS)
+"""Windows a recorded session can give."""
 HANDS = ("allegro", "leap")
 """Hands with the Allegro joint layout that the student runs on (rotation.deploy.hands)."""
 JOINT_STREAMS = ("joints/position", "joints/target")
@@ -82,8 +91,11 @@ FIT_PRIOR_M, FIT_PRIOR_WEIGHT = 0.015, 0.5
 position costs as much as a squared latent error of FIT_PRIOR_WEIGHT. Without it the position absorbs part of
 what the student gets wrong about the measured properties (the target moves toward the student's latent); the
 weight was picked on simulated rollouts and emulated-hand sessions (docs/adapter.md)."""
-STALE_S = {f.name: f.default for f in dataclasses.fields(Digit360Config)}["stale_timeout_s"]
+_READER = {f.name: f.default for f in dataclasses.fields(Digit360Config)}
+STALE_S = _READER["stale_timeout_s"]
 """A fingertip whose newest serial sample is older than this (s) is stale (the reader raises SensorStale)."""
+MEDIA_STALE_S = _READER["media_stale_timeout_s"]
+"""A fingertip whose newest camera frame or audio sample is older than this (s) is stale."""
 
 
 @dataclass(frozen=True)
@@ -151,7 +163,10 @@ def check_session(path: str | Path, fingers: Sequence[str], windows: Sequence[st
             hint = ""
             if any(n.startswith("digit360/") for n in missing):
                 simulated = [f for f in fingers if r.has(f"digit360/{f}/contact")]
+                media = any(n.rsplit("/", 1)[-1] in MEDIA_WINDOWS for n in missing)
                 hint = (" (a simulated session from `rotate collect`: fine-tune in simulation instead)" if simulated
+                        else " (record with `rotate deploy --digit360 ... --record FILE --record-media`, which also "
+                             "records every fingertip's camera frames and microphones)" if media
                         else " (record with `rotate deploy --digit360 ... --record`, which records every fingertip's "
                              "imu and pressure)")
             elif "labels/object_pose" in missing:
@@ -180,9 +195,8 @@ def check_sessions(paths: Sequence[str | Path], fingers: Sequence[str], windows:
     sessions of another hand kind (allegro / leap) or source (a real hand / its emulator) are refused."""
     bad = [w for w in windows if w not in RECORDED_WINDOWS]
     if bad:
-        raise ValueError(f"recorded sessions give the windows {', '.join(RECORDED_WINDOWS)} (deploy records no "
-                         f"images or audio); the adapter reads {', '.join(bad)}: train it with --modalities imu, "
-                         "pressure or imu,pressure")
+        raise ValueError(f"recorded sessions give the windows {', '.join(RECORDED_WINDOWS)}; the adapter reads "
+                         f"{', '.join(bad)}")
     if position not in POSITIONS:
         raise ValueError(f"position must be one of {', '.join(POSITIONS)}, got {position!r}")
     if not paths:
@@ -237,25 +251,50 @@ def proprio_observations(q: np.ndarray, targets: np.ndarray, steps: np.ndarray) 
 def touch_windows(reader: SessionReader, fingers: Sequence[str], windows: Sequence[str], times: np.ndarray
                   ) -> tuple[dict[str, dict[str, np.ndarray]], np.ndarray]:
     """The fingertips' windows at session ``times`` (n,) s, as a deployed adapter's reader makes them (module
-    docstring): ({finger: {window: (n, 224, c)}} float32, ok (n,) bool; rows with ok False are not filled)."""
+    docstring): ({finger: {window: (n, ...)}}: imu (n, 224, 3) and pressure (n, 224, 1) float32, image
+    (n, 2, 224, 224, 3) uint8, audio (n, 2, 27000) int16; ok (n,) bool; rows with ok False are not filled)."""
     n = len(times)
-    out = {f: {w: np.zeros((n, dw.SERIES_LEN, 3 if w == "imu" else 1), np.float32) for w in windows} for f in fingers}
+    shapes = {"imu": ((dw.SERIES_LEN, 3), np.float32), "pressure": ((dw.SERIES_LEN, 1), np.float32),
+              "image": ((2, dw.IMAGE_SIZE, dw.IMAGE_SIZE, 3), np.uint8), "audio": ((2, dw.AUDIO_SAMPLES), np.int16)}
+    out = {f: {w: np.zeros((n, *shapes[w][0]), shapes[w][1]) for w in windows} for f in fingers}
     ok = np.ones(n, bool)
     for f in fingers:
         # the reader's clock streams: both serial streams it holds decide the window's end and staleness
-        streams = {w: reader.stream(f"digit360/{f}/{w}") for w in RECORDED_WINDOWS if reader.has(f"digit360/{f}/{w}")}
+        streams = {w: reader.stream(f"digit360/{f}/{w}") for w in SERIAL_WINDOWS if reader.has(f"digit360/{f}/{w}")}
         newest = np.stack([_newest_before(st.timestamps, times) for st in streams.values()])  # (S, n)
+        ok &= np.isfinite(newest).all(axis=0) & (times - newest.max(axis=0) <= STALE_S)
         t_end = newest.min(axis=0)  # the older of the newest samples: no stream needs a future sample
-        ok &= np.isfinite(t_end) & (times - newest.max(axis=0) <= STALE_S)
+        audio = reader.stream(f"digit360/{f}/audio", lazy=True) if "audio" in windows else None
+        if audio is not None:
+            newest_audio = _newest_before(audio.timestamps, times)
+            ok &= times - newest_audio <= MEDIA_STALE_S
+            t_end = np.minimum(t_end, newest_audio)  # the reader's rule: the oldest of its streams' newest
+        image, rows = None, None
+        if "image" in windows:  # a camera: every window ends at its newest frame
+            image = reader.stream(f"digit360/{f}/image", lazy=True)
+            rows = np.searchsorted(image.timestamps, times, side="right") - 1
+            ok &= rows >= dw.IMAGE_GAP
+            t_end = np.where(rows >= 0, image.timestamps[np.clip(rows, 0, None)], -np.inf)
+            ok &= times - t_end <= MEDIA_STALE_S
         for i in np.flatnonzero(ok):
-            for w in windows:
-                st, rate = streams[w], RECORDED_WINDOWS[w]
-                t, v = _tail(st.timestamps, st.data, t_end[i], dw.SERIES_LEN / rate)
-                try:
-                    out[f][w][i] = dw.series_from_samples(t, v, t_end[i], rate, dw.SERIES_LEN, name=w)
-                except dw.WindowNotReady:
-                    ok[i] = False
-                    break
+            try:
+                for w in windows:
+                    if w == "image":
+                        frames = np.stack([image.data[rows[i] - dw.IMAGE_GAP], image.data[rows[i]]])
+                        if frames.shape[1:3] != (dw.IMAGE_SIZE, dw.IMAGE_SIZE):
+                            frames = center_resize(frames, dw.IMAGE_SIZE)
+                        out[f][w][i] = frames
+                    elif w == "audio":
+                        last = int(np.searchsorted(audio.timestamps, t_end[i], side="right"))
+                        if last < dw.AUDIO_SAMPLES:
+                            raise dw.WindowNotReady(f"audio: {last} samples before t_end")
+                        out[f][w][i] = np.asarray(audio.data[last - dw.AUDIO_SAMPLES:last]).T
+                    else:
+                        st, rate = streams[w], SERIAL_WINDOWS[w]
+                        t, v = _tail(st.timestamps, st.data, t_end[i], dw.SERIES_LEN / rate)
+                        out[f][w][i] = dw.series_from_samples(t, v, t_end[i], rate, dw.SERIES_LEN, name=w)
+            except dw.WindowNotReady:
+                ok[i] = False
     return out, ok
 
 

@@ -274,7 +274,7 @@ class TouchWindows(Dataset):
         t_end = float(img.timestamps[row])
         frames = np.stack([img.data[row - FRAME_GAP], img.data[row]])  # (2, H, W, 3) uint8
         if frames.shape[1:3] != (IMAGE_SIZE, IMAGE_SIZE):
-            frames = _center_resize(frames, IMAGE_SIZE)
+            frames = center_resize(frames, IMAGE_SIZE)
         audio = r.stream(f"digit360/{finger}/audio", lazy=True)
         last = int(np.searchsorted(audio.timestamps, t_end + _TIME_EPS, side="right"))  # samples at or before t_end
         wave = np.asarray(audio.data[last - AUDIO_SAMPLES : last], dtype=np.float32).T  # (2, 27000)
@@ -299,7 +299,7 @@ class TouchWindows(Dataset):
         return state
 
 
-def _center_resize(frames: np.ndarray, size: int) -> np.ndarray:
+def center_resize(frames: np.ndarray, size: int) -> np.ndarray:
     """(K, H, W, 3) uint8 -> (K, size, size, 3): centre square crop, then bilinear resize with antialiasing."""
     h, w = frames.shape[1:3]
     side = min(h, w)

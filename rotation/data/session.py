@@ -56,7 +56,9 @@ Crash safety: the writer keeps the file in HDF5's single-writer/multiple-reader 
 creates every dataset up front, buffers appends in memory and writes + flushes them every ``flush_interval_s``. In
 SWMR mode HDF5 orders its metadata writes so that the file is valid at any instant; a writer killed at any point
 leaves a file that :class:`SessionReader` opens with everything up to the last flush. Only a cleanly closed
-session carries ``complete = True``.
+session carries ``complete = True``. With ``background=True`` the writes and flushes run on the writer's own thread
+(appends only queue), so a caller with a deadline (the deploy loop recording camera frames, about 18 MB/s for
+four Digit 360s) never waits for the disk; a write that fails there is raised by the next ``append`` or ``close``.
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+import threading
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -216,7 +219,7 @@ class SessionWriter:
     """
 
     def __init__(self, path: str | Path, meta: SessionMeta, streams: Iterable[StreamSetup | str],
-                 flush_interval_s: float = 1.0, overwrite: bool = False):
+                 flush_interval_s: float = 1.0, overwrite: bool = False, background: bool = False):
         self.path = Path(path)
         if not flush_interval_s >= 0:
             raise SessionError(f"session {self.path}: flush_interval_s must be >= 0, got {flush_interval_s}")
@@ -261,6 +264,15 @@ class SessionWriter:
         """Samples per stream written and flushed to disk (what a crash now would keep)."""
         self._last_flush = time.monotonic()
         self.closed = False
+        self._lock = threading.Lock()  # guards _pending (appends queue, the flusher takes)
+        self._io_lock = threading.Lock()  # one HDF5 writer at a time
+        self._error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if background:
+            self._thread = threading.Thread(target=self._flush_loop, name=f"session-writer:{self.path.name}",
+                                            daemon=True)
+            self._thread.start()
 
     def _resolve(self, s: StreamSetup) -> tuple[tuple[int, ...], np.dtype, float]:
         where = f"session {self.path}"
@@ -302,36 +314,68 @@ class SessionWriter:
             raise SessionError(f"{where}: cannot store {data.dtype} as {dtype}")
         if len(t) and (not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0) or t[0] < self._last_t[name]):
             raise SessionError(f"{where}: timestamps must be finite and non-decreasing")
+        self._raise_background_error()
         if len(t):
             self._last_t[name] = float(t[-1])
-            self._pending[name].append((data.astype(dtype, copy=False), t))
-        if time.monotonic() - self._last_flush >= self.flush_interval_s:
+            with self._lock:
+                self._pending[name].append((data.astype(dtype, copy=False), t))
+        if self._thread is None and time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
 
     def flush(self) -> None:
         """Write every queued sample and flush the file: what is on disk now survives a crash."""
-        for name, chunks in self._pending.items():
-            if not chunks:
-                continue
-            data = np.concatenate([c[0] for c in chunks])
-            t = np.concatenate([c[1] for c in chunks])
-            d, ts = self._data[name], self._times[name]
-            n = d.shape[0]
-            # timestamps last: a reader never sees a timestamp without its sample
-            d.resize(n + len(data), axis=0)
-            d[n:] = data
-            ts.resize(n + len(t), axis=0)
-            ts[n:] = t
-            chunks.clear()
-        self._file.flush()
-        self.flushed = {name: d.shape[0] for name, d in self._data.items()}
-        self._last_flush = time.monotonic()
+        with self._io_lock:
+            with self._lock:  # take what is queued; appends go on meanwhile
+                taken = {name: chunks for name, chunks in self._pending.items() if chunks}
+                for name in taken:
+                    self._pending[name] = []
+            for name, chunks in taken.items():
+                data = np.concatenate([c[0] for c in chunks])
+                t = np.concatenate([c[1] for c in chunks])
+                d, ts = self._data[name], self._times[name]
+                n = d.shape[0]
+                # timestamps last: a reader never sees a timestamp without its sample
+                d.resize(n + len(data), axis=0)
+                d[n:] = data
+                ts.resize(n + len(t), axis=0)
+                ts[n:] = t
+            self._file.flush()
+            self.flushed = {name: d.shape[0] for name, d in self._data.items()}
+            self._last_flush = time.monotonic()
+
+    def _flush_loop(self) -> None:
+        """The background writer: flush every ``flush_interval_s`` until stopped; a failure is kept for the caller
+        (raised by its next append or close) and ends the loop."""
+        while not self._stop.wait(max(self.flush_interval_s, 0.05)):  # an interval of 0 would spin
+            try:
+                self.flush()
+            except BaseException as err:  # noqa: BLE001 -- handed to the caller's thread
+                self._error = err
+                return
+
+    def _raise_background_error(self) -> None:
+        if self._error is not None:
+            err = self._error
+            raise SessionError(f"session {self.path}: writing failed: {err}") from err
+
+    def _stop_background(self) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self._thread = None
 
     def close(self) -> None:
         """Flush, close, and mark the session complete."""
         if self.closed:
             return
-        self.flush()
+        self._stop_background()
+        try:
+            self._raise_background_error()
+            self.flush()
+        except BaseException:
+            self._file.close()
+            self.closed = True
+            raise
         self._file.close()
         self.closed = True
         with h5py.File(self.path, "r+", libver="latest") as f:
@@ -341,6 +385,7 @@ class SessionWriter:
         """Flush and close without marking the session complete (an interrupted recording)."""
         if self.closed:
             return
+        self._stop_background()
         try:
             self.flush()
         finally:

@@ -7,6 +7,8 @@
     rotate deploy --hand allegro --policy student --skin ws://localhost:5000 --record runs/skin.h5   # + Xela skin
     rotate deploy --hand allegro --policy student --digit360 D360-A,D360-B,D360-C,D360-D --record runs/cup_tape.h5 \
         --properties mass=0.12,friction=0.8,com=0,0,0.01,scale=0.8    # measured object: adapter fine-tuning data
+    rotate deploy --hand allegro --policy student --digit360 D360-A,D360-B,D360-C,D360-D --record runs/cup.h5 \
+        --record-media --properties ...      # + the sensors' camera frames and microphones (all four modalities)
     rotate deploy --hand sim-allegro --policy adapter --duration 10   # student + tactile adapter, emulated touch
     rotate deploy --hand allegro --policy runs/adapter_pressure/bundle --digit360 SERIAL1,SERIAL2,SERIAL3,SERIAL4
 
@@ -93,6 +95,10 @@ class Config:
     """Session file (.h5) to record to (must not exist unless --overwrite); empty: no recording."""
     overwrite: bool = False
     """Replace an existing --record file."""
+    record_media: bool = False
+    """Also record each real --digit360 sensor's camera frames and microphones (digit360/<finger>/image, audio;
+    about 4.5 MB/s per sensor; needs the hardware extra), whatever the policy reads: what fine-tuning an adapter
+    that reads the image or the audio on your sessions needs. A policy that reads them records them anyway."""
     gain_scale: float = 1.0
     """Factor in (0, 1] on the driver's gains (Allegro kp/kd, LEAP position P/D): start a new hand low."""
     object: str = "cup"
@@ -139,6 +145,14 @@ class Config:
         parse_skin(self.skin, emulated=self.hand.startswith("sim-"))
         if parse_properties(self.properties) and not self.record:
             raise ValueError("properties: they are stored in the recording; give --record FILE.h5 as well")
+        if self.record_media:
+            specs = parse_digit360(self.digit360, emulated=self.hand.startswith("sim-"))
+            if not self.record:
+                raise ValueError("record_media: it records the sensors' cameras and microphones; give --record "
+                                 "FILE.h5 as well")
+            if not specs or any(v == "sim" for v in specs.values()):
+                raise ValueError("record_media: name real Digit 360 sensors with --digit360 (serials or tty paths); "
+                                 "emulated sensors render their image and audio only for a window and record none")
         if self.grasp < 0:
             raise ValueError(f"grasp must be >= 0, got {self.grasp}")
         if self.sim_transport not in ("virtual", "slcan"):
@@ -311,7 +325,7 @@ def run(cfg: Config) -> dict[str, Any]:
     from rotation.deploy.loop import ControlLoop, LoopConfig
     from rotation.deploy.policy import check_deployable
     from rotation.deploy.recording import DeployRecorder
-    from rotation.deploy.sensors import check_media_extras, find_media, open_digit360, open_skin
+    from rotation.deploy.sensors import MEDIA_STREAMS, check_media_extras, find_media, open_digit360, open_skin
     from rotation.deploy.touch import reads_touch, touch_sensors, wait_for_touch
     from rotation.hardware.realtime import frozen_heap, set_realtime_priority
     from rotation.policy.bundle import load_bundle
@@ -326,9 +340,16 @@ def run(cfg: Config) -> dict[str, Any]:
     check_digit360(digit_specs)  # first: a sensor that is not there is named as such, not as one without a camera
     media: dict[str, Any] = {}
     if touch:  # the sensors the adapter reads, checked (or, emulated, started) before anything else
-        media = find_media(digit_specs, tuple(bundle.windows))  # real sensors' cameras and microphones it reads
+        media = find_media(digit_specs, tuple(bundle.windows) + (MEDIA_STREAMS if cfg.record_media else ()))
         digit_specs = touch_sensors(bundle, cfg.policy, digit_specs, setup.emulated, media)
-        check_media_extras(media)
+    elif cfg.record_media:
+        media = find_media(digit_specs, MEDIA_STREAMS)
+    if cfg.record_media:
+        lacking = [f"{f}={digit_specs[f]}" for f, d in media.items() if not (d.camera and d.audio)]
+        if lacking:
+            raise ValueError(f"record_media: no camera or microphones found on the USB hub of the Digit 360 "
+                             f"{', '.join(lacking)} (is the whole sensor plugged in, not only its serial port?)")
+    check_media_extras(media)
     _check_before_start(cfg)
     loop_cfg = LoopConfig(control_hz=hz, duration_s=cfg.duration, policy_budget=cfg.policy_budget,
                           hold_limit_s=cfg.hold_limit_s, status_every_s=cfg.status_every_s)
@@ -388,7 +409,7 @@ def run(cfg: Config) -> dict[str, Any]:
                      info.firmware, info.hardware, info.serial,
                      "n/a" if math.isnan(temp0) else f"{temp0:.0f} C", sched)
             if cfg.record:
-                recorder = _open_recorder(cfg, bundle, opened, info, tuple(readers), hz, skin_baseline)
+                recorder = _open_recorder(cfg, bundle, opened, info, readers, hz, skin_baseline)
             loop = ControlLoop(opened, bundle, loop_cfg, recorder=recorder, readers=readers, status_out=sys.stderr,
                                temperature_c=temp0, skin=skin)
             loop.run()
@@ -422,12 +443,13 @@ def run(cfg: Config) -> dict[str, Any]:
         signals.restore()
 
 
-def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple[str, ...], hz: float,
+def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, readers: dict[str, Any], hz: float,
                    skin_baseline=None):
     import numpy as np
 
     from rotation.data.session import SessionError, SessionMeta
     from rotation.deploy.recording import DeployRecorder
+    from rotation.deploy.sensors import media_streams
 
     properties: dict[str, Any] = {}
     physics = opened.physics
@@ -461,8 +483,9 @@ def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, fingers: tuple
     meta = SessionMeta(source=opened.source, object=cfg.object, control_hz=hz, hand=opened.kind,
                        properties=properties, extra=json.loads(json.dumps(extra, default=str)))
     try:
-        recorder = DeployRecorder(cfg.record, meta, fingers=fingers, object_pose=physics is not None,
-                                  overwrite=cfg.overwrite, skin=skin_baseline is not None)
+        recorder = DeployRecorder(cfg.record, meta, fingers=tuple(readers), object_pose=physics is not None,
+                                  overwrite=cfg.overwrite, skin=skin_baseline is not None,
+                                  media={f: media_streams(r) for f, r in readers.items()})
     except OSError as err:  # checked before the start, but the disk may have changed since
         raise SessionError(f"could not create {cfg.record}: {err}") from err
     log.info("recording to %s", recorder.path)

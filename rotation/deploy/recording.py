@@ -8,6 +8,11 @@ Streams, all in session time (s since the first joint measurement of the run):
   normalized torque = PWM / 1200 on an Allegro V4, = N m in simulation; measured current in A on LEAP);
 - ``labels/object_pose`` (7,): object position (m) + quaternion wxyz, world frame, where known (emulation);
 - ``digit360/<finger>/{imu,pressure}``: the Digit 360 serial streams when ``--digit360`` is given;
+- ``digit360/<finger>/image`` (224, 224, 3) uint8 RGB at 30 fps and ``digit360/<finger>/audio`` (2,) int16 at 48 kHz:
+  a real sensor's camera frames (centre crop, resized, as the reader keeps them for the encoder) and microphones,
+  when deploy opened them (``--record-media``, or a policy that reads them; an emulated sensor renders its image and
+  audio only when a window is asked for, so it records none); about 4.5 MB/s per sensor, so these sessions are
+  written from the writer's own thread;
 - ``skin/xela`` (368, 3) raw counts at 100 Hz when ``--skin`` is given (baseline in ``extra["xela_baseline"]``).
 
 Joint streams share the control step's timestamp (the state read then was measured at most one driver cycle
@@ -25,6 +30,7 @@ import numpy as np
 from envs.constants import NUM_JOINTS
 from rotation.data.session import SessionMeta, SessionWriter, StreamSetup
 from rotation.deploy.sensors import STREAMS as DIGIT_STREAMS
+from rotation.hardware import digit360_window as dw
 
 JOINT_STREAMS = ("joints/position", "joints/target", "joints/torque")
 
@@ -34,15 +40,24 @@ class DeployRecorder:
 
     def __init__(self, path: str | Path, meta: SessionMeta, fingers: tuple[str, ...] = (),
                  object_pose: bool = False, flush_interval_s: float = 1.0, overwrite: bool = False,
-                 skin: bool = False) -> None:
+                 skin: bool = False, media: dict[str, tuple[str, ...]] | None = None) -> None:
+        """``media``: per finger, which of ``image`` and ``audio`` its sensor streams (real sensors whose camera
+        and microphones deploy opened)."""
         rate = meta.control_hz
         streams: list[StreamSetup | str] = [StreamSetup(name, rate_hz=rate) for name in JOINT_STREAMS]
         if object_pose:
             streams.append(StreamSetup("labels/object_pose", rate_hz=rate))
         streams += [f"digit360/{f}/{s}" for f in fingers for s in DIGIT_STREAMS]
+        media = {f: tuple(m) for f, m in (media or {}).items() if m}
+        for f, kinds in media.items():
+            if "image" in kinds:
+                streams.append(StreamSetup(f"digit360/{f}/image", shape=(dw.IMAGE_SIZE, dw.IMAGE_SIZE, 3)))
+            if "audio" in kinds:
+                streams.append(StreamSetup(f"digit360/{f}/audio", dtype="int16"))
         if skin:
             streams.append("skin/xela")
-        self.writer = SessionWriter(path, meta, streams, flush_interval_s=flush_interval_s, overwrite=overwrite)
+        self.writer = SessionWriter(path, meta, streams, flush_interval_s=flush_interval_s, overwrite=overwrite,
+                                    background=bool(media))
         self.path = self.writer.path
         self.object_pose = object_pose
         self.steps = 0

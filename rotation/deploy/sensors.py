@@ -10,7 +10,9 @@ fingertip's contact and motion on its serial stream, and an emulated camera and 
 are rendered from the same contact history when a window is asked for.
 
 The sensors are recorded: their serial streams (accelerometer 400 Hz, pressure 200 Hz) go to
-``digit360/<finger>/{imu,pressure}`` (images and audio are not recorded). Their Sparsh-X windows (image, audio, IMU,
+``digit360/<finger>/{imu,pressure}``, and a real sensor's camera frames and microphones, when deploy opened them,
+to ``digit360/<finger>/{image,audio}`` (an emulated sensor renders its image and audio only for a window, and
+records none). Their Sparsh-X windows (image, audio, IMU,
 pressure; rotation.hardware.digit360_window) are read by a touch-reading policy (rotation.deploy.touch) through
 ``reader.window()`` of each finger's reader; emulated sensors give all four modalities, a real one its serial
 streams (IMU and pressure) and, when the policy reads the image or the audio, its camera and microphones, found on
@@ -45,6 +47,8 @@ STALL_S = 0.5
 """A sensor whose newest sample is older than this (s) is reported as stalled (a gap in its recording)."""
 STREAMS = ("imu", "pressure")
 """Recorded serial streams per fingertip (session stream ``digit360/<finger>/<stream>``)."""
+MEDIA_STREAMS = ("image", "audio")
+"""Recorded camera frames and microphones per fingertip, where a real sensor's were opened."""
 
 
 def parse_digit360(spec: str, emulated: bool) -> dict[str, str]:
@@ -257,7 +261,7 @@ def open_skin(spec: str, stack: contextlib.ExitStack) -> tuple[Any, Any]:
 def fresh_samples(buf: Any, last: float) -> tuple[np.ndarray, np.ndarray]:
     """Samples of a ring buffer newer than ``last`` (host s), keeping the series strictly increasing (a clock
     re-anchoring may map a sample before an earlier one): (t (n,), v (n, ...))."""
-    t, v = buf.snapshot()
+    t, v = buf.since(last) if hasattr(buf, "since") else buf.snapshot()
     keep = t > np.maximum.accumulate(np.concatenate([[last], t]))[:-1]
     return t[keep], v[keep]
 
@@ -286,14 +290,23 @@ class SkinDrain:
             self._stalled = stalled
 
 
+def media_streams(reader: Any) -> tuple[str, ...]:
+    """Which of ``image`` and ``audio`` a Digit 360 reader streams into ring buffers (a real sensor's camera and
+    microphones that deploy opened; an emulated sensor renders them per window and has neither)."""
+    return tuple(m for m in MEDIA_STREAMS if getattr(reader, m, None) is not None)
+
+
 class DigitDrain:
     """Moves new samples from the readers' ring buffers to the recording (host ``time.monotonic()`` s -> session
-    time ``t - t0``); keeps each stream's timestamps strictly increasing, as the session format requires."""
+    time ``t - t0``); keeps each stream's timestamps strictly increasing, as the session format requires. The
+    serial streams of every reader, and the camera frames and audio of those that have them (:func:`media_streams`;
+    the drain must run more often than the reader's frame buffer turns over, ``Digit360.image``)."""
 
     def __init__(self, readers: dict[str, Any], t0: float) -> None:
         self.readers = readers
         self.t0 = t0
-        self._last = {(f, s): t0 for f in readers for s in STREAMS}
+        self._streams = {f: STREAMS + media_streams(r) for f, r in readers.items()}
+        self._last = {(f, s): t0 for f in readers for s in self._streams[f]}
         self._stalled = dict.fromkeys(readers, False)
 
     def drain(self, append) -> None:
@@ -301,13 +314,14 @@ class DigitDrain:
         now = time.monotonic()
         for finger, reader in self.readers.items():
             newest = -np.inf
-            for stream in STREAMS:
+            for stream in self._streams[finger]:
                 key = (finger, stream)
                 t, v = fresh_samples(getattr(reader, stream), self._last[key])
                 if len(t):
                     append(f"digit360/{finger}/{stream}", v, t - self.t0)
                     self._last[key] = float(t[-1])
-                newest = max(newest, float(getattr(reader, stream).newest_time()))
+                if stream in STREAMS:  # a stall is the serial stream's; a frozen camera makes windows stale
+                    newest = max(newest, float(getattr(reader, stream).newest_time()))
             stalled = now - newest > STALL_S
             if stalled != self._stalled[finger]:
                 if stalled:

@@ -52,6 +52,9 @@ USB_VENDOR = 0x2833
 USB_PRODUCT_DATA = 0x4001
 USB_PRODUCT_HUBS = (0x6500, 0x6502)
 """Product ids of the USB hub that each Digit 360 is (its camera, microphones and data tty are its children)."""
+IMAGE_BUFFER_FRAMES = 45
+"""Camera frames a reader keeps (1.5 s at 30 fps): a window needs the newest and the one 5 before it, and a deploy
+recording drains the frames every 0.25 s, so a late drain still finds every frame since the last one."""
 ACC_PER_G = 4096.0
 """Raw accelerometer counts per g (reference/sparsh.md: linear acceleration / 4096)."""
 
@@ -212,6 +215,28 @@ class _ClockMap:
         return min(ts / self.hz + self.offset, t_recv)
 
 
+class _SampleClock:
+    """Host times (``time.monotonic()`` s) of a sample stream delivered in blocks (audio): consecutive samples are
+    1 / rate apart, anchored to the host clock at the first block. A block's arrival time jitters by milliseconds,
+    so timing each block from its own arrival would overlap the previous block's times (a recording then drops the
+    overlap); the anchor moves only when the arrival differs from the count by more than ``reanchor_s`` (lost
+    samples, or drift between the sound card's clock and the host's), and never back past the previous sample."""
+
+    def __init__(self, rate: float, reanchor_s: float = 0.02) -> None:
+        self.rate, self.reanchor_s = float(rate), float(reanchor_s)
+        self._next: float | None = None  # time of the next sample by the count
+
+    def __call__(self, frames: int, t_arrival: float) -> np.ndarray:
+        """Times (frames,) of a block whose last sample arrived at ``t_arrival``."""
+        measured = t_arrival - (frames - 1) / self.rate
+        first = measured if self._next is None else self._next
+        if self._next is not None and abs(measured - self._next) > self.reanchor_s:
+            first = max(measured, self._next - 1.0 / self.rate + 1e-6)
+        t = first + np.arange(frames) / self.rate
+        self._next = float(t[-1]) + 1.0 / self.rate if frames else self._next
+        return t
+
+
 class Digit360:
     """Reader threads filling ring buffers; :meth:`window` assembles a Sparsh-X sample.
 
@@ -231,7 +256,7 @@ class Digit360:
         self.pressure = dw.RingBuffer(int(cfg.buffer_s * 1.5 * dw.PRESSURE_RATE), (1,))
         self.audio = dw.RingBuffer(int(cfg.buffer_s * dw.AUDIO_RATE), (2,), np.int16) if cfg.audio_device is not None \
             else None
-        self.image = dw.RingBuffer(2 * dw.IMAGE_GAP + 2, (dw.IMAGE_SIZE, dw.IMAGE_SIZE, 3), np.uint8) \
+        self.image = dw.RingBuffer(IMAGE_BUFFER_FRAMES, (dw.IMAGE_SIZE, dw.IMAGE_SIZE, 3), np.uint8) \
             if cfg.camera is not None else None
         self.version = ""
         self.counters = {"frames": 0, "bad_frames": 0, "disconnects": 0}
@@ -384,12 +409,12 @@ class Digit360:
         except ImportError as err:
             raise ImportError("audio needs the 'hardware' extra: pip install 'tactile-rotation[hardware]'") from err
 
+        clock = _SampleClock(dw.AUDIO_RATE)
+
         def callback(indata, frames, time_info, status) -> None:
             if status:
                 log.warning("%s: audio %s", self.name, status)
-            t_last = time.monotonic()
-            t = t_last - (frames - 1 - np.arange(frames)) / dw.AUDIO_RATE
-            self.audio.extend(t, indata)  # type: ignore[union-attr]
+            self.audio.extend(clock(frames, time.monotonic()), indata)  # type: ignore[union-attr]
 
         try:
             stream = sd.InputStream(samplerate=dw.AUDIO_RATE, channels=2, dtype="int16",

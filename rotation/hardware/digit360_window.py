@@ -69,6 +69,24 @@ class RingBuffer:
             order = (start + np.arange(n)) % cap
             return self.t[order].copy(), self.v[order].copy()
 
+    def last(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The newest ``n`` stored samples (fewer if fewer are stored) in time order, copies."""
+        with self._lock:
+            stored, cap = len(self), len(self.t)
+            k = min(int(n), stored)
+            order = (self._n - k + np.arange(k)) % cap
+            return self.t[order].copy(), self.v[order].copy()
+
+    def since(self, t_last: float) -> tuple[np.ndarray, np.ndarray]:
+        """The stored samples with a time after ``t_last``, in time order, copies (only those are copied: what a
+        recording drain takes from a camera's frame buffer)."""
+        with self._lock:
+            n, cap = len(self), len(self.t)
+            start = self._n % cap if self._n > cap else 0
+            order = (start + np.arange(n)) % cap
+            order = order[self.t[order] > t_last]
+            return self.t[order].copy(), self.v[order].copy()
+
     def newest_time(self) -> float:
         with self._lock:
             return float(self.t[(self._n - 1) % len(self.t)]) if self._n else -np.inf
@@ -112,10 +130,10 @@ def audio_window(buf: RingBuffer, t_end: float, n: int = AUDIO_SAMPLES) -> np.nd
 
 def image_window(buf: RingBuffer, gap: int = IMAGE_GAP) -> tuple[np.ndarray, float]:
     """((6, 224, 224) uint8 channel-major [R(t-gap), R(t), G(t-gap), G(t), B(t-gap), B(t)], t of frame t)."""
-    t, v = buf.snapshot()
+    t, v = buf.last(gap + 1)
     if len(t) < gap + 1:
         raise WindowNotReady(f"image: {len(t)} frames, need {gap + 1}")
-    return channel_major(np.stack([v[-1 - gap], v[-1]])), float(t[-1])
+    return channel_major(np.stack([v[0], v[-1]])), float(t[-1])
 
 
 def channel_major(pair: np.ndarray) -> np.ndarray:

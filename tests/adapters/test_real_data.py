@@ -218,8 +218,8 @@ def test_bad_sessions_are_refused_before_training(sessions, tmp_path):
     with pytest.raises(SessionError, match=r"b\.h5.*missing measured object propert"):
         finetune.run(_tiny(out, tmp_path / "mixed"))
     assert not out.exists()
-    with pytest.raises(ValueError, match="modalities: recorded sessions hold the Digit 360 imu and pressure"):
-        _tiny(out, root, modalities="img,pressure")
+    with pytest.raises(SessionError, match=r"missing stream\(s\) digit360/index/image.*--record-media"):
+        finetune.run(_tiny(out, root, modalities="img,pressure"))  # an emulated sensor records no frames
     with pytest.raises(ValueError, match="no session file or directory at"):
         finetune.run(_tiny(out, tmp_path / "nothing_here"))
     (tmp_path / "empty").mkdir()

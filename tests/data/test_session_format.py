@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 
 import h5py
 import numpy as np
@@ -48,6 +49,43 @@ def test_round_trip(tmp_path):
         assert q.data.shape == (40, 16) and q.rate_hz == 20.0 and q.timestamps[-1] == pytest.approx(39 / 20)
         assert np.array_equal(q.data[:, 0], np.arange(40))
         assert r.fingers_with_touch() == ("index",)
+
+
+def test_a_background_writer_keeps_every_sample_and_reports_a_failed_write(tmp_path, monkeypatch):
+    """background=True: appends only queue, the writer's thread writes and flushes; everything appended is on disk
+    after close, in order, and a write that failed on that thread is raised by the next append."""
+    streams = [StreamSetup("digit360/index/image", shape=(8, 8, 3)), "digit360/index/audio"]
+    with SessionWriter(tmp_path / "bg.h5", META, streams, flush_interval_s=0.01, background=True) as w:
+        for k in range(60):
+            w.append("digit360/index/image", np.full((1, 8, 8, 3), k, np.uint8), np.array([k / 30.0]))
+            w.append("digit360/index/audio", np.arange(1600 * k, 1600 * (k + 1)).reshape(800, 2) % 30000,
+                     (np.arange(800) + 800 * k) / 48_000.0)
+            if k == 30:
+                deadline = time.monotonic() + 5.0
+                while w.flushed["digit360/index/image"] == 0 and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                assert w.flushed["digit360/index/image"] > 0  # written meanwhile by the writer's thread
+    with SessionReader(tmp_path / "bg.h5") as r:
+        assert r.complete
+        assert r.stream("digit360/index/image").data[:, 0, 0, 0].tolist() == list(range(60))
+        audio = r.stream("digit360/index/audio").data
+        assert audio.shape == (48_000, 2) and np.array_equal(audio.ravel(), np.arange(96_000) % 30000)
+    w = SessionWriter(tmp_path / "fail.h5", META, streams, flush_interval_s=0.01, background=True)
+
+    def disk_full():
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(w._file, "flush", disk_full)
+    w.append("digit360/index/image", np.zeros((1, 8, 8, 3), np.uint8), np.array([0.0]))
+    deadline = time.monotonic() + 5.0
+    while w._error is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    with pytest.raises(SessionError, match="writing failed: .*No space left"):
+        w.append("digit360/index/image", np.zeros((1, 8, 8, 3), np.uint8), np.array([0.1]))
+    monkeypatch.undo()
+    w.abort()
+    with SessionReader(tmp_path / "fail.h5") as r:
+        assert not r.complete
 
 
 def test_every_stream_of_the_registry_can_be_written(tmp_path):

@@ -292,3 +292,141 @@ def test_deploy_refuses_an_audio_adapter_when_no_microphones_are_found(audio_ada
     err = capsys.readouterr().err  # a serial that is not connected is named as such
     assert code == 2 and "thumb=D360-NOT-HERE (no connected Digit 360 has this USB serial)" in err
     assert hand_hook.opened is None  # nothing was started
+
+
+def test_deploy_records_the_real_sensors_camera_frames_and_microphones(tmp_path, policy, capsys, hand_hook,
+                                                                       monkeypatch):
+    """With --record, the frames and audio of the cameras and microphones deploy opened go into the session beside
+    the serial streams (written from the writer's own thread), every frame and sample in order, and the session
+    gives recorded Sparsh-X windows (rotation.data.dataset) as any real session does."""
+    from rotation.data.dataset import TouchWindows
+    from rotation.data.session import SessionReader
+
+    adapter = build_adapted(policy, ENCODER, ("img", "mic"), touch_every=4).save(tmp_path / "image_audio")
+    mics = Microphones()
+    monkeypatch.setitem(sys.modules, "sounddevice", mics.module)
+    with contextlib.ExitStack() as stack:
+        emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
+        devices = {emu.path: Digit360Devices(f"/dev/video{2 * i + 2}", f"(hw:{i + 1},0)")
+                   for i, emu in enumerate(emus.values())}
+        cams = Cameras(tuple(d.camera for d in devices.values()))
+        monkeypatch.setitem(sys.modules, "cv2", cams.module)
+        monkeypatch.setattr(digit360, "find_digit360_devices", lambda port, sysfs="/sys": devices[port])
+        code = main(["deploy", "--hand", "sim-allegro", "--policy", str(adapter), "--duration", "2.5",
+                     "--digit360", ",".join(f"{f}={emu.path}" for f, emu in emus.items()),
+                     "--record", str(tmp_path / "run.h5")])
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    rate_fault = summary["fault"] is not None and "could not hold 20 Hz" in summary["fault"]
+    assert (code == 0 and summary["fault"] is None) or (rate_fault and code == 1), summary["fault"]
+    with SessionReader(tmp_path / "run.h5") as r:
+        assert r.complete == (code == 0)
+        steps = len(r.stream("joints/position"))
+        for f in FINGERS:
+            image, audio = r.stream(f"digit360/{f}/image"), r.stream(f"digit360/{f}/audio")
+            assert image.data.shape[1:] == (224, 224, 3) and audio.data.shape[1:] == (2,)
+            red = image.data[:, 0, 0, 0].astype(int)  # the stand-in's frame counter: no frame dropped or repeated
+            assert len(red) >= 30 * 0.8 * steps / 20 and np.all((np.diff(red) % 256) == 1), red
+            assert np.all(image.data[:, :, :, 1] == 20) and np.all(image.data[:, :, :, 2] == 10)
+            wave = audio.data[:, 0].astype(int)  # consecutive samples, both microphones kept apart
+            assert len(wave) >= 48_000 * 0.8 * steps / 20 and np.all((np.diff(wave) + 20_000) % 20_000 == 1)
+            assert np.array_equal(audio.data[:, 1], -audio.data[:, 0])
+            assert np.all(np.diff(image.timestamps) > 0) and np.all(np.diff(audio.timestamps) > 0)
+            assert image.timestamps[0] >= 0 and image.timestamps[-1] <= steps / 20 + 0.5
+    windows = TouchWindows([tmp_path / "run.h5"], labels=())
+    assert len(windows) > 0
+    w = windows[len(windows) - 1]
+    assert w["image"].shape == (6, 224, 224) and w["audio"].shape == (224, 256) and w["imu"].shape == (224, 3)
+
+
+def test_record_media_records_the_cameras_and_microphones_for_any_policy(tmp_path, policy, capsys, hand_hook,
+                                                                         monkeypatch):
+    """--record-media: the student (which reads no touch) records every sensor's frames and audio too, what
+    fine-tuning an image or audio adapter on a lab's sessions needs; refused without a recording, with emulated
+    sensors, or when a sensor's camera or microphones are not found."""
+    from rotation.data.session import SessionReader
+
+    mics = Microphones()
+    monkeypatch.setitem(sys.modules, "sounddevice", mics.module)
+    with contextlib.ExitStack() as stack:
+        emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
+        spec = ",".join(f"{f}={emu.path}" for f, emu in emus.items())
+        devices = {emu.path: Digit360Devices(f"/dev/video{2 * i + 2}", f"(hw:{i + 1},0)")
+                   for i, emu in enumerate(emus.values())}
+        monkeypatch.setitem(sys.modules, "cv2", Cameras(tuple(d.camera for d in devices.values())).module)
+        monkeypatch.setattr(digit360, "find_digit360_devices", lambda port, sysfs="/sys": devices[port])
+        code = main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "1.5", "--digit360", spec,
+                     "--record", str(tmp_path / "student.h5"), "--record-media"])
+        summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert code == summary["exit_code"] and summary["fault"] is None or "could not hold" in summary["fault"]
+        with SessionReader(tmp_path / "student.h5") as r:
+            for f in FINGERS:
+                assert len(r.stream(f"digit360/{f}/image")) >= 30 and len(r.stream(f"digit360/{f}/audio")) >= 48_000
+                assert len(r.stream(f"digit360/{f}/imu")) > 0
+        devices[emus["ring"].path] = Digit360Devices("/dev/video6", None)  # the ring sensor's microphones are gone
+        code = main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "1", "--digit360", spec,
+                     "--record", str(tmp_path / "no_mic.h5"), "--record-media"])
+        err = capsys.readouterr().err
+        lacking = f"no camera or microphones found on the USB hub of the Digit 360 ring={emus['ring'].path}"
+        assert code == 2 and lacking in err, err
+    for args, message in ((["--digit360", "sim"], "name real Digit 360 sensors"),
+                          (["--digit360", "D360-A,D360-B,D360-C,D360-D"], "give --record FILE.h5")):
+        extra = ["--record", str(tmp_path / "x.h5")] if "sim" in args else []
+        assert main(["deploy", "--hand", "sim-allegro", "--policy", policy, *args, *extra, "--record-media"]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "no_mic.h5").exists() and not (tmp_path / "x.h5").exists()
+
+
+def test_an_image_and_audio_adapter_fine_tunes_on_sessions_recorded_with_their_media(tmp_path, policy, capsys,
+                                                                                    hand_hook, monkeypatch):
+    """The real-data path with every modality: a session of the student recorded with --record-media gives windows
+    made as a deployed reader makes them (the newest frame at or before the step and the one 5 before it, the
+    27,000 audio samples up to that frame), and `rotate finetune-adapter --sessions` trains an image + audio
+    adapter on it."""
+    from adapters import finetune
+    from adapters.real_data import check_session, session_samples
+    from rotation.data.session import SessionReader
+    from rotation.policy.bundle import load_bundle
+
+    mics = Microphones()
+    monkeypatch.setitem(sys.modules, "sounddevice", mics.module)
+    with contextlib.ExitStack() as stack:
+        emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
+        devices = {emu.path: Digit360Devices(f"/dev/video{2 * i + 2}", f"(hw:{i + 1},0)")
+                   for i, emu in enumerate(emus.values())}
+        monkeypatch.setitem(sys.modules, "cv2", Cameras(tuple(d.camera for d in devices.values())).module)
+        monkeypatch.setattr(digit360, "find_digit360_devices", lambda port, sysfs="/sys": devices[port])
+        for i in range(2):
+            assert main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "3", "--grasp", str(i),
+                         "--digit360", ",".join(f"{f}={emu.path}" for f, emu in emus.items()), "--record-media",
+                         "--record", str(tmp_path / "sessions" / f"s{i}.h5"),
+                         "--properties", f"mass={0.1 + 0.05 * i},friction=0.8,com=0,0,0,scale=0.78"]) in (0, 1)
+    capsys.readouterr()
+    windows = ("image", "audio", "imu", "pressure")
+    student = load_bundle(policy)
+    encoder = load_bundle("teacher").net.extractor.encoder
+
+    def phi(obs):
+        return student.net.extractor.z(student._tensors(obs, batched=True)).detach()
+
+    info = check_session(tmp_path / "sessions" / "s0.h5", FINGERS, windows, 20.0)
+    s = session_samples(info, encoder, phi, FINGERS, windows, every=2)
+    assert len(s) >= 5
+    w = s.windows["ring"]
+    assert w["image"].shape == (len(s), 2, 224, 224, 3) and w["image"].dtype == np.uint8
+    assert w["audio"].shape == (len(s), 2, 27_000) and w["audio"].dtype == np.int16
+    with SessionReader(tmp_path / "sessions" / "s0.h5") as r:
+        image, audio = r.stream("digit360/ring/image"), r.stream("digit360/ring/audio")
+        for i in (0, len(s) - 1):
+            row = int(np.searchsorted(image.timestamps, s.times[i], side="right")) - 1  # newest frame at or before
+            np.testing.assert_array_equal(w["image"][i], image.data[[row - 5, row]])
+            last = int(np.searchsorted(audio.timestamps, image.timestamps[row], side="right"))
+            np.testing.assert_array_equal(w["audio"][i], audio.data[last - 27_000:last].T)
+    import tqdm
+
+    monkeypatch.setattr(tqdm.tqdm, "monitor_interval", 0)  # no tqdm monitor thread (this folder checks for leaks)
+    cfg = finetune.Config(out=tmp_path / "adapter", sessions=(tmp_path / "sessions",), modalities="img,mic",
+                          student=policy, epochs=2, batch_size=8, hidden=(32,), sample_every=4, val_fraction=0.5,
+                          progress=False, torch_threads=1, seed=0)
+    result = finetune.run(cfg)
+    adapter = load_bundle(result.bundle_dir)
+    assert adapter.windows == ("image", "audio") and adapter.config.card["samples"] > 0

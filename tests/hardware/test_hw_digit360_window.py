@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rotation.hardware import digit360_window as dw
-from rotation.hardware.digit360 import PROTO, SENSOR, Digit360Config, _ClockMap, messages
+from rotation.hardware.digit360 import PROTO, SENSOR, Digit360Config, _ClockMap, _SampleClock, messages
 from rotation.hardware.proto_schema import parse_proto
 
 
@@ -17,6 +17,39 @@ def test_ring_buffer_wraps_in_time_order():
     t, v = buf.snapshot()
     assert t.tolist() == [2, 3, 4, 5] and v.ravel().tolist() == [20, 30, 40, 50]
     assert buf.newest_time() == 5.0 and len(buf) == 4
+
+
+def test_ring_buffer_copies_only_what_is_asked_for():
+    buf = dw.RingBuffer(4, (1,))
+    for k in range(6):
+        buf.append(float(k), k * 10.0)
+    t, v = buf.since(3.0)  # what a recording drain takes: the samples after its last one
+    assert t.tolist() == [4, 5] and v.ravel().tolist() == [40, 50]
+    assert buf.since(5.0)[0].size == 0 and buf.since(-1.0)[0].tolist() == [2, 3, 4, 5]
+    t, v = buf.last(2)  # what an image window takes: the newest frames
+    assert t.tolist() == [4, 5] and v.ravel().tolist() == [40, 50]
+    assert buf.last(9)[0].tolist() == [2, 3, 4, 5] and dw.RingBuffer(3, (1,)).last(2)[0].size == 0
+
+
+def test_audio_blocks_get_consecutive_sample_times_despite_callback_jitter():
+    """A sound card's callbacks arrive with jitter; timed from each arrival, a block could overlap the one before
+    and a recording would drop the overlap. The sample clock counts samples, and moves its anchor only for lost
+    samples or clock drift beyond 20 ms, never back past the previous sample."""
+    clock = _SampleClock(48_000.0)
+    rng = np.random.default_rng(0)
+    times, arrival = [], 0.0
+    for _ in range(200):  # 480-sample blocks, arrival jittered by up to +-4 ms
+        arrival += 0.01
+        times.append(clock(480, arrival + rng.uniform(-0.004, 0.004)))
+    t = np.concatenate(times)
+    np.testing.assert_allclose(np.diff(t), 1 / 48_000.0, rtol=0, atol=1e-9)  # one sample apart throughout
+    assert abs(t[-1] - arrival) < 0.02
+    # 100 ms of samples lost (an overflow): the next block is timed from its arrival
+    after_gap = clock(480, arrival + 0.11)
+    assert after_gap[0] - t[-1] == pytest.approx(0.1, abs=5e-3)  # the anchor had up to 4 ms of jitter
+    # a card clock running ahead of the host: re-anchored back, but never before the previous sample
+    ahead = clock(480, after_gap[-1] - 0.05 + 0.01)
+    assert ahead[0] > after_gap[-1] and ahead[0] - after_gap[-1] < 1 / 48_000.0
 
 
 def test_series_window_linear_no_future_samples():
