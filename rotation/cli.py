@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "pretrain": ("rotation.tactile.pretrain", "pretrain a touch encoder by self-distillation (DINO, EMA teacher)"),
     "probe": ("rotation.tactile.probe", "probe frozen vs end-to-end touch encoders at several label budgets"),
     "finetune-adapter": ("adapters.finetune", "fine-tune the tactile adapter toward the teacher's latent"),
+    "ensemble-adapters": ("adapters.ensemble", "combine tactile adapters of one student into one policy"),
 }
 """Subcommand registry; later issues add their jobs here."""
 

@@ -20,6 +20,7 @@ The last line printed is a JSON object with every figure.
 
     python scripts/bench_adapter.py
     python scripts/bench_adapter.py --threads 1 --iters 30 --adapter runs/adapter/bundle
+    python scripts/bench_adapter.py --adapter runs/ensemble        # an adapter ensemble (adapters.ensemble)
 """
 
 from __future__ import annotations
@@ -41,8 +42,8 @@ class Config:
     """Benchmark settings."""
 
     adapter: str = ""
-    """An adapter bundle to time (its student, encoder and modalities); empty: fresh adapters for the shipped
-    student and encoder (the cost is the same as a trained one's)."""
+    """An adapter bundle or adapter ensemble to time (its student, encoders and modalities); empty: fresh adapters
+    for the shipped student and encoder (the cost is the same as a trained one's)."""
     encoder: str = "sparshx-tinier-sim"
     """Encoder of the fresh adapters."""
     threads: int = 2
@@ -75,7 +76,8 @@ def _median_ms(fn, iters: int) -> float:
 
 
 def run(cfg: Config) -> dict:
-    from adapters.bundle import build_adapted, load_adapter
+    from adapters.bundle import build_adapted
+    from rotation.policy.bundle import load_bundle
 
     if cfg.threads < 1 or cfg.iters < 1 or cfg.touch_every < 1:
         raise ValueError(f"threads, iters and touch_every must be >= 1, got {cfg}")
@@ -83,7 +85,9 @@ def run(cfg: Config) -> dict:
     load_before = os.getloadavg()[0]
     rng = np.random.default_rng(cfg.seed)
     if cfg.adapter:
-        policies = {"step_ms": load_adapter(cfg.adapter)}
+        policies = {"step_ms": load_bundle(cfg.adapter)}
+        if not getattr(policies["step_ms"], "touch_every", 0):
+            raise ValueError(f"--adapter {cfg.adapter}: not a tactile adapter or adapter ensemble (it reads no touch)")
     else:
         policies = {"step_ms": build_adapted("student", cfg.encoder, ("img", "mic", "imu", "pressure")),
                     "step_img_ms": build_adapted("student", cfg.encoder, ("img",)),
@@ -102,7 +106,7 @@ def run(cfg: Config) -> dict:
                 policy.act_batch(obs, correction=policy.correction(windows, obs))
 
             result[name] = round(_median_ms(touch_step, cfg.iters), 2)
-            print(f"touch step, {'+'.join(policy.adapter_config.modalities)}, 4 fingertips, {cfg.threads} thread(s): "
+            print(f"touch step, {'+'.join(policy.windows)}, 4 fingertips, {cfg.threads} thread(s): "
                   f"{result[name]:.1f} ms (median of {cfg.iters})")
         result["student_ms"] = round(_median_ms(lambda: first.act_batch(obs), cfg.iters), 3)
     result["touch_every"] = touch_every

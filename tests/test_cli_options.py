@@ -28,6 +28,7 @@ REQUIRED_ARGS: dict[str, list[str]] = {
     # command: arguments it cannot run without (a required option or a positional argument)
     "deploy": ["--hand", "sim-allegro", "--policy", "student"],
     "inspect-tactile": ["session.h5"],
+    "ensemble-adapters": ["--members", "adapter"],
 }
 
 ALLOWED: dict[str, dict[str, str]] = {
@@ -49,6 +50,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "finetune-student:critic_warmup": {"zero": "0 = the actor trains from the first update"},
     "deploy:duration": {"zero": "0 runs until Ctrl-C / SIGTERM (documented)"},
     "finetune-adapter:val_fraction": {"zero": "no held-out sessions: train on every session"},
+    "ensemble-adapters:touch_every": {"zero": "0 = the first member's refresh period (the default)"},
     "finetune-adapter:action_weight": {"zero": "0 = the latent MSE alone (the default)"},
     "deploy:rt_priority": {"zero": "0 leaves the scheduling alone"},
     "deploy:grasp": {"zero": "row 0 of the grasp cache"},
@@ -272,7 +274,8 @@ def test_the_registry_of_exceptions_names_real_fields():
 
 
 def _defaults_needed(command: str) -> dict[str, Any]:
-    return {"deploy": {"policy": "student"}, "inspect-tactile": {"session": Path("session.h5")}}.get(command, {})
+    return {"deploy": {"policy": "student"}, "inspect-tactile": {"session": Path("session.h5")},
+            "ensemble-adapters": {"members": ("adapter",)}}.get(command, {})
 
 
 @pytest.mark.parametrize("command", [c for c in cli.COMMANDS if c not in ("hand-info", "deploy")])

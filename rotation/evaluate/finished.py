@@ -39,11 +39,15 @@ left out of the identity, so an interrupted evaluation recorded before it existe
 
 def weights_digest(policy: str) -> str:
     """First 16 hex digits of the SHA-256 of a bundle's weights (a path may hold a retrained policy later); for an
-    adapter bundle, of its weights and its config, which holds the digests of its student and encoder."""
+    adapter bundle, of its weights and its config, which holds the digests of its student and encoder; for an
+    adapter ensemble, of its config and every member's."""
     path = resolve_bundle(policy)
     from adapters.bundle import CONFIG_FILE, is_adapter_dir
     from adapters.bundle import WEIGHTS_FILE as ADAPTER_WEIGHTS
+    from adapters.ensemble import ensemble_digest, is_ensemble_dir
 
+    if is_ensemble_dir(path):
+        return ensemble_digest(path)
     if is_adapter_dir(path):
         data = (path / ADAPTER_WEIGHTS).read_bytes() + (path / CONFIG_FILE).read_bytes()
     else:

@@ -464,12 +464,16 @@ def resolve_bundle(name_or_path: str | Path) -> Path:
 def load_bundle(name_or_path: str | Path) -> PolicyBundle:
     """Load a bundle by shipped name (``teacher``, ``student``, ``adapter``) or directory path. An adapter bundle
     (adapters.bundle) loads as an ``AdaptedPolicy``: its student with the tactile adapter, which acts like a
-    PolicyBundle and also reads touch."""
+    PolicyBundle and also reads touch; an adapter ensemble (adapters.ensemble) as an ``EnsemblePolicy``, which acts
+    the same way."""
     path = resolve_bundle(name_or_path)
     from adapters.bundle import is_adapter_dir, load_adapter  # adapters build on this module: imported when used
+    from adapters.ensemble import is_ensemble_dir, load_ensemble
 
     if is_adapter_dir(path):
         return load_adapter(path)  # type: ignore[return-value]
+    if is_ensemble_dir(path):
+        return load_ensemble(path)  # type: ignore[return-value]
     return PolicyBundle.load(path)
 
 

@@ -23,18 +23,6 @@ from rotation.policy.bundle import BundleError, load_bundle
 ENCODER = "sparshx-tinier-sim"
 
 
-@pytest.fixture(scope="module")
-def env_obs():
-    """A touch-enabled env after a few steps of the shipped student (fingertips in contact)."""
-    student = load_bundle("student")
-    env = RotateCupVec(EnvConfig(tactile=True), num_envs=2, seed=5, nthread=1)
-    obs = env.reset(seed=5)
-    for _ in range(12):
-        obs, *_ = env.step(student.act_batch({k: obs[k] for k in student.config.obs_groups}))
-    yield env, obs
-    env.close()
-
-
 def _windows(policy, obs):
     return {f: {w: obs["tactile"][f][w] for w in policy.windows} for f in policy.fingers}
 

@@ -294,6 +294,19 @@ def test_deploy_refuses_an_audio_adapter_when_no_microphones_are_found(audio_ada
     assert hand_hook.opened is None  # nothing was started
 
 
+def whole_sensors(stack: contextlib.ExitStack, monkeypatch) -> tuple[dict, dict, str]:
+    """Four emulated Digit 360 serial streams, each with a camera and microphones on its (faked) USB hub and the
+    OpenCV / sounddevice stand-ins: ({finger: emulator}, {tty: Digit360Devices}, the --digit360 value). A test
+    may edit the devices before deploy looks for them."""
+    monkeypatch.setitem(sys.modules, "sounddevice", Microphones().module)
+    emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
+    devices = {emu.path: Digit360Devices(f"/dev/video{2 * i + 2}", f"(hw:{i + 1},0)")
+               for i, emu in enumerate(emus.values())}
+    monkeypatch.setitem(sys.modules, "cv2", Cameras(tuple(d.camera for d in devices.values())).module)
+    monkeypatch.setattr(digit360, "find_digit360_devices", lambda port, sysfs="/sys": devices[port])
+    return emus, devices, ",".join(f"{f}={emu.path}" for f, emu in emus.items())
+
+
 def test_deploy_records_the_real_sensors_camera_frames_and_microphones(tmp_path, policy, capsys, hand_hook,
                                                                        monkeypatch):
     """With --record, the frames and audio of the cameras and microphones deploy opened go into the session beside
@@ -303,18 +316,10 @@ def test_deploy_records_the_real_sensors_camera_frames_and_microphones(tmp_path,
     from rotation.data.session import SessionReader
 
     adapter = build_adapted(policy, ENCODER, ("img", "mic"), touch_every=4).save(tmp_path / "image_audio")
-    mics = Microphones()
-    monkeypatch.setitem(sys.modules, "sounddevice", mics.module)
     with contextlib.ExitStack() as stack:
-        emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
-        devices = {emu.path: Digit360Devices(f"/dev/video{2 * i + 2}", f"(hw:{i + 1},0)")
-                   for i, emu in enumerate(emus.values())}
-        cams = Cameras(tuple(d.camera for d in devices.values()))
-        monkeypatch.setitem(sys.modules, "cv2", cams.module)
-        monkeypatch.setattr(digit360, "find_digit360_devices", lambda port, sysfs="/sys": devices[port])
+        _, _, spec = whole_sensors(stack, monkeypatch)
         code = main(["deploy", "--hand", "sim-allegro", "--policy", str(adapter), "--duration", "2.5",
-                     "--digit360", ",".join(f"{f}={emu.path}" for f, emu in emus.items()),
-                     "--record", str(tmp_path / "run.h5")])
+                     "--digit360", spec, "--record", str(tmp_path / "run.h5")])
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     rate_fault = summary["fault"] is not None and "could not hold 20 Hz" in summary["fault"]
     assert (code == 0 and summary["fault"] is None) or (rate_fault and code == 1), summary["fault"]
@@ -345,15 +350,8 @@ def test_record_media_records_the_cameras_and_microphones_for_any_policy(tmp_pat
     sensors, or when a sensor's camera or microphones are not found."""
     from rotation.data.session import SessionReader
 
-    mics = Microphones()
-    monkeypatch.setitem(sys.modules, "sounddevice", mics.module)
     with contextlib.ExitStack() as stack:
-        emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
-        spec = ",".join(f"{f}={emu.path}" for f, emu in emus.items())
-        devices = {emu.path: Digit360Devices(f"/dev/video{2 * i + 2}", f"(hw:{i + 1},0)")
-                   for i, emu in enumerate(emus.values())}
-        monkeypatch.setitem(sys.modules, "cv2", Cameras(tuple(d.camera for d in devices.values())).module)
-        monkeypatch.setattr(digit360, "find_digit360_devices", lambda port, sysfs="/sys": devices[port])
+        emus, devices, spec = whole_sensors(stack, monkeypatch)
         code = main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "1.5", "--digit360", spec,
                      "--record", str(tmp_path / "student.h5"), "--record-media"])
         summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -387,17 +385,11 @@ def test_an_image_and_audio_adapter_fine_tunes_on_sessions_recorded_with_their_m
     from rotation.data.session import SessionReader
     from rotation.policy.bundle import load_bundle
 
-    mics = Microphones()
-    monkeypatch.setitem(sys.modules, "sounddevice", mics.module)
     with contextlib.ExitStack() as stack:
-        emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
-        devices = {emu.path: Digit360Devices(f"/dev/video{2 * i + 2}", f"(hw:{i + 1},0)")
-                   for i, emu in enumerate(emus.values())}
-        monkeypatch.setitem(sys.modules, "cv2", Cameras(tuple(d.camera for d in devices.values())).module)
-        monkeypatch.setattr(digit360, "find_digit360_devices", lambda port, sysfs="/sys": devices[port])
+        _, _, spec = whole_sensors(stack, monkeypatch)
         for i in range(2):
             assert main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "3", "--grasp", str(i),
-                         "--digit360", ",".join(f"{f}={emu.path}" for f, emu in emus.items()), "--record-media",
+                         "--digit360", spec, "--record-media",
                          "--record", str(tmp_path / "sessions" / f"s{i}.h5"),
                          "--properties", f"mass={0.1 + 0.05 * i},friction=0.8,com=0,0,0,scale=0.78"]) in (0, 1)
     capsys.readouterr()

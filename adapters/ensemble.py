@@ -1,0 +1,327 @@
+"""Adapter ensembles: several tactile adapters of one student whose corrections are added with fixed weights.
+
+    z_hat = phi(history) + sum_k w_k * c_k(touch)
+
+Adapters that read different modalities, or were trained by different recipes, can be wrong in different ways; a
+weighted mean of their corrections (weights 1/K) is the plain ensemble. An ensemble bundle is a directory::
+
+    <ensemble>/config.json   EnsembleConfig: kind "adapter-ensemble", the members (adapter bundle references with
+                             their weights), the touch refresh period, a free-form card
+    <ensemble>/members/<m>/  the member adapter bundles, when copied in (``rotate ensemble-adapters``' default)
+
+A member is a path relative to the ensemble's directory (members shipped inside it, e.g. ``members/imu_pressure``),
+any other path, or the name of a shipped adapter. Each member loads as its own checked adapter bundle (its student
+and encoder digests, adapters.bundle.load_adapter); all must correct the same student and read the same sensor
+samples (the four Digit 360 fingertips, or the Xela skin). Each member keeps its own encoder restricted to its own
+modalities (a modality subset is encoded on its own: Sparsh-X fuses the modalities it is given), so the ensemble
+reads the union of its members' windows and costs the sum of their encoder passes.
+
+Loaded, an ensemble is an :class:`EnsemblePolicy`: the same interface as ``AdaptedPolicy`` (``config``,
+``act``/``act_batch`` with a correction, ``correction(windows, obs)``, ``fingers``, ``windows``, ``touch_every``),
+so ``rotate evaluate --policy NAME=DIR``, ``rotate view`` and ``rotate deploy --policy DIR`` take it as they take
+an adapter. Every member refreshes together, every ``touch_every`` steps (the members' own periods are not used);
+a member that cannot read its touch makes the whole refresh unusable (the student alone), as one adapter's does.
+
+Put one together (each member is checked; by default copied into the new bundle, so it stands alone and a member
+retrained later in place does not change it)::
+
+    rotate ensemble-adapters --members adapter runs/adapter_ip --out runs/ensemble        # weights 1/2 and 1/2
+    rotate ensemble-adapters --members adapter runs/adapter_ip --weights 0.7 0.3 --out runs/ensemble_73
+    rotate evaluate --policy adapter --policy ensemble=runs/ensemble --suite perturbations
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import shutil
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from adapters.bundle import SHIPPED_ADAPTERS, AdaptedPolicy, TouchUnavailable, load_adapter, read_adapter
+from envs.validation import check_int, check_output_dir, check_types
+from rotation.configs import from_jsonable, to_jsonable
+from rotation.policy.bundle import BundleConfig, BundleError
+
+KIND = "adapter-ensemble"
+MAX_WEIGHT = 10.0
+"""Largest member weight: far beyond 1 a correction is scaled past anything its adapter learned."""
+CONFIG_FILE = "config.json"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class EnsembleMember:
+    adapter: str
+    """An adapter bundle: a path relative to the ensemble's directory, another path, or a shipped adapter's name."""
+    weight: float
+    """Its correction's weight (1/K for the plain mean of K members)."""
+
+
+@dataclass(frozen=True)
+class EnsembleConfig:
+    """What an ensemble bundle's config.json holds."""
+
+    members: tuple[EnsembleMember, ...]
+    touch_every: int = 4
+    """Control steps between touch refreshes (every member refreshes together; the correction is held between)."""
+    card: dict[str, Any] = field(default_factory=dict)
+    """Free-form metadata: how it was put together, its evaluation."""
+    kind: str = KIND
+    format_version: int = FORMAT_VERSION
+
+    def __post_init__(self) -> None:
+        if self.kind != KIND:
+            raise BundleError(f"not an adapter ensemble (kind {self.kind!r})")
+        if self.format_version != FORMAT_VERSION:
+            raise BundleError(f"adapter ensemble format {self.format_version} is not readable by this version "
+                              f"(reads {FORMAT_VERSION})")
+        if not self.members or not all(isinstance(m, EnsembleMember) for m in self.members):
+            raise BundleError(f"an adapter ensemble needs at least one member, got {self.members!r}")
+        bad = [m.weight for m in self.members if isinstance(m.weight, bool) or not isinstance(m.weight, (int, float))
+               or not (math.isfinite(m.weight) and 0 < m.weight <= MAX_WEIGHT)]
+        if bad:
+            raise BundleError(f"ensemble member weights must be numbers in (0, {MAX_WEIGHT:g}], got {bad}")
+        if not isinstance(self.touch_every, int) or self.touch_every < 1:
+            raise BundleError(f"touch_every must be an integer >= 1, got {self.touch_every!r}")
+
+
+def _config_path(path: Path) -> Path:
+    return path / CONFIG_FILE
+
+
+def is_ensemble_dir(path: str | Path) -> bool:
+    """True when ``path`` (a directory or a shipped name) holds an adapter ensemble."""
+    path = Path(path)
+    if not path.is_dir() and (SHIPPED_ADAPTERS / str(path)).is_dir():
+        path = SHIPPED_ADAPTERS / str(path)
+    try:
+        return json.loads(_config_path(path).read_text()).get("kind") == KIND
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def member_path(ensemble_dir: Path, ref: str) -> Path:
+    """Where a member's bundle is: inside the ensemble's directory first, then the reference as given (a path or a
+    shipped adapter's name)."""
+    inside = ensemble_dir / ref
+    if not Path(ref).is_absolute() and inside.is_dir():
+        return inside
+    path = Path(ref)
+    if not path.is_dir() and (SHIPPED_ADAPTERS / ref).is_dir():
+        return SHIPPED_ADAPTERS / ref
+    return path
+
+
+def read_ensemble(name_or_path: str | Path) -> tuple[Path, EnsembleConfig]:
+    path = Path(name_or_path)
+    if not path.is_dir() and (SHIPPED_ADAPTERS / str(name_or_path)).is_dir():
+        path = SHIPPED_ADAPTERS / str(name_or_path)
+    if not is_ensemble_dir(path):
+        raise BundleError(f"{name_or_path}: not an adapter ensemble (needs {CONFIG_FILE} with kind {KIND!r})")
+    try:
+        data = json.loads(_config_path(path).read_text())
+        members = data.get("members")
+        if not isinstance(members, list) or not all(isinstance(m, dict) for m in members):
+            raise ValueError("'members' must be a list of {\"adapter\": ..., \"weight\": ...}")
+        data["members"] = tuple(from_jsonable(EnsembleMember, m) for m in members)
+        cfg = from_jsonable(EnsembleConfig, data)
+    except (TypeError, ValueError, KeyError) as err:
+        raise BundleError(f"{_config_path(path)}: {err}") from None
+    return path, cfg
+
+
+def ensemble_digest(name_or_path: str | Path) -> str:
+    """First 16 hex digits of the SHA-256 of the ensemble's config and every member's weights and config (what its
+    actions depend on, for rotation.evaluate.finished)."""
+    from adapters.bundle import WEIGHTS_FILE
+
+    path, cfg = read_ensemble(name_or_path)
+    h = hashlib.sha256(_config_path(path).read_bytes())
+    for m in cfg.members:
+        member, _, _ = read_adapter(member_path(path, m.adapter))
+        h.update((member / WEIGHTS_FILE).read_bytes() + (member / CONFIG_FILE).read_bytes())
+    return h.hexdigest()[:16]
+
+
+class EnsemblePolicy:
+    """Several adapters of one student acting as one: the student's latent plus the weighted sum of their
+    corrections. Acts like :class:`adapters.bundle.AdaptedPolicy` (the first member's student acts)."""
+
+    def __init__(self, cfg: EnsembleConfig, members: list[AdaptedPolicy], path: str | None = None) -> None:
+        if len(members) != len(cfg.members):
+            raise BundleError(f"ensemble: {len(cfg.members)} members configured, {len(members)} given")
+        lead = members[0]
+        for m in members[1:]:
+            if m.adapter_config.student_sha256 != lead.adapter_config.student_sha256:
+                raise BundleError(f"ensemble members correct different students: {lead.adapter_config.student} "
+                                  f"({lead.adapter_config.student_sha256}) and {m.adapter_config.student} "
+                                  f"({m.adapter_config.student_sha256})")
+            if m.fingers != lead.fingers or m.env_needs != lead.env_needs:
+                raise BundleError(f"ensemble members read different touch: {list(lead.fingers)} {lead.env_needs} and "
+                                  f"{list(m.fingers)} {m.env_needs}")
+        self.ensemble_config = cfg
+        self.members = members
+        self.weights = tuple(float(m.weight) for m in cfg.members)
+        self.student = lead.student
+        encoders = " + ".join(dict.fromkeys(f"{m.adapter_config.encoder} ({', '.join(m.adapter_config.modalities)})"
+                                            for m in members))
+        self.config: BundleConfig = replace(lead.student.config, adapter=path or "(in memory)", touch_encoder=encoders,
+                                            card=dict(cfg.card))
+
+    # ------------------------------------------------------------------ touch
+    @property
+    def fingers(self) -> tuple[str, ...]:
+        return self.members[0].fingers
+
+    @property
+    def touch_every(self) -> int:
+        return self.ensemble_config.touch_every
+
+    @property
+    def windows(self) -> tuple[str, ...]:
+        """The union of the members' windows, in the order they first appear."""
+        return tuple(dict.fromkeys(w for m in self.members for w in m.windows))
+
+    @property
+    def sensor(self) -> str:
+        return self.members[0].sensor
+
+    @property
+    def env_needs(self) -> dict[str, Any]:
+        return self.members[0].env_needs
+
+    def env_windows(self, obs: Mapping[str, Any], idx: np.ndarray | None = None) -> dict[str, dict[str, Any]]:
+        if self.sensor == "skin":
+            return self.members[0].env_windows(obs, idx)
+        tactile = obs["tactile"] if idx is None else obs["tactile"][idx]
+        return {f: {w: tactile[f][w] for w in self.windows} for f in self.fingers}
+
+    @staticmethod
+    def _part(windows: Mapping[str, Mapping[str, Any]], member: AdaptedPolicy) -> dict[str, dict[str, Any]]:
+        """The windows one member reads (it checks that they are there)."""
+        names = set(member.windows) | ({"audio_wave"} if "audio" in member.windows else set())
+        return {f: {w: x for w, x in ws.items() if w in names} for f, ws in windows.items() if ws is not None}
+
+    def tokens(self, windows: Mapping[str, Mapping[str, Any]]) -> list[dict[str, dict[str, torch.Tensor]]]:
+        """Each member's encoder tokens (one encoder pass per member); TouchUnavailable as one adapter's."""
+        return [m.tokens(self._part(windows, m)) for m in self.members]
+
+    @torch.no_grad()
+    def correction(self, windows: Mapping[str, Mapping[str, Any]], obs: Mapping[str, Any]) -> np.ndarray:
+        """(N, Z) weighted sum of the members' corrections; TouchUnavailable when a member's touch is missing or the
+        result is not finite."""
+        z = self.members[0].student_latent(obs)
+        total = sum(w * m.adapter(tokens, z) for w, m, tokens in
+                    zip(self.weights, self.members, self.tokens(windows), strict=True))
+        if not torch.isfinite(total).all():
+            raise TouchUnavailable("non-finite touch embeddings")
+        return total.numpy()
+
+    # ------------------------------------------------------------------ acting (the first member's student)
+    def act_batch(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
+        return self.members[0].act_batch(obs, correction)
+
+    def act(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
+        return self.members[0].act(obs, correction)
+
+    def latent(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
+        return self.members[0].latent(obs, correction)
+
+    def prepare_realtime(self) -> None:
+        """Trace the acting paths (first member) and every member's encoder from its first refresh on (deploy)."""
+        self.members[0].prepare_realtime()
+        for m in self.members[1:]:
+            m.traced_encoders = {}
+
+
+def load_ensemble(name_or_path: str | Path, device: str = "cpu") -> EnsemblePolicy:
+    """Load an ensemble bundle, every member checked as ``load_adapter`` checks an adapter."""
+    path, cfg = read_ensemble(name_or_path)
+    members = []
+    for m in cfg.members:
+        where = member_path(path, m.adapter)
+        try:
+            members.append(load_adapter(where, device=device))
+        except BundleError as err:
+            raise BundleError(f"ensemble {path}: member {m.adapter!r}: {err}") from None
+    return EnsemblePolicy(cfg, members, path=str(path))
+
+
+@dataclass
+class Config:
+    members: tuple[str, ...] = ()
+    """Adapter bundles to combine (shipped names or directories), all for the same student and the same sensors."""
+    weights: tuple[float, ...] = ()
+    """One weight per member (default 1/K each: the mean of the K corrections)."""
+    touch_every: int = 0
+    """Control steps between touch refreshes (0: the first member's)."""
+    copy: bool = True
+    """Copy the members into OUT/members/ (the bundle stands alone); --no-copy references them where they are."""
+    out: Path = Path("runs/ensemble")
+    """The ensemble bundle's directory (refused if it already holds a bundle)."""
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        if not self.members:
+            raise ValueError("--members: name at least one adapter bundle")
+        if self.weights and len(self.weights) != len(self.members):
+            raise ValueError(f"--weights: {len(self.weights)} weights for {len(self.members)} members")
+        if any(not (math.isfinite(w) and 0 < w <= MAX_WEIGHT) for w in self.weights):
+            raise ValueError(f"--weights must be in (0, {MAX_WEIGHT:g}], got {list(self.weights)}")
+        check_int("touch_every", self.touch_every, 0, 10_000, unit="control steps")
+        check_output_dir("out", self.out)
+
+
+def _member_dirs(refs: tuple[str, ...]) -> list[Path]:
+    dirs = []
+    for ref in refs:
+        path = Path(ref)
+        if not path.is_dir() and (SHIPPED_ADAPTERS / ref).is_dir():
+            path = SHIPPED_ADAPTERS / ref
+        read_adapter(path)  # an adapter bundle (an ensemble of ensembles is not one)
+        dirs.append(path)
+    return dirs
+
+
+def run(cfg: Config) -> Path:
+    """Write the ensemble bundle in ``cfg.out`` and load it once (every member checked); returns its directory."""
+    if (cfg.out / CONFIG_FILE).exists():
+        raise ValueError(f"{cfg.out} already holds a bundle; choose another --out (nothing is overwritten)")
+    dirs = _member_dirs(cfg.members)
+    weights = cfg.weights or tuple(1.0 / len(dirs) for _ in dirs)
+    if cfg.copy:
+        names: list[str] = []
+        for d in dirs:
+            name = d.resolve().name
+            while f"members/{name}" in names:
+                name += "_"
+            names.append(f"members/{name}")
+    else:
+        names = [str(d.resolve()) for d in dirs]
+    touch_every = cfg.touch_every or read_adapter(dirs[0])[1].touch_every
+    ens = EnsembleConfig(members=tuple(EnsembleMember(n, float(w)) for n, w in zip(names, weights, strict=True)),
+                         touch_every=touch_every,
+                         card={"kind": KIND, "made_by": "rotate ensemble-adapters",
+                               "members": {n: str(r) for n, r in zip(names, cfg.members, strict=True)}})
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    try:
+        if cfg.copy:
+            for d, n in zip(dirs, names, strict=True):
+                shutil.copytree(d, cfg.out / n)
+        _config_path(cfg.out).write_text(json.dumps(to_jsonable(ens), indent=2) + "\n")
+        policy = load_ensemble(cfg.out)
+    except BaseException:
+        shutil.rmtree(cfg.out / "members", ignore_errors=True)
+        _config_path(cfg.out).unlink(missing_ok=True)
+        raise
+    print(f"adapter ensemble in {cfg.out}: {len(dirs)} members "
+          + ", ".join(f"{r} x {w:g}" for r, w in zip(cfg.members, weights, strict=True))
+          + f"; touch every {touch_every} steps; windows {', '.join(policy.windows)}")
+    return cfg.out

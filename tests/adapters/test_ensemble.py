@@ -1,0 +1,156 @@
+"""Adapter ensembles: the weighted sum of the members' corrections exactly, members found inside the ensemble's
+directory, checked as adapters are, clear errors for a bad config, evaluation with an ensemble."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from adapters.bundle import TouchUnavailable, build_adapted
+from adapters.ensemble import EnsemblePolicy, load_ensemble
+from rotation.cli import main
+from rotation.evaluate import job
+from rotation.evaluate.finished import weights_digest
+from rotation.policy.bundle import BundleError, load_bundle
+
+ENCODER = "sparshx-tinier-sim"
+
+
+def _member(path, modalities, seed):
+    """A member adapter with a non-zero correction."""
+    policy = build_adapted("student", ENCODER, modalities, seed=seed)
+    torch.manual_seed(seed)
+    torch.nn.init.normal_(policy.adapter.zero.weight, std=0.05)
+    torch.nn.init.normal_(policy.adapter.zero.bias, std=0.05)
+    return policy.save(path)
+
+
+@pytest.fixture(scope="module")
+def ensemble_dir(tmp_path_factory):
+    """An ensemble (`rotate ensemble-adapters`) whose two members (pressure; IMU + pressure) were copied into it."""
+    tmp = tmp_path_factory.mktemp("ensemble")
+    first = _member(tmp / "pressure", ("pressure",), seed=1)
+    second = _member(tmp / "imu_pressure", ("imu", "pressure"), seed=2)
+    out = tmp / "ens"
+    assert main(["ensemble-adapters", "--members", str(first), str(second), "--weights", "0.25", "0.75",
+                 "--touch-every", "3", "--out", str(out)]) == 0
+    shutil.rmtree(first)  # the bundle stands alone
+    shutil.rmtree(second)
+    return out
+
+
+def test_the_correction_is_the_weighted_sum_of_the_members(ensemble_dir, env_obs):
+    env, obs = env_obs
+    ens = load_bundle(ensemble_dir)
+    assert isinstance(ens, EnsemblePolicy)
+    assert ens.windows == ("pressure", "imu") and ens.touch_every == 3 and ens.fingers == ("index", "middle", "ring",
+                                                                                           "thumb")
+    assert "imu, pressure" in ens.config.touch_encoder and ens.config.adapter == str(ensemble_dir)
+    groups = {k: obs[k] for k in ens.config.obs_groups}
+    corr = ens.correction(ens.env_windows(obs), groups)
+    parts = [load_bundle(ensemble_dir / "members" / name) for name in ("pressure", "imu_pressure")]
+    want = [p.correction(p.env_windows(obs), groups) for p in parts]
+    assert np.abs(want[0]).max() > 0 and np.abs(want[1]).max() > 0
+    np.testing.assert_allclose(corr, 0.25 * want[0] + 0.75 * want[1], rtol=0, atol=1e-6)
+    # it acts as the student with that correction, and without one exactly as the student
+    student = load_bundle("student")
+    assert np.array_equal(ens.act_batch(groups), student.act_batch(groups))
+    assert np.array_equal(ens.act_batch(groups, correction=corr), parts[0].act_batch(groups, correction=corr))
+    one = {k: v[0] for k, v in groups.items()}
+    eager = ens.act(one, correction=corr[0])
+    ens.prepare_realtime()  # deploy's traced paths: the same numbers
+    assert np.array_equal(ens.correction(ens.env_windows(obs), groups), corr)
+    assert np.array_equal(ens.act(one, correction=corr[0]), eager)
+
+
+def test_missing_or_non_finite_touch_is_touch_unavailable(ensemble_dir, env_obs):
+    env, obs = env_obs
+    ens = load_ensemble(ensemble_dir)
+    groups = {k: obs[k] for k in ens.config.obs_groups}
+    windows = ens.env_windows(obs)
+    no_imu = {f: {"pressure": w["pressure"]} for f, w in windows.items()}
+    with pytest.raises(TouchUnavailable, match="imu"):
+        ens.correction(no_imu, groups)
+    bad = {f: dict(w) for f, w in windows.items()}
+    bad["ring"]["pressure"] = np.full_like(bad["ring"]["pressure"], np.nan)
+    with pytest.raises(TouchUnavailable, match="non-finite"):
+        ens.correction(bad, groups)
+
+
+def test_bad_ensembles_are_refused_with_the_reason(ensemble_dir, tmp_path):
+    def write(name, data):
+        path = tmp_path / name
+        shutil.copytree(ensemble_dir / "members", path / "members")
+        (path / "config.json").write_text(json.dumps({"kind": "adapter-ensemble", "format_version": 1, **data}))
+        return path
+
+    with pytest.raises(BundleError, match="at least one member"):
+        load_bundle(write("empty", {"members": []}))
+    for name, weight in (("nan", float("nan")), ("negative", -0.5), ("text", "0.5")):
+        with pytest.raises(BundleError, match=r"weights must be numbers in \(0, 10\]"):
+            load_bundle(write(name, {"members": [{"adapter": "members/pressure", "weight": weight}]}))
+    with pytest.raises(BundleError, match="member 'members/gone'"):
+        load_bundle(write("gone", {"members": [{"adapter": "members/gone", "weight": 1.0}]}))
+    with pytest.raises(BundleError, match="touch_every"):
+        load_bundle(write("every", {"members": [{"adapter": "members/pressure", "weight": 1.0}], "touch_every": 0}))
+    with pytest.raises(BundleError, match="unknown config keys"):
+        load_bundle(write("typo", {"members": [{"adapter": "members/pressure", "wieght": 1.0}]}))
+    # a member whose student changed since it was trained is refused as the adapter alone would be
+    stale = write("stale", {"members": [{"adapter": "members/pressure", "weight": 1.0}]})
+    cfg_path = stale / "members" / "pressure" / "config.json"
+    cfg = json.loads(cfg_path.read_text())
+    cfg["student_sha256"] = "0" * 16
+    cfg_path.write_text(json.dumps(cfg))
+    with pytest.raises(BundleError, match="member 'members/pressure'.*retrain the adapter"):
+        load_bundle(stale)
+
+
+def test_evaluate_with_an_ensemble(ensemble_dir, tmp_path):
+    cfg = job.Config(policies={"student": "student", "ensemble": str(ensemble_dir)}, episodes=2, episode_steps=8,
+                     out=tmp_path / "eval", num_envs=2, nthread=1, progress=False, seed=100)
+    rows = job.run(cfg)
+    assert [r["policy"] for r in rows] == ["student", "ensemble"]
+    digest = weights_digest(str(ensemble_dir))
+    member = ensemble_dir / "members" / "pressure" / "adapter.safetensors"
+    original = member.read_bytes()
+    try:
+        member.write_bytes(original[:-4] + b"\x00\x00\x00\x00")  # a member retrained in place changes the identity
+        assert weights_digest(str(ensemble_dir)) != digest
+    finally:
+        member.write_bytes(original)
+
+
+def test_ensemble_adapters_refuses_bad_input_with_one_line(ensemble_dir, tmp_path, capsys):
+    """Bad input ends with one line and status 2, nothing written; an existing bundle is never overwritten."""
+    member = str(ensemble_dir / "members" / "pressure")
+    cases = [
+        (["--members", member, "--weights", "1", "2"], "2 weights for 1 members"),
+        (["--members", str(tmp_path / "nothing")], "not an adapter bundle"),
+        (["--members", str(ensemble_dir)], "not an adapter bundle"),  # an ensemble is not a member
+        (["--members", member, "--out", str(ensemble_dir)], "already holds a bundle"),
+    ]
+    for args, message in cases:
+        assert main(["ensemble-adapters", *args, *([] if "--out" in args else ["--out", str(tmp_path / "e")])]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+    assert not (tmp_path / "e" / "config.json").exists()
+    # referenced where they are (--no-copy), with the default weights 1/K
+    assert main(["ensemble-adapters", "--members", member, member, "--no-copy", "--out", str(tmp_path / "ref")]) == 0
+    cfg = json.loads((tmp_path / "ref" / "config.json").read_text())
+    assert [m["weight"] for m in cfg["members"]] == [0.5, 0.5] and cfg["touch_every"] == 4
+    assert not (tmp_path / "ref" / "members").exists()
+
+
+def test_bench_adapter_times_an_ensemble(ensemble_dir, load_script, capsys):
+    bench = load_script("bench_adapter")
+    assert bench.main(["--adapter", str(ensemble_dir), "--iters", "1", "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    result = json.loads(out.strip().splitlines()[-1])
+    assert "touch step, pressure+imu" in out and result["step_ms"] > result["student_ms"] > 0
+    assert result["touch_every"] == 3
+    assert bench.main(["--adapter", "student", "--iters", "1"]) == 2  # reads no touch: one line, no traceback
+    assert "not a tactile adapter" in capsys.readouterr().err
