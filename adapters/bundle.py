@@ -73,6 +73,18 @@ class TouchUnavailable(RuntimeError):
     embeddings); the caller acts as the student alone."""
 
 
+def check_bundle_header(what: str, kind: str, want_kind: str, version: int, want_version: int,
+                        touch_every: Any) -> None:
+    """BundleError unless a touch bundle's config.json is of ``want_kind``, in a format this version reads, with a
+    refresh period of at least one control step."""
+    if kind != want_kind:
+        raise BundleError(f"not an {what} (kind {kind!r})")
+    if version != want_version:
+        raise BundleError(f"{what} format {version} is not readable by this version (reads {want_version})")
+    if isinstance(touch_every, bool) or not isinstance(touch_every, int) or touch_every < 1:
+        raise BundleError(f"touch_every must be an integer >= 1, got {touch_every!r}")
+
+
 @dataclass(frozen=True)
 class AdapterConfig:
     """What an adapter bundle's config.json holds."""
@@ -97,13 +109,7 @@ class AdapterConfig:
     format_version: int = FORMAT_VERSION
 
     def __post_init__(self) -> None:
-        if self.kind != KIND:
-            raise BundleError(f"not an adapter bundle (kind {self.kind!r})")
-        if self.format_version != FORMAT_VERSION:
-            raise BundleError(f"adapter bundle format {self.format_version} is not readable by this version "
-                              f"(reads {FORMAT_VERSION})")
-        if not isinstance(self.touch_every, int) or self.touch_every < 1:
-            raise BundleError(f"touch_every must be an integer >= 1, got {self.touch_every!r}")
+        check_bundle_header("adapter bundle", self.kind, KIND, self.format_version, FORMAT_VERSION, self.touch_every)
         if tuple(self.modalities) != tuple(n for n, _ in self.net.groups):
             raise BundleError(f"modalities {self.modalities} differ from the network's token groups "
                               f"{[n for n, _ in self.net.groups]}")

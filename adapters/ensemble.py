@@ -44,7 +44,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from adapters.bundle import SHIPPED_ADAPTERS, AdaptedPolicy, TouchUnavailable, load_adapter, read_adapter
+from adapters.bundle import (
+    SHIPPED_ADAPTERS,
+    AdaptedPolicy,
+    TouchUnavailable,
+    check_bundle_header,
+    load_adapter,
+    read_adapter,
+)
 from envs.validation import check_int, check_output_dir, check_types
 from rotation.configs import from_jsonable, to_jsonable
 from rotation.policy.bundle import BundleConfig, BundleError
@@ -77,19 +84,13 @@ class EnsembleConfig:
     format_version: int = FORMAT_VERSION
 
     def __post_init__(self) -> None:
-        if self.kind != KIND:
-            raise BundleError(f"not an adapter ensemble (kind {self.kind!r})")
-        if self.format_version != FORMAT_VERSION:
-            raise BundleError(f"adapter ensemble format {self.format_version} is not readable by this version "
-                              f"(reads {FORMAT_VERSION})")
+        check_bundle_header("adapter ensemble", self.kind, KIND, self.format_version, FORMAT_VERSION, self.touch_every)
         if not self.members or not all(isinstance(m, EnsembleMember) for m in self.members):
             raise BundleError(f"an adapter ensemble needs at least one member, got {self.members!r}")
         bad = [m.weight for m in self.members if isinstance(m.weight, bool) or not isinstance(m.weight, (int, float))
                or not (math.isfinite(m.weight) and 0 < m.weight <= MAX_WEIGHT)]
         if bad:
             raise BundleError(f"ensemble member weights must be numbers in (0, {MAX_WEIGHT:g}], got {bad}")
-        if not isinstance(self.touch_every, int) or self.touch_every < 1:
-            raise BundleError(f"touch_every must be an integer >= 1, got {self.touch_every!r}")
 
 
 def _config_path(path: Path) -> Path:
