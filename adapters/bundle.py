@@ -140,11 +140,18 @@ def encoder_weights(ref: str) -> Path:
     return path
 
 
+def adapter_dir(name_or_path: str | Path) -> Path:
+    """The directory of a shipped adapter's name (``rotation/policies/<name>``) when no directory of that path
+    exists; else the path as given."""
+    path = Path(name_or_path)
+    if not path.is_dir() and (SHIPPED_ADAPTERS / str(name_or_path)).is_dir():
+        return SHIPPED_ADAPTERS / str(name_or_path)
+    return path
+
+
 def is_adapter_dir(path: str | Path) -> bool:
     """True when ``path`` (a directory or a shipped name) holds an adapter bundle."""
-    path = Path(path)
-    if not path.is_dir() and (SHIPPED_ADAPTERS / str(path)).is_dir():
-        path = SHIPPED_ADAPTERS / str(path)
+    path = adapter_dir(path)
     cfg = path / CONFIG_FILE
     if not cfg.is_file() or not (path / WEIGHTS_FILE).is_file():
         return False
@@ -363,9 +370,7 @@ def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch
 def read_adapter(name_or_path: str | Path) -> tuple[Path, AdapterConfig, dict[str, torch.Tensor]]:
     """An adapter bundle's directory, config and weights, without resolving its student or encoder (what
     ``finetune-adapter --init-from`` starts from); :func:`load_adapter` is the checked way to use one."""
-    path = Path(name_or_path)
-    if not path.is_dir() and (SHIPPED_ADAPTERS / str(name_or_path)).is_dir():
-        path = SHIPPED_ADAPTERS / str(name_or_path)
+    path = adapter_dir(name_or_path)
     if not is_adapter_dir(path):
         raise BundleError(f"{name_or_path}: not an adapter bundle (needs {CONFIG_FILE} with kind 'adapter' and "
                           f"{WEIGHTS_FILE})")

@@ -45,9 +45,9 @@ import numpy as np
 import torch
 
 from adapters.bundle import (
-    SHIPPED_ADAPTERS,
     AdaptedPolicy,
     TouchUnavailable,
+    adapter_dir,
     check_bundle_header,
     load_adapter,
     read_adapter,
@@ -99,11 +99,8 @@ def _config_path(path: Path) -> Path:
 
 def is_ensemble_dir(path: str | Path) -> bool:
     """True when ``path`` (a directory or a shipped name) holds an adapter ensemble."""
-    path = Path(path)
-    if not path.is_dir() and (SHIPPED_ADAPTERS / str(path)).is_dir():
-        path = SHIPPED_ADAPTERS / str(path)
     try:
-        return json.loads(_config_path(path).read_text()).get("kind") == KIND
+        return json.loads(_config_path(adapter_dir(path)).read_text()).get("kind") == KIND
     except (OSError, ValueError, AttributeError):
         return False
 
@@ -114,16 +111,11 @@ def member_path(ensemble_dir: Path, ref: str) -> Path:
     inside = ensemble_dir / ref
     if not Path(ref).is_absolute() and inside.is_dir():
         return inside
-    path = Path(ref)
-    if not path.is_dir() and (SHIPPED_ADAPTERS / ref).is_dir():
-        return SHIPPED_ADAPTERS / ref
-    return path
+    return adapter_dir(ref)
 
 
 def read_ensemble(name_or_path: str | Path) -> tuple[Path, EnsembleConfig]:
-    path = Path(name_or_path)
-    if not path.is_dir() and (SHIPPED_ADAPTERS / str(name_or_path)).is_dir():
-        path = SHIPPED_ADAPTERS / str(name_or_path)
+    path = adapter_dir(name_or_path)
     if not is_ensemble_dir(path):
         raise BundleError(f"{name_or_path}: not an adapter ensemble (needs {CONFIG_FILE} with kind {KIND!r})")
     try:
@@ -280,22 +272,11 @@ class Config:
         check_output_dir("out", self.out)
 
 
-def _member_dirs(refs: tuple[str, ...]) -> list[Path]:
-    dirs = []
-    for ref in refs:
-        path = Path(ref)
-        if not path.is_dir() and (SHIPPED_ADAPTERS / ref).is_dir():
-            path = SHIPPED_ADAPTERS / ref
-        read_adapter(path)  # an adapter bundle (an ensemble of ensembles is not one)
-        dirs.append(path)
-    return dirs
-
-
 def run(cfg: Config) -> Path:
     """Write the ensemble bundle in ``cfg.out`` and load it once (every member checked); returns its directory."""
     if (cfg.out / CONFIG_FILE).exists():
         raise ValueError(f"{cfg.out} already holds a bundle; choose another --out (nothing is overwritten)")
-    dirs = _member_dirs(cfg.members)
+    dirs = [read_adapter(ref)[0] for ref in cfg.members]  # adapter bundles (an ensemble is not a member)
     weights = cfg.weights or tuple(1.0 / len(dirs) for _ in dirs)
     if cfg.copy:
         names: list[str] = []

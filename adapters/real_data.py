@@ -285,10 +285,7 @@ def touch_windows(reader: SessionReader, fingers: Sequence[str], windows: Sequen
                             frames = center_resize(frames, dw.IMAGE_SIZE)
                         out[f][w][i] = frames
                     elif w == "audio":
-                        last = int(np.searchsorted(audio.timestamps, t_end[i], side="right"))
-                        if last < dw.AUDIO_SAMPLES:
-                            raise dw.WindowNotReady(f"audio: {last} samples before t_end")
-                        out[f][w][i] = np.asarray(audio.data[last - dw.AUDIO_SAMPLES:last]).T
+                        out[f][w][i] = dw.audio_from_samples(audio.timestamps, audio.data, t_end[i])
                     else:
                         st, rate = streams[w], SERIAL_WINDOWS[w]
                         t, v = _tail(st.timestamps, st.data, t_end[i], dw.SERIES_LEN / rate)

@@ -141,16 +141,15 @@ class Config:
 
             if self.baud not in BAUD_CODES:
                 raise ValueError(f"baud: {self.baud} is not a Dynamixel baud rate; choose one of {sorted(BAUD_CODES)}")
-        parse_digit360(self.digit360, emulated=self.hand.startswith("sim-"))
+        digit_specs = parse_digit360(self.digit360, emulated=self.hand.startswith("sim-"))
         parse_skin(self.skin, emulated=self.hand.startswith("sim-"))
         if parse_properties(self.properties) and not self.record:
             raise ValueError("properties: they are stored in the recording; give --record FILE.h5 as well")
         if self.record_media:
-            specs = parse_digit360(self.digit360, emulated=self.hand.startswith("sim-"))
             if not self.record:
                 raise ValueError("record_media: it records the sensors' cameras and microphones; give --record "
                                  "FILE.h5 as well")
-            if not specs or any(v == "sim" for v in specs.values()):
+            if not digit_specs or any(v == "sim" for v in digit_specs.values()):
                 raise ValueError("record_media: name real Digit 360 sensors with --digit360 (serials or tty paths); "
                                  "emulated sensors render their image and audio only for a window and record none")
         if self.grasp < 0:

@@ -261,7 +261,7 @@ def open_skin(spec: str, stack: contextlib.ExitStack) -> tuple[Any, Any]:
 def fresh_samples(buf: Any, last: float) -> tuple[np.ndarray, np.ndarray]:
     """Samples of a ring buffer newer than ``last`` (host s), keeping the series strictly increasing (a clock
     re-anchoring may map a sample before an earlier one): (t (n,), v (n, ...))."""
-    t, v = buf.since(last) if hasattr(buf, "since") else buf.snapshot()
+    t, v = buf.since(last)
     keep = t > np.maximum.accumulate(np.concatenate([[last], t]))[:-1]
     return t[keep], v[keep]
 

@@ -15,6 +15,7 @@ a stream that does not cover at least ``min_coverage`` of its window raises :cla
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 import numpy as np
 
@@ -61,29 +62,26 @@ class RingBuffer:
     def append(self, t: float, v: np.ndarray | float) -> None:
         self.extend(np.array([t]), np.asarray(v)[None])
 
+    def _newest(self, k: int) -> np.ndarray:
+        """Slots of the newest ``k`` stored samples (at most all of them), oldest first; call with the lock held."""
+        k = min(int(k), len(self))
+        return (self._n - k + np.arange(k)) % len(self.t)
+
     def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
         """All stored samples in time order: (t (n,), v (n, *shape)) copies."""
-        with self._lock:
-            n, cap = len(self), len(self.t)
-            start = self._n % cap if self._n > cap else 0
-            order = (start + np.arange(n)) % cap
-            return self.t[order].copy(), self.v[order].copy()
+        return self.last(len(self.t))
 
     def last(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """The newest ``n`` stored samples (fewer if fewer are stored) in time order, copies."""
         with self._lock:
-            stored, cap = len(self), len(self.t)
-            k = min(int(n), stored)
-            order = (self._n - k + np.arange(k)) % cap
+            order = self._newest(n)
             return self.t[order].copy(), self.v[order].copy()
 
     def since(self, t_last: float) -> tuple[np.ndarray, np.ndarray]:
         """The stored samples with a time after ``t_last``, in time order, copies (only those are copied: what a
         recording drain takes from a camera's frame buffer)."""
         with self._lock:
-            n, cap = len(self), len(self.t)
-            start = self._n % cap if self._n > cap else 0
-            order = (start + np.arange(n)) % cap
+            order = self._newest(len(self.t))
             order = order[self.t[order] > t_last]
             return self.t[order].copy(), self.v[order].copy()
 
@@ -121,11 +119,16 @@ def series_from_samples(t: np.ndarray, v: np.ndarray, t_end: float, rate: float,
 
 def audio_window(buf: RingBuffer, t_end: float, n: int = AUDIO_SAMPLES) -> np.ndarray:
     """(channels, n) int16: the n audio samples up to the last one at or before ``t_end``."""
-    t, v = buf.snapshot()
+    return audio_from_samples(*buf.snapshot(), t_end, n)
+
+
+def audio_from_samples(t: np.ndarray, v: Any, t_end: float, n: int = AUDIO_SAMPLES) -> np.ndarray:
+    """:func:`audio_window` on samples already in hand (t (k,) increasing, v (k, channels), an array or a recorded
+    session's lazily read stream): a live buffer's snapshot and a recording give the same window."""
     last = int(np.searchsorted(t, t_end, side="right"))
     if last < n:
         raise WindowNotReady(f"audio: {last} samples before t_end, need {n}")
-    return np.ascontiguousarray(v[last - n: last].T)
+    return np.ascontiguousarray(np.asarray(v[last - n: last]).T)
 
 
 def image_window(buf: RingBuffer, gap: int = IMAGE_GAP) -> tuple[np.ndarray, float]:
