@@ -241,6 +241,17 @@ class AdaptedPolicy:
     def tokens(self, windows: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, torch.Tensor]]:
         """{finger: {window: (N, ...)}} -> {finger: {group: (N, N_g, D)}} from the frozen encoder (one batched call);
         TouchUnavailable when a finger or window is missing."""
+        self.check_windows(windows)
+        inputs, n = self.encoder_inputs(windows)
+        with torch.no_grad():
+            try:
+                out = self._encode(inputs)
+            except ValueError as err:  # non-finite or malformed windows
+                raise TouchUnavailable(str(err)) from None
+        return self.per_finger(out, n)
+
+    def check_windows(self, windows: Mapping[str, Mapping[str, Any]]) -> None:
+        """TouchUnavailable when a finger or one of its windows is missing."""
         missing = [f for f in self.fingers if f not in windows or windows[f] is None]
         if missing:
             raise TouchUnavailable(f"no touch from {', '.join(missing)}")
@@ -248,14 +259,15 @@ class AdaptedPolicy:
                 not (w == "audio" and "audio_wave" in windows[f])]
         if gaps:
             raise TouchUnavailable(f"missing touch windows {', '.join(gaps)}")
+
+    def encoder_inputs(self, windows: Mapping[str, Mapping[str, Any]]) -> tuple[dict[str, torch.Tensor], int]:
+        """The encoder's preprocessed inputs for every finger in one batch ({group: (F * N, ...)}) and N."""
         batches = [self.encoder.preprocess(windows[f]) for f in self.fingers]
         n = next(iter(batches[0].values())).shape[0]
-        inputs = {g: torch.cat([b[g] for b in batches]) for g in batches[0]}  # (F * N, ...)
-        with torch.no_grad():
-            try:
-                out = self._encode(inputs)
-            except ValueError as err:  # non-finite or malformed windows
-                raise TouchUnavailable(str(err)) from None
+        return {g: torch.cat([b[g] for b in batches]) for g in batches[0]}, n  # (F * N, ...)
+
+    def per_finger(self, out: Mapping[str, torch.Tensor], n: int) -> dict[str, dict[str, torch.Tensor]]:
+        """{group: (F * N, N_g, D)} -> {finger: {group: (N, N_g, D)}}."""
         return {f: {g: t[i * n:(i + 1) * n] for g, t in out.items()} for i, f in enumerate(self.fingers)}
 
     def _encode(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -372,6 +384,10 @@ def read_adapter(name_or_path: str | Path) -> tuple[Path, AdapterConfig, dict[st
     ``finetune-adapter --init-from`` starts from); :func:`load_adapter` is the checked way to use one."""
     path = adapter_dir(name_or_path)
     if not is_adapter_dir(path):
+        members = sorted(d.name for d in (path / "members").glob("*") if is_adapter_dir(d))
+        if members:  # an adapter ensemble (adapters.ensemble): its members are adapter bundles
+            raise BundleError(f"{name_or_path}: an adapter ensemble, not one adapter; name one of its members: "
+                              + ", ".join(str(path / "members" / m) for m in members))
         raise BundleError(f"{name_or_path}: not an adapter bundle (needs {CONFIG_FILE} with kind 'adapter' and "
                           f"{WEIGHTS_FILE})")
     try:

@@ -1,6 +1,6 @@
 """Adapter ensembles: several tactile adapters of one student whose corrections are added with fixed weights.
 
-    z_hat = phi(history) + sum_k w_k * c_k(touch)
+    z_hat = phi(history) + sum_k w_k * c_k(touch)         (w_k a number, or one number per dimension of z)
 
 Adapters that read different modalities, or were trained by different recipes, can be wrong in different ways; a
 weighted mean of their corrections (weights 1/K) is the plain ensemble. An ensemble bundle is a directory::
@@ -28,6 +28,10 @@ retrained later in place does not change it)::
     rotate ensemble-adapters --members adapter runs/adapter_ip --out runs/ensemble        # weights 1/2 and 1/2
     rotate ensemble-adapters --members adapter runs/adapter_ip --weights 0.7 0.3 --out runs/ensemble_73
     rotate evaluate --policy adapter --policy ensemble=runs/ensemble --suite perturbations
+
+Weights can also be per dimension of the latent (``--dim-weights``, K x Z numbers): member k's correction of
+dimension d is weighted ``w_k * dim_weights_k[d]``, so each member can correct the directions of z it knows best
+(``scripts/latent_sensitivity.py`` shows which dimensions friction and mass move).
 """
 
 from __future__ import annotations
@@ -69,6 +73,10 @@ class EnsembleMember:
     """An adapter bundle: a path relative to the ensemble's directory, another path, or a shipped adapter's name."""
     weight: float
     """Its correction's weight (1/K for the plain mean of K members)."""
+    dim_weights: tuple[float, ...] = ()
+    """Optional per-latent-dimension factors (one per dimension of z, each in [0, MAX_WEIGHT], not all 0): the
+    member's correction of dimension d is weighted ``weight * dim_weights[d]``. Empty: every dimension by ``weight``.
+    With them, members that read different modalities can each correct the directions of z they know best."""
 
 
 @dataclass(frozen=True)
@@ -91,6 +99,17 @@ class EnsembleConfig:
                or not (math.isfinite(m.weight) and 0 < m.weight <= MAX_WEIGHT)]
         if bad:
             raise BundleError(f"ensemble member weights must be numbers in (0, {MAX_WEIGHT:g}], got {bad}")
+        for m in self.members:
+            check_dim_weights(m.dim_weights, f"ensemble member {m.adapter!r}: dim_weights", BundleError)
+
+
+def check_dim_weights(values: Any, what: str, error: type[Exception] = ValueError) -> None:
+    """Per-dimension factors: a (possibly empty) tuple of finite numbers in [0, MAX_WEIGHT], not all 0."""
+    if not isinstance(values, tuple) or not all(not isinstance(v, bool) and isinstance(v, (int, float))
+                                                and math.isfinite(v) and 0 <= v <= MAX_WEIGHT for v in values):
+        raise error(f"{what} must be numbers in [0, {MAX_WEIGHT:g}], one per latent dimension, got {values!r}")
+    if values and not any(values):
+        raise error(f"{what} are all 0: the member would correct nothing")
 
 
 def _config_path(path: Path) -> Path:
@@ -159,9 +178,18 @@ class EnsemblePolicy:
             if m.fingers != lead.fingers or m.env_needs != lead.env_needs:
                 raise BundleError(f"ensemble members read different touch: {list(lead.fingers)} {lead.env_needs} and "
                                   f"{list(m.fingers)} {m.env_needs}")
+        latent_dim = lead.student.config.latent_dim
+        for m in cfg.members:
+            if m.dim_weights and len(m.dim_weights) != latent_dim:
+                raise BundleError(f"ensemble member {m.adapter!r}: {len(m.dim_weights)} dim_weights for a "
+                                  f"{latent_dim}-dimensional latent")
         self.ensemble_config = cfg
         self.members = members
-        self.weights = tuple(float(m.weight) for m in cfg.members)
+        # (Z,) factor per member: weight x dim_weights (or weight on every dimension)
+        self.weights = tuple(torch.full((latent_dim,), float(m.weight)) if not m.dim_weights else
+                             float(m.weight) * torch.tensor(m.dim_weights, dtype=torch.float32) for m in cfg.members)
+        self.shares = tuple(k > 0 and shares_unimodal(lead, m) for k, m in enumerate(members))
+        """Per member: whether it takes the first member's unimodal pass (the first member itself: False)."""
         self.student = lead.student
         encoders = " + ".join(dict.fromkeys(f"{m.adapter_config.encoder} ({', '.join(m.adapter_config.modalities)})"
                                             for m in members))
@@ -203,13 +231,31 @@ class EnsemblePolicy:
         return {f: {w: x for w, x in ws.items() if w in names} for f, ws in windows.items() if ws is not None}
 
     def tokens(self, windows: Mapping[str, Mapping[str, Any]]) -> list[dict[str, dict[str, torch.Tensor]]]:
-        """Each member's encoder tokens (one encoder pass per member); TouchUnavailable as one adapter's."""
-        return [m.tokens(self._part(windows, m)) for m in self.members]
+        """Each member's encoder tokens; TouchUnavailable as one adapter's. Members that share the first member's
+        unimodal layers (:func:`shares_unimodal`) take its unimodal pass and run only their own fusion layers."""
+        if not any(self.shares):
+            return [m.tokens(self._part(windows, m)) for m in self.members]
+        lead = self.members[0]
+        lead_windows = self._part(windows, lead)
+        lead.check_windows(lead_windows)  # the lead reads every window its sharing members read
+        out = []
+        with torch.no_grad():
+            inputs, n = lead.encoder_inputs(lead_windows)
+            try:
+                xs = lead.encoder.unimodal(inputs)
+            except ValueError as err:  # non-finite or malformed windows
+                raise TouchUnavailable(str(err)) from None
+            for m, shared in zip(self.members, self.shares, strict=True):
+                if m is lead or shared:
+                    out.append(m.per_finger(m.encoder.fuse({g: xs[g] for g in m.encoder.modalities}), n))
+                else:
+                    out.append(m.tokens(self._part(windows, m)))
+        return out
 
     @torch.no_grad()
     def correction(self, windows: Mapping[str, Mapping[str, Any]], obs: Mapping[str, Any]) -> np.ndarray:
-        """(N, Z) weighted sum of the members' corrections; TouchUnavailable when a member's touch is missing or the
-        result is not finite."""
+        """(N, Z) weighted sum of the members' corrections (per latent dimension where a member has dim_weights);
+        TouchUnavailable when a member's touch is missing or the result is not finite."""
         z = self.members[0].student_latent(obs)
         total = sum(w * m.adapter(tokens, z) for w, m, tokens in
                     zip(self.weights, self.members, self.tokens(windows), strict=True))
@@ -234,6 +280,27 @@ class EnsemblePolicy:
             m.traced_encoders = {}
 
 
+def shares_unimodal(lead: AdaptedPolicy, member: AdaptedPolicy) -> bool:
+    """True when ``member``'s encoder gives, for each of its modalities, the same unimodal-layer output as ``lead``'s:
+    both Sparsh-X encoders with the same unimodal depth, ``member``'s modalities among ``lead``'s, and every one of
+    ``member``'s weights and buffers equal to ``lead``'s (its register tokens row by row). Then ``member``'s encoder
+    pass can start from ``lead``'s unimodal output: the same tokens, without running those layers twice."""
+    a, b = lead.encoder, member.encoder
+    if not all(hasattr(e, "unimodal") and hasattr(e, "fuse") for e in (a, b)) or lead.sensor != member.sensor:
+        return False
+    if not set(b.modalities) <= set(a.modalities) or len(a.blocks) != len(b.blocks):
+        return False
+    mine, theirs = b.state_dict(), a.state_dict()
+    for key, value in mine.items():
+        if key == "register_tokens":
+            rows = [a.modalities.index(m) for m in b.modalities]
+            if not torch.equal(value, theirs[key][rows]):
+                return False
+        elif key not in theirs or theirs[key].shape != value.shape or not torch.equal(theirs[key], value):
+            return False
+    return True
+
+
 def load_ensemble(name_or_path: str | Path, device: str = "cpu") -> EnsemblePolicy:
     """Load an ensemble bundle, every member checked as ``load_adapter`` checks an adapter."""
     path, cfg = read_ensemble(name_or_path)
@@ -253,6 +320,9 @@ class Config:
     """Adapter bundles to combine (shipped names or directories), all for the same student and the same sensors."""
     weights: tuple[float, ...] = ()
     """One weight per member (default 1/K each: the mean of the K corrections)."""
+    dim_weights: tuple[float, ...] = ()
+    """Per-latent-dimension factors on top of --weights: K x Z numbers, the first member's Z factors first (e.g. for
+    two members and an 8-dimensional z, 16 numbers); empty: every dimension alike."""
     touch_every: int = 0
     """Control steps between touch refreshes (0: the first member's)."""
     copy: bool = True
@@ -268,8 +338,20 @@ class Config:
             raise ValueError(f"--weights: {len(self.weights)} weights for {len(self.members)} members")
         if any(not (math.isfinite(w) and 0 < w <= MAX_WEIGHT) for w in self.weights):
             raise ValueError(f"--weights must be in (0, {MAX_WEIGHT:g}], got {list(self.weights)}")
+        if len(self.dim_weights) % len(self.members):
+            raise ValueError(f"--dim-weights: {len(self.dim_weights)} numbers is not the same count for each of the "
+                             f"{len(self.members)} members (K x Z numbers, the first member's first)")
+        for k, part in enumerate(self.split_dim_weights()):
+            check_dim_weights(part, f"--dim-weights of member {k + 1} ({self.members[k]})")
         check_int("touch_every", self.touch_every, 0, 10_000, unit="control steps")
         check_output_dir("out", self.out)
+
+    def split_dim_weights(self) -> list[tuple[float, ...]]:
+        """--dim-weights cut into each member's factors (empty tuples when not given)."""
+        if not self.dim_weights:
+            return [() for _ in self.members]
+        z = len(self.dim_weights) // len(self.members)
+        return [tuple(float(v) for v in self.dim_weights[k * z:(k + 1) * z]) for k in range(len(self.members))]
 
 
 def run(cfg: Config) -> Path:
@@ -288,7 +370,8 @@ def run(cfg: Config) -> Path:
     else:
         names = [str(d.resolve()) for d in dirs]
     touch_every = cfg.touch_every or read_adapter(dirs[0])[1].touch_every
-    ens = EnsembleConfig(members=tuple(EnsembleMember(n, float(w)) for n, w in zip(names, weights, strict=True)),
+    ens = EnsembleConfig(members=tuple(EnsembleMember(n, float(w), d) for n, w, d in
+                                       zip(names, weights, cfg.split_dim_weights(), strict=True)),
                          touch_every=touch_every,
                          card={"kind": KIND, "made_by": "rotate ensemble-adapters",
                                "members": {n: str(r) for n, r in zip(names, cfg.members, strict=True)}})
@@ -304,6 +387,7 @@ def run(cfg: Config) -> Path:
         _config_path(cfg.out).unlink(missing_ok=True)
         raise
     print(f"adapter ensemble in {cfg.out}: {len(dirs)} members "
-          + ", ".join(f"{r} x {w:g}" for r, w in zip(cfg.members, weights, strict=True))
+          + ", ".join(f"{r} x {w:g}" + (f" x [{', '.join(f'{v:g}' for v in d)}]" if d else "")
+                      for r, w, d in zip(cfg.members, weights, cfg.split_dim_weights(), strict=True))
           + f"; touch every {touch_every} steps; windows {', '.join(policy.windows)}")
     return cfg.out

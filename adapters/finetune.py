@@ -34,7 +34,8 @@ With ``--refit-head`` (adapters.refit_head) it trains nothing by gradient: it ro
 and solves its last, linear layer in closed form (ridge regression on its own hidden features, the strength chosen
 by cross-validation over whole episodes)::
 
-    rotate finetune-adapter --init-from adapter --refit-head --total-steps 76800 --out runs/adapter_refit
+    rotate finetune-adapter --init-from rotation/policies/adapter/members/all_modalities --refit-head \\
+        --total-steps 76800 --out runs/adapter_refit
 """
 
 from __future__ import annotations
@@ -229,7 +230,7 @@ class Config:
                                  f"{', '.join(clashes)} (run it again to redo it)")
             if not self.init_from:
                 raise ValueError("--refit-head refits the zero layer of a trained adapter: give it with --init-from "
-                                 "(e.g. --init-from adapter)")
+                                 "(e.g. --init-from rotation/policies/adapter/members/all_modalities)")
         if self.sessions and self.anchor:
             raise ValueError("--anchor sets the target by the simulated cup's mass; recorded sessions carry their "
                              "own measured properties: leave --anchor out with --sessions")

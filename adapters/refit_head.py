@@ -10,7 +10,8 @@ from ``refit_lambdas`` by ``refit_folds``-fold cross-validation with whole episo
 alike, so held-out samples of a training episode would flatter a weak penalty); the card records every
 candidate's held-out latent error.
 
-    rotate finetune-adapter --init-from adapter --refit-head --total-steps 76800 \\
+    rotate finetune-adapter --init-from rotation/policies/adapter/members/all_modalities --refit-head \\
+        --total-steps 76800 \\
         --env.randomization.friction 0.075 3.0 --env.randomization.friction-log \\
         --env.randomization.mass 0.01 0.45 --out runs/adapter_refit
 

@@ -287,6 +287,12 @@ class SparshX(Float32Buffers):
                 the positional embedding and before the register tokens; N_m = K_m for those modalities.
             registers: also return {m: register token (B, D)} (the DINO objective works on them).
         """
+        return self.fuse(self.unimodal(inputs, keep), registers=registers)
+
+    def unimodal(self, inputs: Mapping[str, Tensor], keep: Mapping[str, Tensor] | None = None) -> dict[str, Tensor]:
+        """The first stage of :meth:`forward`: {m: (B, 1 + N_m, D)}, each modality's register token and patch tokens
+        after the unimodal layers. A modality's result depends only on its own input, so an encoder restricted to
+        some of these modalities (rotation.tactile.encoders) gives the same numbers for them."""
         bsz = self._check(inputs, keep)
         keep = keep or {}
         d, dtype = self.cfg.embed_dim, self.register_tokens.dtype
@@ -303,6 +309,16 @@ class SparshX(Float32Buffers):
             xs[m] = torch.cat([reg, x], dim=1)  # (B, 1 + N, D)
         for layer in self.blocks:  # unimodal
             xs = {m: layer[m](x) for m, x in xs.items()}
+        return xs
+
+    def fuse(self, xs: Mapping[str, Tensor], registers: bool = False
+             ) -> dict[str, Tensor] | tuple[dict[str, Tensor], dict[str, Tensor]]:
+        """The second stage of :meth:`forward`: :meth:`unimodal`'s output for exactly this model's modalities -> the
+        fusion layers, the final norms, {m: patch tokens (B, N_m, D)} (and the register tokens)."""
+        if set(xs) != set(self.modalities):
+            raise ValueError(f"SparshX.fuse: expected the modalities {list(self.modalities)}, got {list(xs)}")
+        xs = {m: xs[m] for m in self.modalities}
+        bsz = next(iter(xs.values())).shape[0]
         if self.cfg.fusion == "bottleneck" and len(self.fusion_blocks):
             nb = self.bottleneck.shape[1]
             b = self.bottleneck.expand(bsz, -1, -1)  # (B, 4, D)

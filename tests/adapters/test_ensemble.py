@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from adapters.bundle import TouchUnavailable, build_adapted
-from adapters.ensemble import EnsemblePolicy, load_ensemble
+from adapters.ensemble import EnsemblePolicy, load_ensemble, shares_unimodal
 from rotation.cli import main
 from rotation.evaluate import job
 from rotation.evaluate.finished import weights_digest
@@ -67,16 +67,103 @@ def test_the_correction_is_the_weighted_sum_of_the_members(ensemble_dir, env_obs
     assert np.array_equal(ens.act(one, correction=corr[0]), eager)
 
 
+def test_per_dimension_weights_give_each_member_its_own_directions(ensemble_dir, env_obs, tmp_path):
+    """--dim-weights: member k's correction of latent dimension d is weighted weight_k x dim_weights_k[d]."""
+    env, obs = env_obs
+    members = [str(ensemble_dir / "members" / name) for name in ("pressure", "imu_pressure")]
+    first = [1.0, 0.0, 0.25, 1.0, 0.5, 0.0, 2.0, 1.0]
+    second = [0.0, 1.0, 0.75, 0.5, 0.5, 1.0, 0.0, 1.0]
+    out = tmp_path / "dims"
+    assert main(["ensemble-adapters", "--members", *members, "--weights", "1", "0.5",
+                 "--dim-weights", *map(str, first + second), "--out", str(out)]) == 0
+    assert [m["dim_weights"] for m in json.loads((out / "config.json").read_text())["members"]] == [first, second]
+    ens = load_bundle(out)
+    groups = {k: obs[k] for k in ens.config.obs_groups}
+    corr = ens.correction(ens.env_windows(obs), groups)
+    parts = [load_bundle(m) for m in members]
+    want = [p.correction(p.env_windows(obs), groups) for p in parts]
+    np.testing.assert_allclose(corr, np.array(first) * want[0] + 0.5 * np.array(second) * want[1], rtol=0, atol=1e-6)
+    assert np.array_equal(corr[:, 1], (0.5 * torch.as_tensor(want[1][:, 1])).numpy())  # the first member's 0
+    # a config without dim_weights (written before they existed): every dimension takes the member's weight
+    old = tmp_path / "old"
+    shutil.copytree(ensemble_dir / "members", old / "members")
+    (old / "config.json").write_text(json.dumps({"kind": "adapter-ensemble", "format_version": 1, "members": [
+        {"adapter": "members/pressure", "weight": 0.5}]}))
+    np.testing.assert_allclose(load_bundle(old).correction(ens.env_windows(obs), groups), 0.5 * want[0], rtol=0,
+                               atol=1e-6)
+
+
+def test_members_share_the_first_members_unimodal_layers(ensemble_dir, env_obs, tmp_path):
+    """A member whose modalities are among the first member's, on the same encoder weights, starts from the first
+    member's unimodal pass: the same tokens bit for bit, one pass of those layers instead of two."""
+    env, obs = env_obs
+    members = [str(ensemble_dir / "members" / name) for name in ("imu_pressure", "pressure")]
+    out = tmp_path / "shared"
+    assert main(["ensemble-adapters", "--members", *members, "--weights", "0.5", "1.5", "--out", str(out)]) == 0
+    ens = load_bundle(out)
+    assert ens.shares == (False, True)
+    assert load_bundle(ensemble_dir).shares == (False, False)  # pressure first: IMU is not among its modalities
+    groups = {k: obs[k] for k in ens.config.obs_groups}
+    windows = ens.env_windows(obs)
+    calls = []
+    layer = ens.members[1].encoder.blocks[0]["pressure"]
+    hook = layer.register_forward_hook(lambda *args: calls.append(1))
+    try:
+        shared = ens.correction(windows, groups)
+    finally:
+        hook.remove()
+    assert not calls  # the second member's unimodal layers did not run
+    ens.shares = (False, False)
+    assert np.array_equal(shared, ens.correction(windows, groups))
+    # a member whose encoder weights differ runs its own pass
+    other = load_bundle(out)
+    with torch.no_grad():
+        next(other.members[1].encoder.blocks[0]["pressure"].parameters()).add_(1e-3)
+    assert not shares_unimodal(other.members[0], other.members[1])
+    assert shares_unimodal(ens.members[0], ens.members[1]) and not shares_unimodal(ens.members[1], ens.members[0])
+    # missing or non-finite touch in the shared pass: TouchUnavailable, as in the members' own passes
+    ens.shares = (False, True)
+    _refuses_missing_imu_and_non_finite_touch(ens, windows, groups, "imu", np.inf)
+
+
+def test_bad_per_dimension_weights_are_refused(ensemble_dir, tmp_path, capsys):
+    member = str(ensemble_dir / "members" / "pressure")
+    cases = [
+        (["--dim-weights", "1", "1", "1"], "not the same count for each of the 2 members"),
+        (["--dim-weights", *["-1"] * 8, *["1"] * 8], "numbers in [0, 10]"),
+        (["--dim-weights", *["0"] * 8, *["1"] * 8], "are all 0"),
+        (["--dim-weights", *["1"] * 6], "3 dim_weights for a 8-dimensional latent"),
+    ]
+    for extra, message in cases:
+        assert main(["ensemble-adapters", "--members", member, member, *extra, "--out", str(tmp_path / "e")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+        assert not (tmp_path / "e" / "config.json").exists()
+    # the same checks when a hand-written config.json is loaded
+    path = tmp_path / "hand"
+    shutil.copytree(ensemble_dir / "members", path / "members")
+    for dims, message in (([1.0] * 7, "7 dim_weights for a 8-dimensional latent"), ([float("nan")] * 8, "numbers in"),
+                          ([True] * 8, "numbers in")):
+        (path / "config.json").write_text(json.dumps({"kind": "adapter-ensemble", "format_version": 1, "members": [
+            {"adapter": "members/pressure", "weight": 1.0, "dim_weights": dims}]}))
+        with pytest.raises(BundleError, match=message):
+            load_bundle(path)
+
+
 def test_missing_or_non_finite_touch_is_touch_unavailable(ensemble_dir, env_obs):
     env, obs = env_obs
     ens = load_ensemble(ensemble_dir)
     groups = {k: obs[k] for k in ens.config.obs_groups}
     windows = ens.env_windows(obs)
+    _refuses_missing_imu_and_non_finite_touch(ens, windows, groups, "pressure", np.nan)
+
+
+def _refuses_missing_imu_and_non_finite_touch(ens, windows, groups, bad_window, bad_value):
     no_imu = {f: {"pressure": w["pressure"]} for f, w in windows.items()}
     with pytest.raises(TouchUnavailable, match="imu"):
         ens.correction(no_imu, groups)
     bad = {f: dict(w) for f, w in windows.items()}
-    bad["ring"]["pressure"] = np.full_like(bad["ring"]["pressure"], np.nan)
+    bad["ring"][bad_window] = np.full_like(bad["ring"][bad_window], bad_value)
     with pytest.raises(TouchUnavailable, match="non-finite"):
         ens.correction(bad, groups)
 
@@ -130,7 +217,7 @@ def test_ensemble_adapters_refuses_bad_input_with_one_line(ensemble_dir, tmp_pat
     cases = [
         (["--members", member, "--weights", "1", "2"], "2 weights for 1 members"),
         (["--members", str(tmp_path / "nothing")], "not an adapter bundle"),
-        (["--members", str(ensemble_dir)], "not an adapter bundle"),  # an ensemble is not a member
+        (["--members", str(ensemble_dir)], "an adapter ensemble, not one adapter; name one of its members"),
         (["--members", member, "--out", str(ensemble_dir)], "already holds a bundle"),
     ]
     for args, message in cases:
