@@ -14,7 +14,9 @@ any other path, or the name of a shipped adapter. Each member loads as its own c
 and encoder digests, adapters.bundle.load_adapter); all must correct the same student and read the same sensor
 samples (the four Digit 360 fingertips, or the Xela skin). Each member keeps its own encoder restricted to its own
 modalities (a modality subset is encoded on its own: Sparsh-X fuses the modalities it is given), so the ensemble
-reads the union of its members' windows and costs the sum of their encoder passes.
+reads the union of its members' windows and costs the sum of their encoder passes, except that a member whose
+modalities are among the first member's, on the same encoder weights, starts from the first member's unimodal
+layers and runs only its own fusion layers (:func:`shares_unimodal`; the same tokens bit for bit).
 
 Loaded, an ensemble is an :class:`EnsemblePolicy`: the same interface as ``AdaptedPolicy`` (``config``,
 ``act``/``act_batch`` with a correction, ``correction(windows, obs)``, ``fingers``, ``windows``, ``touch_every``),
@@ -272,6 +274,12 @@ class EnsemblePolicy:
 
     def latent(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
         return self.members[0].latent(obs, correction)
+
+    def student_latent(self, obs: Mapping[str, Any]) -> torch.Tensor:
+        return self.members[0].student_latent(obs)
+
+    def proprio_features(self, obs: Mapping[str, Any]) -> torch.Tensor:
+        return self.members[0].proprio_features(obs)
 
     def prepare_realtime(self) -> None:
         """Trace the acting paths (first member) and every member's encoder from its first refresh on (deploy)."""

@@ -211,6 +211,18 @@ def test_evaluate_with_an_ensemble(ensemble_dir, tmp_path):
         member.write_bytes(original)
 
 
+def test_latent_errors_of_an_ensemble(ensemble_dir, load_script, tmp_path):
+    """scripts/adapter_latent_errors.py reads an ensemble as it reads one adapter: its latent is the shared
+    student's plus the weighted correction."""
+    out = tmp_path / "errors"
+    args = ["--adapter", str(ensemble_dir), "--condition", "mass_+0.2kg", "--num-envs", "2", "--steps", "6",
+            "--seed", "5", "--out", str(out)]
+    assert load_script("adapter_latent_errors").main(args) == 0
+    total = json.loads((out / "errors.json").read_text())["total"]
+    assert total["samples"] == 2 * 2  # 2 envs x refreshes at steps 0 and 3
+    assert total["mse_adapted"] != total["mse_student"]  # the members' corrections moved the latent
+
+
 def test_ensemble_adapters_refuses_bad_input_with_one_line(ensemble_dir, tmp_path, capsys):
     """Bad input ends with one line and status 2, nothing written; an existing bundle is never overwritten."""
     member = str(ensemble_dir / "members" / "pressure")
