@@ -34,6 +34,15 @@ retrained later in place does not change it)::
 Weights can also be per dimension of the latent (``--dim-weights``, K x Z numbers): member k's correction of
 dimension d is weighted ``w_k * dim_weights_k[d]``, so each member can correct the directions of z it knows best
 (``scripts/latent_sensitivity.py`` shows which dimensions friction and mass move).
+
+A gate can make some dimensions' correction conditional on what the rest of the correction says (``--gate-dims``,
+``--gate-signal``, ``--gate-width``; :class:`CorrectionGate`). With c the weighted sum above, the gate reads
+``g = clip(signal . c / width, 0, 1)`` and multiplies the correction of the gated dimensions by g. For example, z[1]
+(the direction the teacher's encoder moves for grippy cups) can be corrected only as far as the ensemble's own z[3]
+and z[4] corrections read the cup as slippery (docs/results/adapter/gated_z1)::
+
+    rotate ensemble-adapters --members adapter runs/adapter_ip --gate-dims 1 --gate-signal 0 0 0 -1 -1 0 0 0 \
+        --gate-width 0.2 --out runs/gated
 """
 
 from __future__ import annotations
@@ -82,6 +91,45 @@ class EnsembleMember:
 
 
 @dataclass(frozen=True)
+class CorrectionGate:
+    """The correction of ``dims`` applied only as far as the ensemble's own correction reads a condition: with c
+    the weighted sum of the members' corrections, ``g = clip(sum_d signal[d] * c[d] / width, 0, 1)`` per sample,
+    and the correction of each gated dimension is ``g * c[dim]``. A zero correction (adapters at initialization)
+    stays exactly zero."""
+
+    dims: tuple[int, ...]
+    """Latent dimensions whose correction is gated (each in [0, Z))."""
+    signal: tuple[float, ...]
+    """One coefficient per latent dimension (Z numbers, not all 0, 0 on every gated dimension): what the gate reads
+    of the correction. E.g. -1 on z[3] and z[4]: open as far as those corrections read the cup as slippery."""
+    width: float
+    """How much of the signal opens the gate fully (> 0; the gate is 0 at or below a signal of 0)."""
+
+    def check(self, latent_dim: int, error: type[Exception] = ValueError, prefix: str = "gate ") -> None:
+        """Refuse a gate that cannot act on a ``latent_dim``-dimensional z (``prefix`` names the fields: "gate "
+        in a bundle, "--gate-" on the command line)."""
+        dims, signal = self.dims, self.signal
+        if (not isinstance(dims, tuple) or not dims or len(set(dims)) != len(dims)
+                or not all(isinstance(d, int) and not isinstance(d, bool) and 0 <= d < latent_dim for d in dims)):
+            raise error(f"{prefix}dims must be distinct latent dimensions in [0, {latent_dim}), got {dims!r}")
+        if not isinstance(signal, tuple) or len(signal) != latent_dim or not all(
+                not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) for v in signal):
+            raise error(f"{prefix}signal must be {latent_dim} finite numbers, one per latent dimension, got {signal!r}")
+        if not any(signal) or any(signal[d] for d in dims):
+            raise error(f"{prefix}signal must read some dimension and none of the gated ones {list(dims)}, got "
+                        f"{list(signal)}")
+        check_gate_width(self.width, error, f"{prefix}width")
+
+    def apply(self, correction: torch.Tensor) -> torch.Tensor:
+        """(N, Z) correction with the gated dimensions scaled by the gate (a new tensor)."""
+        signal = torch.tensor(self.signal, dtype=correction.dtype)
+        g = torch.clamp(correction @ signal / float(self.width), 0.0, 1.0)
+        out = correction.clone()
+        out[:, list(self.dims)] *= g[:, None]
+        return out
+
+
+@dataclass(frozen=True)
 class EnsembleConfig:
     """What an ensemble bundle's config.json holds."""
 
@@ -90,6 +138,8 @@ class EnsembleConfig:
     """Control steps between touch refreshes (every member refreshes together; the correction is held between)."""
     card: dict[str, Any] = field(default_factory=dict)
     """Free-form metadata: how it was put together, its evaluation."""
+    gate: CorrectionGate | None = None
+    """Optional gate on some dimensions' correction (None: every dimension as weighted)."""
     kind: str = KIND
     format_version: int = FORMAT_VERSION
 
@@ -103,6 +153,14 @@ class EnsembleConfig:
             raise BundleError(f"ensemble member weights must be numbers in (0, {MAX_WEIGHT:g}], got {bad}")
         for m in self.members:
             check_dim_weights(m.dim_weights, f"ensemble member {m.adapter!r}: dim_weights", BundleError)
+        if self.gate is not None and not isinstance(self.gate, CorrectionGate):
+            raise BundleError(f"ensemble gate must be {{\"dims\", \"signal\", \"width\"}}, got {self.gate!r}")
+
+
+def check_gate_width(width: Any, error: type[Exception] = ValueError, what: str = "gate width") -> None:
+    if isinstance(width, bool) or not isinstance(width, (int, float)) or not (math.isfinite(width)
+                                                                              and 0 < width <= MAX_WEIGHT):
+        raise error(f"{what} must be a number in (0, {MAX_WEIGHT:g}], got {width!r}")
 
 
 def check_dim_weights(values: Any, what: str, error: type[Exception] = ValueError) -> None:
@@ -185,6 +243,8 @@ class EnsemblePolicy:
             if m.dim_weights and len(m.dim_weights) != latent_dim:
                 raise BundleError(f"ensemble member {m.adapter!r}: {len(m.dim_weights)} dim_weights for a "
                                   f"{latent_dim}-dimensional latent")
+        if cfg.gate is not None:
+            cfg.gate.check(latent_dim, BundleError)
         self.ensemble_config = cfg
         self.members = members
         # (Z,) factor per member: weight x dim_weights (or weight on every dimension)
@@ -261,6 +321,8 @@ class EnsemblePolicy:
         z = self.members[0].student_latent(obs)
         total = sum(w * m.adapter(tokens, z) for w, m, tokens in
                     zip(self.weights, self.members, self.tokens(windows), strict=True))
+        if self.ensemble_config.gate is not None:
+            total = self.ensemble_config.gate.apply(total)
         if not torch.isfinite(total).all():
             raise TouchUnavailable("non-finite touch embeddings")
         return total.numpy()
@@ -333,6 +395,13 @@ class Config:
     two members and an 8-dimensional z, 16 numbers); empty: every dimension alike."""
     touch_every: int = 0
     """Control steps between touch refreshes (0: the first member's)."""
+    gate_dims: tuple[int, ...] = ()
+    """Latent dimensions whose correction is gated (empty: no gate); see --gate-signal and --gate-width."""
+    gate_signal: tuple[float, ...] = ()
+    """With --gate-dims: Z coefficients; the gate is clip(signal . correction / width, 0, 1) and scales the gated
+    dimensions' correction (e.g. 0 0 0 -1 -1 0 0 0: open as far as z[3] and z[4] are corrected downwards)."""
+    gate_width: float = 0.2
+    """With --gate-dims: the signal that opens the gate fully."""
     copy: bool = True
     """Copy the members into OUT/members/ (the bundle stands alone); --no-copy references them where they are."""
     out: Path = Path("runs/ensemble")
@@ -352,7 +421,18 @@ class Config:
         for k, part in enumerate(self.split_dim_weights()):
             check_dim_weights(part, f"--dim-weights of member {k + 1} ({self.members[k]})")
         check_int("touch_every", self.touch_every, 0, 10_000, unit="control steps")
+        check_gate_width(self.gate_width, ValueError, "--gate-width")
+        if bool(self.gate_dims) != bool(self.gate_signal):
+            raise ValueError("--gate-dims and --gate-signal go together (give both or neither)")
+        if self.gate_dims:
+            self.gate().check(len(self.gate_signal), ValueError, "--gate-")
         check_output_dir("out", self.out)
+
+    def gate(self) -> CorrectionGate | None:
+        """The gate these options describe (None without --gate-dims)."""
+        if not self.gate_dims:
+            return None
+        return CorrectionGate(tuple(self.gate_dims), tuple(float(v) for v in self.gate_signal), float(self.gate_width))
 
     def split_dim_weights(self) -> list[tuple[float, ...]]:
         """--dim-weights cut into each member's factors (empty tuples when not given)."""
@@ -380,7 +460,7 @@ def run(cfg: Config) -> Path:
     touch_every = cfg.touch_every or read_adapter(dirs[0])[1].touch_every
     ens = EnsembleConfig(members=tuple(EnsembleMember(n, float(w), d) for n, w, d in
                                        zip(names, weights, cfg.split_dim_weights(), strict=True)),
-                         touch_every=touch_every,
+                         touch_every=touch_every, gate=cfg.gate(),
                          card={"kind": KIND, "made_by": "rotate ensemble-adapters",
                                "members": {n: str(r) for n, r in zip(names, cfg.members, strict=True)}})
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -397,5 +477,6 @@ def run(cfg: Config) -> Path:
     print(f"adapter ensemble in {cfg.out}: {len(dirs)} members "
           + ", ".join(f"{r} x {w:g}" + (f" x [{', '.join(f'{v:g}' for v in d)}]" if d else "")
                       for r, w, d in zip(cfg.members, weights, cfg.split_dim_weights(), strict=True))
+          + (f"; gate on z{list(ens.gate.dims)} by {list(ens.gate.signal)} / {ens.gate.width:g}" if ens.gate else "")
           + f"; touch every {touch_every} steps; windows {', '.join(policy.windows)}")
     return cfg.out

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from adapters.bundle import TouchUnavailable, build_adapted
-from adapters.ensemble import EnsemblePolicy, load_ensemble, shares_unimodal
+from adapters.ensemble import CorrectionGate, EnsemblePolicy, load_ensemble, shares_unimodal
 from rotation.cli import main
 from rotation.evaluate import job
 from rotation.evaluate.finished import weights_digest
@@ -91,6 +91,85 @@ def test_per_dimension_weights_give_each_member_its_own_directions(ensemble_dir,
         {"adapter": "members/pressure", "weight": 0.5}]}))
     np.testing.assert_allclose(load_bundle(old).correction(ens.env_windows(obs), groups), 0.5 * want[0], rtol=0,
                                atol=1e-6)
+
+
+def test_a_gate_scales_its_dimensions_by_what_the_correction_reads():
+    """g = clip(signal . c / width, 0, 1) per sample multiplies the gated dimensions' correction; the other
+    dimensions are untouched, and a zero correction (adapters at initialization) stays exactly zero."""
+    gate = CorrectionGate(dims=(1,), signal=(0, 0, 0, -1, -1, 0, 0, 0), width=0.2)
+    c = torch.zeros(4, 8)
+    c[:, 1] = -0.3
+    c[:, 3] = torch.tensor([-0.5, -0.05, 0.0, 0.4])  # z[3] + z[4]: -0.6 (open), -0.1 (half), 0 and +0.6 (shut)
+    c[:, 4] = torch.tensor([-0.1, -0.05, 0.0, 0.2])
+    c[:, 6] = 0.7
+    out = gate.apply(c)
+    np.testing.assert_allclose(out[:, 1].numpy(), [-0.3, -0.15, 0.0, 0.0], rtol=0, atol=1e-7)
+    keep = [d for d in range(8) if d != 1]
+    assert torch.equal(out[:, keep], c[:, keep]) and c[1, 1] == -0.3  # the input is not modified
+    zero = torch.zeros(3, 8)
+    assert torch.equal(gate.apply(zero), zero)
+
+
+def test_a_gated_ensemble_is_the_ungated_one_with_its_gate(ensemble_dir, env_obs, tmp_path):
+    """`--gate-dims/--gate-signal/--gate-width` write the gate into config.json; the loaded ensemble's correction
+    is the same members' ungated correction with the gate applied, in evaluation and in deploy's traced path."""
+    env, obs = env_obs
+    members = [str(ensemble_dir / "members" / name) for name in ("pressure", "imu_pressure")]
+    plain = load_bundle(ensemble_dir)
+    groups = {k: obs[k] for k in plain.config.obs_groups}
+    ungated = plain.correction(plain.env_windows(obs), groups)
+    signal = ungated[:, 3] + ungated[:, 4]
+    width = float(2 * np.abs(signal).max())  # every sample's gate strictly between 0 and 1 where the signal is > 0
+    out = tmp_path / "gated"
+    assert main(["ensemble-adapters", "--members", *members, "--weights", "0.25", "0.75", "--touch-every", "3",
+                 "--gate-dims", "0", "2", "--gate-signal", "0", "0", "0", "1", "1", "0", "0", "0",
+                 "--gate-width", str(width), "--out", str(out)]) == 0
+    assert json.loads((out / "config.json").read_text())["gate"] == {
+        "dims": [0, 2], "signal": [0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], "width": width}
+    gated = load_bundle(out)
+    corr = gated.correction(gated.env_windows(obs), groups)
+    g = np.clip(signal / width, 0.0, 1.0)
+    assert 0 < g.max() < 1  # the gate really scales the samples here
+    want = ungated.copy()
+    want[:, [0, 2]] *= g[:, None]
+    np.testing.assert_allclose(corr, want, rtol=0, atol=1e-6)
+    assert np.array_equal(corr[:, [1, 3, 4, 5, 6, 7]], ungated[:, [1, 3, 4, 5, 6, 7]])
+    gated.prepare_realtime()
+    assert np.array_equal(gated.correction(gated.env_windows(obs), groups), corr)
+    assert weights_digest(str(out)) != weights_digest(str(ensemble_dir))  # the gate is part of its identity
+
+
+def test_bad_gates_are_refused(ensemble_dir, tmp_path, capsys):
+    member = str(ensemble_dir / "members" / "pressure")
+    signal = ["0", "0", "0", "-1", "-1", "0", "0", "0"]
+    cases = [
+        (["--gate-dims", "1"], "--gate-dims and --gate-signal go together"),
+        (["--gate-signal", *signal], "--gate-dims and --gate-signal go together"),
+        (["--gate-dims", "3", "--gate-signal", *signal], "none of the gated ones [3]"),
+        (["--gate-dims", "1", "1", "--gate-signal", *signal], "--gate-dims must be distinct"),
+        (["--gate-dims", "1", "--gate-signal", *["0"] * 8], "--gate-signal must read some dimension"),
+        (["--gate-dims", "1", "--gate-signal", *signal, "--gate-width", "0"], "--gate-width must be a number in"),
+        (["--gate-dims", "-1", "--gate-signal", *signal], "--gate-dims must be distinct latent dimensions"),
+        (["--gate-dims", "1", "--gate-signal", *signal, "0"], "gate signal must be 8 finite numbers"),
+    ]
+    for extra, message in cases:
+        status = main(["ensemble-adapters", "--members", member, *extra, "--out", str(tmp_path / "e")])
+        err = capsys.readouterr().err
+        assert status == 2 and message in err and "Traceback" not in err, (extra, err)
+        assert not (tmp_path / "e" / "config.json").exists()
+    # the same checks when a hand-written config.json is loaded
+    path = tmp_path / "hand"
+    shutil.copytree(ensemble_dir / "members", path / "members")
+    good = {"dims": [1], "signal": [0, 0, 0, -1, -1, 0, 0, 0], "width": 0.2}
+    for gate, message in (({**good, "dims": [8]}, "gate dims must be distinct latent dimensions in"),
+                          ({**good, "signal": [0.0] * 7 + [float("nan")]}, "gate signal must be 8 finite"),
+                          ({**good, "width": -1}, "gate width must be a number in"),
+                          ({**good, "gain": 2}, "unknown config keys"),
+                          (5, "ensemble gate must be")):
+        (path / "config.json").write_text(json.dumps({"kind": "adapter-ensemble", "format_version": 1, "members": [
+            {"adapter": "members/pressure", "weight": 1.0}], "gate": gate}))
+        with pytest.raises(BundleError, match=message):
+            load_bundle(path)
 
 
 def test_members_share_the_first_members_unimodal_layers(ensemble_dir, env_obs, tmp_path):
