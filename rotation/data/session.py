@@ -65,6 +65,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import logging
 import math
 import threading
 import time
@@ -79,6 +80,8 @@ import numpy as np
 
 from envs.constants import FINGERS, NUM_JOINTS, PRIV_DIM
 from envs.sensors.digit360 import NUM_FIELDS
+
+log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
 """Version of the layout above written by this code; a reader refuses files with a newer version."""
@@ -518,8 +521,12 @@ class SessionReader:
         if n >= 3:
             step = float(np.median(np.diff(t)))
             if not math.isclose(step, 1.0 / rate, rel_tol=RATE_TOLERANCE):
-                raise SessionError(f"{where}: timestamps step {step:.6g} s, but rate_hz={rate} "
-                                   f"(expected {1.0 / rate:.6g} s)")
+                message = f"{where}: timestamps step {step:.6g} s, but rate_hz={rate} (expected {1.0 / rate:.6g} s)"
+                if self.complete:
+                    raise SessionError(message)
+                # a run that ended in a fault (a control loop that could not hold its rate): its timestamps are
+                # the true ones, so the record is kept, and said to be off its declared rate
+                log.warning("%s; kept, as the session is not complete (its run ended early or in a fault)", message)
         if lazy:
             data: Any = d
         else:

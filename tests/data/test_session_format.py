@@ -199,6 +199,22 @@ def test_reader_rejects_bad_files(tmp_path, edit, match):
     assert "bad.h5" in str(info.value) and isinstance(info.value, ValueError)
 
 
+def test_reader_keeps_an_incomplete_session_off_its_rate_with_a_warning(tmp_path, caplog):
+    """A run that ended in a fault (a control loop that could not hold 20 Hz) leaves an incomplete session whose
+    joint timestamps are the true, slower ones: kept and read, with a warning; a complete one is refused."""
+    path = write_basic(tmp_path / "slow.h5")
+
+    def slow_and_interrupted(f):
+        f["streams/joints/position/timestamps"][:] = np.arange(40) * 0.062
+        f.attrs["complete"] = False
+
+    _edit(path, slow_and_interrupted)
+    with SessionReader(path) as r, caplog.at_level("WARNING", logger="rotation.data.session"):
+        joints = r.stream("joints/position")
+        assert not r.complete and len(joints) == 40 and joints.timestamps[-1] == pytest.approx(39 * 0.062)
+    assert "timestamps step 0.062 s, but rate_hz=20.0" in caplog.text and "not complete" in caplog.text
+
+
 def test_reader_rejects_wrong_shape_and_missing_streams(tmp_path):
     path = write_basic(tmp_path / "shape.h5")
 
