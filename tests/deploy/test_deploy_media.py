@@ -389,7 +389,7 @@ def test_an_image_and_audio_adapter_fine_tunes_on_sessions_recorded_with_their_m
     with contextlib.ExitStack() as stack:
         _, _, spec = whole_sensors(stack, monkeypatch)
         for i in range(2):
-            assert main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "3", "--grasp", str(i),
+            assert main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "4", "--grasp", str(i),
                          "--digit360", spec, "--record-media",
                          "--record", str(tmp_path / "sessions" / f"s{i}.h5"),
                          "--properties", f"mass={0.1 + 0.05 * i},friction=0.8,com=0,0,0,scale=0.78"]) in (0, 1)
@@ -403,7 +403,9 @@ def test_an_image_and_audio_adapter_fine_tunes_on_sessions_recorded_with_their_m
 
     info = check_session(tmp_path / "sessions" / "s0.h5", FINGERS, windows, 20.0)
     s = session_samples(info, encoder, phi, FINGERS, windows, every=2)
-    assert len(s) >= 3  # a loaded 2-core machine runs the 3 s deploy slower: fewer steps, fewer samples
+    # a loaded 2-core machine can run this deploy far below 20 Hz (a rate fault, exit status 1): fewer steps, fewer
+    # samples; two are enough for the window checks below and for the fine-tuning run
+    assert len(s) >= 2
     w = s.windows["ring"]
     assert w["image"].shape == (len(s), 2, 224, 224, 3) and w["image"].dtype == np.uint8
     assert w["audio"].shape == (len(s), 2, 27_000) and w["audio"].dtype == np.int16
