@@ -84,15 +84,30 @@ def test_adapter_policy_on_the_emulated_hand_starts_its_sensors_and_acts(adapter
     assert touch["first_correction_step"] is not None and 0 <= touch["first_correction_step"] <= 10, touch
 
 
-def test_the_shipped_adapter_turns_the_emulated_cup(capsys, hand_hook):
+def test_the_shipped_adapter_turns_the_emulated_cup(capsys, caplog, hand_hook):
     """The shipped all-modality adapter on the emulated hand turns the cup the way the env's does (+). It turned it
     backwards (-0.4 rad in 6 s) when the loop held the start pose while the sensors' windows filled: the grasp
-    slipped before the first correction. Measured since: +3.7 to +4.4 rad in 10 s (the student: +4.7)."""
+    slipped before the first correction. Measured since: +3.7 to +4.4 rad in 10 s (the student: +4.7); +1.9 rad in 4 s
+    on a loaded 2-core machine where the adapter acted 26 of 80 steps."""
+    caplog.set_level(logging.INFO, logger="rotation")
     code = main(["deploy", "--hand", "sim-allegro", "--policy", "adapter", "--duration", "4"])
     summary = summary_of(capsys.readouterr().out)
     assert_done_or_rate_fault(summary)
     assert code == summary["exit_code"]
-    assert summary["touch"]["adapter_steps"] >= summary["steps"] // 2, summary["touch"]
+    touch = summary["touch"]
+    # the adapter really acted, from corrections it refreshed; every step is counted
+    assert touch["refreshes"] >= 2 and touch["adapter_steps"] > 0, touch
+    assert touch["adapter_steps"] + touch["fallback_steps"] == summary["steps"], touch
+    # it stood aside only for the documented causes (a loaded machine: a stale correction, a window the starved
+    # emulator had not filled), never for a bug (logged with its traceback)
+    bugs = [r.getMessage() for r in caplog.records if r.name == "rotation.deploy.touch" and r.exc_info]
+    assert not bugs, bugs
+    # How long the adapter acts is the machine's: a loaded 2-core machine encodes the four fingertips' windows in
+    # about 1.4 s, so each correction is used for about 0.6 s before its 2 s limit (26 of 80 steps, once). A worker
+    # that keeps up (every refresh within a third of the limit, none failed) must leave the adapter acting from its
+    # first correction on.
+    if touch["refresh_ms_max"] < touch["max_age_ms"] / 3 and touch["failed_refreshes"] == 0:
+        assert touch["adapter_steps"] == summary["steps"] - touch["first_correction_step"], touch
     assert summary["rotation_rad"] > 0.5 and not summary["object_fell"], summary
 
 
