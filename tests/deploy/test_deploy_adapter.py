@@ -18,6 +18,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from deploy_checks import assert_done_or_rate_fault as check_done_or_rate_fault
 
 from adapters.bundle import TouchUnavailable, build_adapted
 from rotation.cli import main
@@ -45,11 +46,9 @@ def summary_of(out: str) -> dict:
 
 
 def assert_done_or_rate_fault(summary: dict) -> None:
-    """Done, or (a cold, loaded 2-core machine) the documented rate fault; never another fault."""
-    rate_fault = summary["fault"] is not None and "could not hold 20 Hz" in summary["fault"]
-    assert (summary["exit_code"] == 0 and summary["fault"] is None) or (rate_fault and summary["exit_code"] == 1), \
-        summary["fault"]
-    assert summary["motors_off"] and summary["motors_off_witness"] == "emulator"
+    """As deploy_checks', and the emulator saw the motors go off."""
+    check_done_or_rate_fault(summary)
+    assert summary["motors_off_witness"] == "emulator"
 
 
 def touch_warnings(caplog) -> list[logging.LogRecord]:
@@ -90,14 +89,20 @@ def test_the_shipped_adapter_turns_the_emulated_cup(capsys, caplog, hand_hook):
     slipped before the first correction. Measured since: +3.7 to +4.4 rad in 10 s (the student: +4.7); +1.9 rad in 4 s
     on a loaded 2-core machine where the adapter acted 26 of 80 steps."""
     caplog.set_level(logging.INFO, logger="rotation")
-    code = main(["deploy", "--hand", "sim-allegro", "--policy", "adapter", "--duration", "4"])
-    summary = summary_of(capsys.readouterr().out)
-    assert_done_or_rate_fault(summary)
-    assert code == summary["exit_code"]
-    touch = summary["touch"]
-    # the adapter really acted, from corrections it refreshed; every step is counted
+    # a 2-core machine loaded by other work can encode the fingertips' windows so slowly that no correction arrives,
+    # or none fresh enough, before 4 s are over: then the run is repeated for 10 s, once (each run is checked)
+    for duration in (4, 10):
+        code = main(["deploy", "--hand", "sim-allegro", "--policy", "adapter", "--duration", str(duration)])
+        summary = summary_of(capsys.readouterr().out)
+        assert_done_or_rate_fault(summary)
+        assert code == summary["exit_code"]
+        touch = summary["touch"]
+        assert touch["adapter_steps"] + touch["fallback_steps"] == summary["steps"], touch
+        if touch["refreshes"] >= 2 and touch["adapter_steps"] > 0 and summary["rotation_rad"] > 0.5:
+            break
+        print(f"the adapter did not act in {duration} s: {touch}")
+    # the adapter really acted, from corrections it refreshed (every step was counted, above)
     assert touch["refreshes"] >= 2 and touch["adapter_steps"] > 0, touch
-    assert touch["adapter_steps"] + touch["fallback_steps"] == summary["steps"], touch
     # it stood aside only for the documented causes (a loaded machine: a stale correction, a window the starved
     # emulator had not filled), never for a bug (logged with its traceback)
     bugs = [r.getMessage() for r in caplog.records if r.name == "rotation.deploy.touch" and r.exc_info]
