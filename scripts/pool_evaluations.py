@@ -5,7 +5,8 @@ thing on more episodes. This pools them per (policy, condition): episode-weighte
 all episodes, and the net rotation rate as total rotation over total time in hand. With --reference and --baseline
 it adds, for every other policy, the share of the baseline's gap to the reference that it closes,
 (policy - baseline) / (reference - baseline), for ttf and vertical drift: how the tactile adapter's targets are
-stated. It also compares each policy's rotation rate with the baseline's episode by episode:
+stated; where every set keeps per-episode values, with a bootstrap standard error (each set's episodes resampled,
+the same episodes for the three policies). It also compares each policy's rotation rate with the baseline's episode by episode:
 the net rate over the episodes that both kept in hand to the end (reports whose rows keep per-episode values). A
 policy that saves cups the baseline drops spends that extra time on hard cups, which lowers its net rate over all
 episodes; on the cups both kept, a lower rate means it really turns the cup slower. With --paired-against NAME it
@@ -126,13 +127,56 @@ def gap_shares(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], P
         else:
             mine, (ref, base) = pool_rows([r for _, r, _ in runs]), same
             entry: dict[str, Any] = {"policy": policy, "condition": cond, "episodes": mine["episodes"]}
+            episodes = _share_episodes(groups, runs, reference, baseline, cond)
             for metric, better in SHARE_METRICS.items():
                 gap = ref[metric] - base[metric]
                 has_gap = gap > 0 if better == "higher" else gap < 0
                 entry[metric] = float((mine[metric] - base[metric]) / gap) if has_gap else None
+                entry[metric + "_se"] = share_se(episodes, metric) if has_gap and episodes else None
                 entry[metric + "_reference_baseline"] = [ref[metric], base[metric]]
             shares.append(entry)
     return shares
+
+
+def _share_episodes(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], Path]]],
+                    runs: list[tuple[range, dict[str, Any], Path]], reference: str, baseline: str, cond: str
+                    ) -> list[tuple[dict[str, Any], dict[str, Any], dict[str, Any]]]:
+    """Per seed set of ``runs``: the per-episode values of the policy, the reference and the baseline; empty unless
+    every set keeps them for all three (then a share's standard error can be resampled)."""
+    out = []
+    for span, row, _ in runs:
+        theirs = []
+        for name in (reference, baseline):
+            match = {(s.start, s.stop): r for s, r, _ in groups.get((name, cond), [])}.get((span.start, span.stop))
+            if match is None or "per_episode" not in match:
+                return []
+            theirs.append(match["per_episode"])
+        if "per_episode" not in row:
+            return []
+        out.append((row["per_episode"], *theirs))
+    return out
+
+
+SHARE_RESAMPLES = 2000
+"""Bootstrap resamples behind a gap share's standard error."""
+
+
+def share_se(episodes: list[tuple[dict[str, Any], dict[str, Any], dict[str, Any]]], metric: str) -> float | None:
+    """Bootstrap standard error of (policy - baseline) / (reference - baseline) in ``metric``, pooled over seed sets:
+    each set's episodes resampled with replacement, the same episodes for the three policies (episode j of a set is
+    one episode for all of them), the share recomputed from the pooled means. A set of 128 episodes moves a share by
+    10-30 points, so this says how far a pooled share can be trusted. None if a resample has no gap."""
+    rng = np.random.default_rng(0)
+    sets = [np.stack([np.asarray(v[metric], np.float64) for v in values]) for values in episodes]  # (3, n) each
+    lift, gap = np.zeros(SHARE_RESAMPLES), np.zeros(SHARE_RESAMPLES)
+    for values in sets:
+        idx = rng.integers(0, values.shape[1], (SHARE_RESAMPLES, values.shape[1]))
+        mine, ref, base = (values[k][idx].sum(axis=1) for k in range(3))
+        lift += mine - base
+        gap += ref - base
+    if np.any(gap == 0):
+        return None
+    return float(np.std(lift / gap, ddof=1))
 
 
 def _episode_pairs(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], Path]]],
@@ -200,6 +244,13 @@ def paired_differences(groups: dict[tuple[str, str], list[tuple[range, dict[str,
             entry[m + "_se"] = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else None
         out.append(entry)
     return out
+
+
+def _share_cell(share: dict[str, Any], metric: str) -> str:
+    if share[metric] is None:
+        return "-"
+    se = share.get(metric + "_se")
+    return f"{share[metric]:.0%}" + ("" if se is None else f" ± {se * 100:.0f}")
 
 
 def _paired_markdown(paired: list[dict[str, Any]], against: str) -> str:
@@ -272,8 +323,10 @@ def run(cfg: Config) -> Path:
                  f"the {cfg.reference}.\n\n| condition | policy | episodes | "
                  + " | ".join(SHARE_METRICS) + " |\n|---|---|---|" + "---|" * len(SHARE_METRICS) + "\n")
         text += "".join(f"| {s['condition']} | {s['policy']} | {s['episodes']} | "
-                        + " | ".join("-" if s[m] is None else f"{s[m]:.0%}" for m in SHARE_METRICS) + " |\n"
-                        for s in shares)
+                        + " | ".join(_share_cell(s, m) for m in SHARE_METRICS) + " |\n" for s in shares)
+        if any(s.get(m + "_se") is not None for s in shares for m in SHARE_METRICS):
+            text += ("\n± the bootstrap standard error of the share (each seed set's episodes resampled, the same "
+                     "episodes for the three policies).\n")
     if paired:
         text += (f"\n## Rotation rate on the episodes both kept\n\nNet rotation rate (rad/s) over the episodes that "
                  f"both the policy and the {cfg.baseline} kept in hand to the end, matched episode by episode.\n\n"

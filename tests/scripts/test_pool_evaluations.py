@@ -128,6 +128,45 @@ def test_paired_against_differences_episode_by_episode(pool, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_gap_shares_carry_a_bootstrap_standard_error_over_the_same_episodes(pool, tmp_path):
+    """The share's standard error resamples each set's episodes, the same ones for the three policies: a policy
+    exactly half-way between student and teacher on every episode has a share of 50% with no spread whatever the
+    episodes' own spread; noisy episodes give the delta method's error to within the resampling noise."""
+    rng = np.random.default_rng(1)
+
+    def set_of(path: Path, seed: int, n: int, lift_noise: float) -> Path:
+        student = rng.uniform(0.0, 0.6, n)
+        teacher = np.clip(student + rng.uniform(0.1, 0.5, n), 0, 1)
+        adapter = student + 0.5 * (teacher - student) + lift_noise * rng.standard_normal(n)
+        rows = []
+        for name, ttf in (("teacher", teacher), ("student", student), ("adapter", adapter)):
+            per = {"ttf": ttf.tolist(), "rotation_total": [1.0] * n, "in_hand_time": (20.0 * ttf).tolist(),
+                   "vertical_drift": [0.01] * n}
+            rows.append({**_row(name, float(ttf.mean()), 0.01, n), "per_episode": per})
+        return _report(path, seed, n, rows)
+
+    exact = [set_of(tmp_path / f"e{k}", 1000 * k, 64, 0.0) for k in (1, 2)]
+    assert pool.main(["--results", *map(str, exact), "--reference", "teacher", "--baseline", "student",
+                      "--out", str(tmp_path / "exact")]) == 0
+    (share,) = json.loads((tmp_path / "exact" / "results.json").read_text())["shares"]
+    assert share["ttf"] == pytest.approx(0.5) and share["ttf_se"] == pytest.approx(0.0, abs=1e-9)
+    assert share["vertical_drift"] is None and share["vertical_drift_se"] is None  # no drift gap: no share
+    assert "| friction_0.25 | adapter | 128 | 50% ± 0 | - |" in (tmp_path / "exact" / "results.md").read_text()
+
+    noisy = [set_of(tmp_path / f"n{k}", 1000 * k, 200, 0.3) for k in (1, 2)]
+    assert pool.main(["--results", *map(str, noisy), "--reference", "teacher", "--baseline", "student",
+                      "--out", str(tmp_path / "noisy")]) == 0
+    (share,) = json.loads((tmp_path / "noisy" / "results.json").read_text())["shares"]
+    per = [json.loads((d / "results.json").read_text())["rows"] for d in noisy]
+    values = {name: np.concatenate([np.asarray(r["per_episode"]["ttf"]) for rows in per for r in rows
+                                    if r["policy"] == name]) for name in ("teacher", "student", "adapter")}
+    lift, gap = values["adapter"] - values["student"], values["teacher"] - values["student"]
+    ratio = lift.mean() / gap.mean()
+    delta = np.std(lift - ratio * gap, ddof=1) / np.sqrt(len(gap)) / gap.mean()  # first-order error of a ratio
+    assert share["ttf"] == pytest.approx(ratio)
+    assert 0.8 * delta < share["ttf_se"] < 1.2 * delta, (share["ttf_se"], delta)
+
+
 def test_refuses_overlapping_seeds_and_bad_input(pool, tmp_path, capsys):
     a = _report(tmp_path / "a", 100, 10, [_row("student", 0.4, 0.011, 10)])
     b = _report(tmp_path / "b", 105, 10, [_row("student", 0.5, 0.011, 10)])
