@@ -3,16 +3,17 @@
 Evaluations made on different seed sets (say 128 episodes on seeds 800000+ and 128 on 1300000+) measure the same
 thing on more episodes. This pools them per (policy, condition): episode-weighted means, standard deviations over
 all episodes, and the net rotation rate as total rotation over total time in hand. With --reference and --baseline
-it adds, for every other policy, the share of the baseline's gap to the reference that it closes,
-(policy - baseline) / (reference - baseline), for ttf and vertical drift: how the tactile adapter's targets are
-stated; where every set keeps per-episode values, with a bootstrap standard error (each set's episodes resampled,
-the same episodes for the three policies). It also compares each policy's rotation rate with the baseline's episode by episode:
-the net rate over the episodes that both kept in hand to the end (reports whose rows keep per-episode values). A
-policy that saves cups the baseline drops spends that extra time on hard cups, which lowers its net rate over all
-episodes; on the cups both kept, a lower rate means it really turns the cup slower. With --paired-against NAME it
-adds, for every other policy, its per-episode difference to NAME in ttf and vertical drift, with the standard error
-of the mean difference: two policies judged on the same episodes differ by far less noise than their separate
-means suggest (one seed set of 128 episodes moves a gap share by 10-30 points, the paired difference much less).
+it adds, for every other policy, the share of the baseline's gap to the reference that it closes, (policy -
+baseline) / (reference - baseline), for ttf and vertical drift: how the tactile adapter's targets are stated; where
+every set keeps per-episode values, with a bootstrap standard error (each set's episodes resampled, the same
+episodes for the three policies; half the central 68% interval, as a ratio's resamples can be wild). It also
+compares each policy's rotation rate with the baseline's episode by episode: the net rate over the episodes that
+both kept in hand to the end (reports whose rows keep per-episode values). A policy that saves cups the baseline
+drops spends that extra time on hard cups, which lowers its net rate over all episodes; on the cups both kept, a
+lower rate means it really turns the cup slower. With --paired-against NAME it adds, for every other policy, its
+per-episode difference to NAME in ttf and vertical drift, with the standard error of the mean difference: two
+policies judged on the same episodes differ by far less noise than their separate means suggest (one seed set of 128
+episodes moves a gap share by 10-30 points, the paired difference much less).
 
     python scripts/pool_evaluations.py --results docs/results/adapter/student_rl2/seeds_800000 \\
         docs/results/adapter/student_rl2/seeds_1300000 --reference teacher --baseline student --out runs/pooled
@@ -165,7 +166,9 @@ def share_se(episodes: list[tuple[dict[str, Any], dict[str, Any], dict[str, Any]
     """Bootstrap standard error of (policy - baseline) / (reference - baseline) in ``metric``, pooled over seed sets:
     each set's episodes resampled with replacement, the same episodes for the three policies (episode j of a set is
     one episode for all of them), the share recomputed from the pooled means. A set of 128 episodes moves a share by
-    10-30 points, so this says how far a pooled share can be trusted. None if a resample has no gap."""
+    10-30 points, so this says how far a pooled share can be trusted. It is half the width of the resampled shares'
+    central 68% interval (the standard error of a normal spread): a ratio's resamples with a gap near zero are
+    huge and would swamp a standard deviation. None if a resample has no gap."""
     rng = np.random.default_rng(0)
     sets = [np.stack([np.asarray(v[metric], np.float64) for v in values]) for values in episodes]  # (3, n) each
     lift, gap = np.zeros(SHARE_RESAMPLES), np.zeros(SHARE_RESAMPLES)
@@ -176,7 +179,8 @@ def share_se(episodes: list[tuple[dict[str, Any], dict[str, Any], dict[str, Any]
         gap += ref - base
     if np.any(gap == 0):
         return None
-    return float(np.std(lift / gap, ddof=1))
+    low, high = np.percentile(lift / gap, [15.87, 84.13])
+    return float((high - low) / 2.0)
 
 
 def _episode_pairs(groups: dict[tuple[str, str], list[tuple[range, dict[str, Any], Path]]],
@@ -326,7 +330,8 @@ def run(cfg: Config) -> Path:
                         + " | ".join(_share_cell(s, m) for m in SHARE_METRICS) + " |\n" for s in shares)
         if any(s.get(m + "_se") is not None for s in shares for m in SHARE_METRICS):
             text += ("\n± the bootstrap standard error of the share (each seed set's episodes resampled, the same "
-                     "episodes for the three policies).\n")
+                     "episodes for the three policies; half the central 68% interval of the resampled shares). A "
+                     "share whose error is as large as itself has too small a gap to measure on these episodes.\n")
     if paired:
         text += (f"\n## Rotation rate on the episodes both kept\n\nNet rotation rate (rad/s) over the episodes that "
                  f"both the policy and the {cfg.baseline} kept in hand to the end, matched episode by episode.\n\n"
