@@ -144,18 +144,10 @@ def _share_episodes(groups: dict[tuple[str, str], list[tuple[range, dict[str, An
                     ) -> list[tuple[dict[str, Any], dict[str, Any], dict[str, Any]]]:
     """Per seed set of ``runs``: the per-episode values of the policy, the reference and the baseline; empty unless
     every set keeps them for all three (then a share's standard error can be resampled)."""
-    out = []
-    for span, row, _ in runs:
-        theirs = []
-        for name in (reference, baseline):
-            match = {(s.start, s.stop): r for s, r, _ in groups.get((name, cond), [])}.get((span.start, span.stop))
-            if match is None or "per_episode" not in match:
-                return []
-            theirs.append(match["per_episode"])
-        if "per_episode" not in row:
-            return []
-        out.append((row["per_episode"], *theirs))
-    return out
+    with_ref, with_base = (_episode_pairs(groups, runs, name, cond) for name in (reference, baseline))
+    if not len(with_ref) == len(with_base) == len(runs):  # a set without them: no resampling
+        return []
+    return [(mine, ref, base) for (mine, ref), (_, base) in zip(with_ref, with_base, strict=True)]
 
 
 SHARE_RESAMPLES = 2000
