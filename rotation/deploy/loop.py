@@ -12,7 +12,8 @@ One control step k, scheduled at ``t_k = t_start + k / control_hz`` (host ``time
    or a NaN/inf action (logged) HOLDS the last safe target for this step (the step still counts and its frame is
    still pushed one period later, so the history keeps the env's 20 Hz spacing);
 4. send the targets through the driver (its safety layer clamps, rate-limits and runs its own watchdog);
-5. record the step, update the status line, sleep until ``t_{k+1}``. A step that starts more than
+5. record the step (the sensors' samples reach the recording from a drain thread, :class:`DrainThread`, so the
+   loop never waits for them), update the status line, sleep until ``t_{k+1}``. A step that starts more than
    ``late_fraction`` of a period after its slot is counted late; a loop more than a whole period behind skips
    the missed slots instead of bursting through them.
 
@@ -215,6 +216,44 @@ class _Drains:
             d.drain(append)
 
 
+class DrainThread:
+    """Moves the sensors' samples into the recording every ``every_s`` from its own thread, so that the control
+    loop never waits for it: a drain of four fingertips' camera frames and audio is a few ms on an idle machine but
+    took 250-500 ms on a busy 2-core one (every step of it waits its turn for the interpreter's lock among the
+    sensors' threads), and on the loop's thread it cost the run most of its 20 Hz slots. A failed drain (a
+    SessionError) is kept and raised by :meth:`check`, which the loop calls every step."""
+
+    def __init__(self, drain: _Drains, append, every_s: float) -> None:
+        self.drain, self.append, self.every_s = drain, append, every_s
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="deploy-drain", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.every_s):
+            try:
+                self.drain.drain(self.append)
+            except BaseException as err:  # noqa: BLE001 -- handed to the loop's thread by check()
+                self.error = err
+                return
+
+    def check(self) -> None:
+        """Raise the drain's error, if one ended it."""
+        if self.error is not None:
+            raise self.error
+
+    def stop(self, final_drain: bool) -> None:
+        """Stop. ``final_drain`` (a run that ended well): wait for a drain in progress, then move what came since.
+        Otherwise (a fault: the motors go off first) nothing is waited for; a drain still running may add its
+        samples until the recording closes, after which its append fails harmlessly on this daemon thread."""
+        self._stop.set()
+        if final_drain:
+            self._thread.join()
+            self.check()
+            self.drain.drain(self.append)
+
+
 class ControlLoop:
     """Runs one policy on one started hand (see the module docstring). ``stats`` stays valid after a fault."""
 
@@ -276,10 +315,13 @@ class ControlLoop:
         self._monitor = TemperatureMonitor(hand, cfg.temperature_every_s, stats.max_temperature_c)
         budget = cfg.policy_budget * self.period
         start = next_tick = time.monotonic()
-        last_status = last_drain = start
+        last_status = start
         held_since: float | None = None
         k = 0
+        drainer: DrainThread | None = None
         try:
+            if drain is not None and self.recorder is not None:
+                drainer = DrainThread(drain, self.recorder.append, cfg.drain_every_s)
             while True:
                 now = time.monotonic()
                 if cfg.duration_s > 0 and now - start >= cfg.duration_s:
@@ -347,9 +389,8 @@ class ControlLoop:
                     stats.rotation_rad, stats.object_fell = meter.rotation, meter.fell
                 if self.recorder is not None:
                     self.recorder.step(now - t0, state.q, policy.targets, state.torque, pose)
-                    if drain is not None and now - last_drain >= cfg.drain_every_s:
-                        drain.drain(self.recorder.append)
-                        last_drain = now
+                if drainer is not None:
+                    drainer.check()
                 stats.max_temperature_c = self._monitor.max_c
                 if now - last_status >= cfg.status_every_s:
                     self.status.show(self.status_text(now - start, last_status))
@@ -365,9 +406,11 @@ class ControlLoop:
                     missed = int(-remaining // self.period)
                     stats.skipped_slots += missed
                     next_tick += missed * self.period
-            if drain is not None and self.recorder is not None:
-                drain.drain(self.recorder.append)
+            if drainer is not None:
+                drainer.stop(final_drain=True)
         finally:
+            if drainer is not None:
+                drainer.stop(final_drain=False)  # after a fault: no more drains (a no-op after the one above)
             worker.close(join_timeout_s=0.0)
             if touch is not None:
                 touch.close()

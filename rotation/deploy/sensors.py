@@ -258,10 +258,11 @@ def open_skin(spec: str, stack: contextlib.ExitStack) -> tuple[Any, Any]:
     return reader, baseline
 
 
-def fresh_samples(buf: Any, last: float) -> tuple[np.ndarray, np.ndarray]:
-    """Samples of a ring buffer newer than ``last`` (host s), keeping the series strictly increasing (a clock
-    re-anchoring may map a sample before an earlier one): (t (n,), v (n, ...))."""
-    t, v = buf.since(last)
+def fresh_samples(buf: Any, last: float, written: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Samples of a ring buffer newer than ``last`` (host s) among those written after the first ``written``
+    (RingBuffer.since), keeping the series strictly increasing (a clock re-anchoring may map a sample before an
+    earlier one): (t (n,), v (n, ...))."""
+    t, v = buf.since(last, written)
     keep = t > np.maximum.accumulate(np.concatenate([[last], t]))[:-1]
     return t[keep], v[keep]
 
@@ -272,10 +273,12 @@ class SkinDrain:
     def __init__(self, reader: Any, t0: float) -> None:
         self.reader, self.t0 = reader, t0
         self._last = t0
+        self._seen = 0  # frames written when the last drain began (each drain looks only at newer ones)
         self._stalled = False
 
     def drain(self, append) -> None:
-        t, v = fresh_samples(self.reader.frames, self._last)
+        seen, self._seen = self._seen, self.reader.frames.written
+        t, v = fresh_samples(self.reader.frames, self._last, seen)
         if len(t):
             append("skin/xela", v, t - self.t0)
             self._last = float(t[-1])
@@ -307,6 +310,9 @@ class DigitDrain:
         self.t0 = t0
         self._streams = {f: STREAMS + media_streams(r) for f, r in readers.items()}
         self._last = {(f, s): t0 for f in readers for s in self._streams[f]}
+        # samples each buffer had written when the last drain began: a drain looks only at newer ones, so its cost
+        # follows what is new, not the buffers' capacity (four fingertips' audio: 576,000 slots)
+        self._seen = dict.fromkeys(self._last, 0)
         self._stalled = dict.fromkeys(readers, False)
 
     def drain(self, append) -> None:
@@ -315,8 +321,9 @@ class DigitDrain:
         for finger, reader in self.readers.items():
             newest = -np.inf
             for stream in self._streams[finger]:
-                key = (finger, stream)
-                t, v = fresh_samples(getattr(reader, stream), self._last[key])
+                key, buf = (finger, stream), getattr(reader, stream)
+                seen, self._seen[key] = self._seen[key], buf.written  # read first: a sample written meanwhile is
+                t, v = fresh_samples(buf, self._last[key], seen)  # taken now or, being newer than _last, next time
                 if len(t):
                     append(f"digit360/{finger}/{stream}", v, t - self.t0)
                     self._last[key] = float(t[-1])

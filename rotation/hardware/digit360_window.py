@@ -77,11 +77,18 @@ class RingBuffer:
             order = self._newest(n)
             return self.t[order].copy(), self.v[order].copy()
 
-    def since(self, t_last: float) -> tuple[np.ndarray, np.ndarray]:
+    @property
+    def written(self) -> int:
+        """Samples ever written (a drain reads it before :meth:`since` and passes it to its next call)."""
+        return self._n
+
+    def since(self, t_last: float, written: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """The stored samples with a time after ``t_last``, in time order, copies (only those are copied: what a
-        recording drain takes from a camera's frame buffer)."""
+        recording drain takes from a camera's frame buffer). ``written``: only the samples written after the first
+        ``written`` ever are looked at, so that a drain's cost follows what is new, not the buffer's capacity (4 s of
+        48 kHz audio are 192,000 slots)."""
         with self._lock:
-            order = self._newest(len(self.t))
+            order = self._newest(max(self._n - int(written), 0))
             order = order[self.t[order] > t_last]
             return self.t[order].copy(), self.v[order].copy()
 

@@ -18,7 +18,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from deploy_checks import assert_done_or_rate_fault as check_done_or_rate_fault
+from deploy_checks import again_if_loaded, load_fault
+from deploy_checks import assert_done_or_load_fault as check_done_or_load_fault
 
 from adapters.bundle import TouchUnavailable, build_adapted
 from rotation.cli import main
@@ -45,9 +46,9 @@ def summary_of(out: str) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
-def assert_done_or_rate_fault(summary: dict) -> None:
+def assert_done_or_load_fault(summary: dict) -> None:
     """As deploy_checks', and the emulator saw the motors go off."""
-    check_done_or_rate_fault(summary)
+    check_done_or_load_fault(summary)
     assert summary["motors_off_witness"] == "emulator"
 
 
@@ -60,12 +61,19 @@ def touch_warnings(caplog) -> list[logging.LogRecord]:
 def test_adapter_policy_on_the_emulated_hand_starts_its_sensors_and_acts(adapter_dir, capsys, caplog, hand_hook,
                                                                          digit360_emulators):
     caplog.set_level(logging.INFO, logger="rotation")
-    code = main(["deploy", "--hand", "sim-allegro", "--policy", adapter_dir, "--duration", "2.5",
-                 "--status-every-s", "0.5"])
-    out, err = capsys.readouterr()
-    summary = summary_of(out)
-    assert_done_or_rate_fault(summary)
-    assert code == summary["exit_code"]
+    err = ""
+
+    def deploy() -> dict:
+        nonlocal err
+        code = main(["deploy", "--hand", "sim-allegro", "--policy", adapter_dir, "--duration", "2.5",
+                     "--status-every-s", "0.5"])
+        out, err = capsys.readouterr()
+        summary = summary_of(out)
+        assert code == summary["exit_code"]
+        return summary
+
+    summary = again_if_loaded(deploy, caplog)
+    assert_done_or_load_fault(summary)
     assert sorted(digit360_emulators) == sorted(FINGERS)  # started by deploy itself, no --digit360 given
     assert "starting emulated Digit 360 fingertips (--digit360 sim)" in caplog.text
     touch = summary["touch"]
@@ -90,17 +98,20 @@ def test_the_shipped_adapter_turns_the_emulated_cup(capsys, caplog, hand_hook):
     on a loaded 2-core machine where the adapter acted 26 of 80 steps."""
     caplog.set_level(logging.INFO, logger="rotation")
     # a 2-core machine loaded by other work can encode the fingertips' windows so slowly that no correction arrives,
-    # or none fresh enough, before 4 s are over: then the run is repeated for 10 s, once (each run is checked)
+    # or none fresh enough, before 4 s are over, or end the run in a load fault: then the run is repeated for 10 s,
+    # once (each run is checked)
     for duration in (4, 10):
         code = main(["deploy", "--hand", "sim-allegro", "--policy", "adapter", "--duration", str(duration)])
         summary = summary_of(capsys.readouterr().out)
-        assert_done_or_rate_fault(summary)
+        assert_done_or_load_fault(summary)
         assert code == summary["exit_code"]
         touch = summary["touch"]
         assert touch["adapter_steps"] + touch["fallback_steps"] == summary["steps"], touch
-        if touch["refreshes"] >= 2 and touch["adapter_steps"] > 0 and summary["rotation_rad"] > 0.5:
+        if touch["refreshes"] >= 2 and touch["adapter_steps"] > 0 and summary["rotation_rad"] > 0.5 and (
+                not load_fault(summary)):
             break
-        print(f"the adapter did not act in {duration} s: {touch}")
+        print(f"the adapter did not act in {duration} s, or the run ended in a load fault: {touch}, "
+              f"fault {summary['fault']}")
     # the adapter really acted, from corrections it refreshed (every step was counted, above)
     assert touch["refreshes"] >= 2 and touch["adapter_steps"] > 0, touch
     # it stood aside only for the documented causes (a loaded machine: a stale correction, a window the starved
@@ -127,8 +138,8 @@ def test_a_stalled_fingertip_falls_back_to_the_student_and_comes_back(adapter_di
         return real_correction(self, step, now)
 
     monkeypatch.setattr(TouchWorker, "correction", correction)
-    summary = run(Config(hand="sim-allegro", policy=adapter_dir, duration=3.0))
-    assert_done_or_rate_fault(summary)
+    summary = again_if_loaded(lambda: run(Config(hand="sim-allegro", policy=adapter_dir, duration=3.0)), caplog)
+    assert_done_or_load_fault(summary)
     touch = summary["touch"]
     assert touch["fallback_steps"] > 0 and touch["failed_refreshes"] > 0, touch
     warnings = touch_warnings(caplog)
@@ -161,8 +172,8 @@ def test_non_finite_embeddings_and_worker_errors_fall_back(adapter_dir, caplog, 
         return policy
 
     monkeypatch.setattr(bundle_module, "load_bundle", load)
-    summary = run(Config(hand="sim-allegro", policy=adapter_dir, duration=3.0))
-    assert_done_or_rate_fault(summary)
+    summary = again_if_loaded(lambda: run(Config(hand="sim-allegro", policy=adapter_dir, duration=3.0)), caplog)
+    assert_done_or_load_fault(summary)
     messages = [r.getMessage() for r in touch_warnings(caplog)]
     for cause in ("non-finite touch correction", "non-finite touch embeddings", "RuntimeError: boom in the encoder"):
         assert sum(cause in m for m in messages) == 1, (cause, messages)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from deploy_checks import again_if_loaded, assert_done_or_load_fault
 
 from adapters.bundle import build_adapted
 from rotation.cli import main
@@ -264,19 +265,26 @@ def audio_adapter(tmp_path_factory, policy) -> str:
 
 def test_deploy_opens_each_named_sensors_microphones_for_an_audio_adapter(audio_adapter, capsys, hand_hook,
                                                                            monkeypatch):
-    mics = Microphones()
+    mics, cards = Microphones(), {}
+
+    def deploy() -> dict:
+        mics.opened.clear()
+        with contextlib.ExitStack() as stack:
+            emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
+            cards.clear()
+            cards.update({emu.path: f"(hw:{i + 1},0)" for i, emu in enumerate(emus.values())})
+            monkeypatch.setattr(digit360, "find_digit360_devices",
+                                lambda port, sysfs="/sys": Digit360Devices(None, cards[port]))
+            code = main(["deploy", "--hand", "sim-allegro", "--policy", audio_adapter, "--duration", "1.5",
+                         "--digit360", ",".join(f"{f}={emu.path}" for f, emu in emus.items())])
+        summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert code == summary["exit_code"]
+        return summary
+
     monkeypatch.setitem(sys.modules, "sounddevice", mics.module)
-    with contextlib.ExitStack() as stack:
-        emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
-        cards = {emu.path: f"(hw:{i + 1},0)" for i, emu in enumerate(emus.values())}
-        monkeypatch.setattr(digit360, "find_digit360_devices",
-                            lambda port, sysfs="/sys": Digit360Devices(None, cards[port]))
-        code = main(["deploy", "--hand", "sim-allegro", "--policy", audio_adapter, "--duration", "1.5",
-                     "--digit360", ",".join(f"{f}={emu.path}" for f, emu in emus.items())])
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    summary = again_if_loaded(deploy)
     assert sorted(m["device"] for m in mics.opened) == sorted(cards.values())
-    rate_fault = summary["fault"] is not None and "could not hold 20 Hz" in summary["fault"]
-    assert (code == 0 and summary["fault"] is None) or (rate_fault and code == 1), summary["fault"]
+    assert_done_or_load_fault(summary)
     assert summary["touch"]["adapter_steps"] > 0  # the adapter read the microphones' windows
 
 
@@ -307,6 +315,21 @@ def whole_sensors(stack: contextlib.ExitStack, monkeypatch) -> tuple[dict, dict,
     return emus, devices, ",".join(f"{f}={emu.path}" for f, emu in emus.items())
 
 
+def assert_every_frame_and_sample(image, audio, joint_times: np.ndarray) -> None:
+    """A recording of the stand-ins' camera and microphones holds every frame and sample they gave during the run,
+    in order: their counters go on without a gap or a repeat, the timestamps increase, and the recording spans the
+    run (its first frame and sample in the first second, its last in the last 1.5 s: a loaded 2-core machine starves
+    the reader threads, whose frames then come late, and fewer than 30 a second; their count is the machine's)."""
+    red = image.data[:, 0, 0, 0].astype(int)  # the stand-in's frame counter: no frame dropped or repeated
+    assert len(red) >= 6 and np.all((np.diff(red) % 256) == 1), red
+    wave = audio.data[:, 0].astype(int)  # consecutive samples
+    assert len(wave) >= 4_800 and np.all((np.diff(wave) + 20_000) % 20_000 == 1)
+    for stream in (image, audio):
+        assert np.all(np.diff(stream.timestamps) > 0)
+        assert 0.0 <= stream.timestamps[0] <= 1.0 and stream.timestamps[-1] >= joint_times[-1] - 1.5, \
+            (stream.timestamps[[0, -1]], joint_times[-1])
+
+
 def test_deploy_records_the_real_sensors_camera_frames_and_microphones(tmp_path, policy, capsys, hand_hook,
                                                                        monkeypatch):
     """With --record, the frames and audio of the cameras and microphones deploy opened go into the session beside
@@ -316,30 +339,33 @@ def test_deploy_records_the_real_sensors_camera_frames_and_microphones(tmp_path,
     from rotation.data.session import SessionReader
 
     adapter = build_adapted(policy, ENCODER, ("img", "mic"), touch_every=4).save(tmp_path / "image_audio")
-    with contextlib.ExitStack() as stack:
-        _, _, spec = whole_sensors(stack, monkeypatch)
-        code = main(["deploy", "--hand", "sim-allegro", "--policy", str(adapter), "--duration", "2.5",
-                     "--digit360", spec, "--record", str(tmp_path / "run.h5")])
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    rate_fault = summary["fault"] is not None and "could not hold 20 Hz" in summary["fault"]
-    assert (code == 0 and summary["fault"] is None) or (rate_fault and code == 1), summary["fault"]
-    with SessionReader(tmp_path / "run.h5") as r:
-        assert r.complete == (code == 0)
-        joints = r.stream("joints/position")  # a run that could not hold 20 Hz: its true, slower timestamps
-        steps = len(joints)
+    record, runs = tmp_path / "run.h5", iter(("run.h5", "run_again.h5"))
+
+    def deploy() -> dict:
+        nonlocal record
+        record = tmp_path / next(runs)  # a new session each time: none is overwritten
+        with contextlib.ExitStack() as stack:
+            _, _, spec = whole_sensors(stack, monkeypatch)
+            code = main(["deploy", "--hand", "sim-allegro", "--policy", str(adapter), "--duration", "2.5",
+                         "--digit360", spec, "--record", str(record)])
+        summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert code == summary["exit_code"]
+        return summary
+
+    summary = again_if_loaded(deploy)
+    assert_done_or_load_fault(summary)
+    with SessionReader(record) as r:
+        assert r.complete == (summary["exit_code"] == 0)
+        joints = r.stream("joints/position")  # a run the machine slowed down: its true, slower timestamps
         for f in FINGERS:
             image, audio = r.stream(f"digit360/{f}/image"), r.stream(f"digit360/{f}/audio")
             assert image.data.shape[1:] == (224, 224, 3) and audio.data.shape[1:] == (2,)
-            red = image.data[:, 0, 0, 0].astype(int)  # the stand-in's frame counter: no frame dropped or repeated
-            assert len(red) >= 30 * 0.8 * steps / 20 and np.all((np.diff(red) % 256) == 1), red
+            assert_every_frame_and_sample(image, audio, joints.timestamps)
             assert np.all(image.data[:, :, :, 1] == 20) and np.all(image.data[:, :, :, 2] == 10)
-            wave = audio.data[:, 0].astype(int)  # consecutive samples, both microphones kept apart
-            assert len(wave) >= 48_000 * 0.8 * steps / 20 and np.all((np.diff(wave) + 20_000) % 20_000 == 1)
-            assert np.array_equal(audio.data[:, 1], -audio.data[:, 0])
-            assert np.all(np.diff(image.timestamps) > 0) and np.all(np.diff(audio.timestamps) > 0)
+            assert np.array_equal(audio.data[:, 1], -audio.data[:, 0])  # both microphones, kept apart
             # session time (not another clock); a loaded machine may still read frames while the run shuts down
-            assert image.timestamps[0] >= 0 and image.timestamps[-1] <= joints.timestamps[-1] + 3.0
-    windows = TouchWindows([tmp_path / "run.h5"], labels=())
+            assert image.timestamps[-1] <= joints.timestamps[-1] + 3.0
+    windows = TouchWindows([record], labels=())
     assert len(windows) > 0
     w = windows[len(windows) - 1]
     assert w["image"].shape == (6, 224, 224) and w["audio"].shape == (224, 256) and w["imu"].shape == (224, 3)
@@ -357,14 +383,13 @@ def test_record_media_records_the_cameras_and_microphones_for_any_policy(tmp_pat
         code = main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "1.5", "--digit360", spec,
                      "--record", str(tmp_path / "student.h5"), "--record-media"])
         summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-        assert code == summary["exit_code"] and summary["fault"] is None or "could not hold" in summary["fault"]
+        assert code == summary["exit_code"]
+        assert_done_or_load_fault(summary)
         with SessionReader(tmp_path / "student.h5") as r:
-            steps = len(r.stream("joints/position"))  # a loaded machine: fewer steps, and fewer frames read
+            joints = r.stream("joints/position")
             for f in FINGERS:
-                image, audio = r.stream(f"digit360/{f}/image"), r.stream(f"digit360/{f}/audio")
-                red, wave = image.data[:, 0, 0, 0].astype(int), audio.data[:, 0].astype(int)
-                assert len(red) >= max(6, 30 * 0.8 * steps / 20) and np.all((np.diff(red) % 256) == 1), red
-                assert len(wave) >= 48_000 * 0.8 * steps / 20 and np.all((np.diff(wave) + 20_000) % 20_000 == 1)
+                assert_every_frame_and_sample(r.stream(f"digit360/{f}/image"), r.stream(f"digit360/{f}/audio"),
+                                              joints.timestamps)
                 assert len(r.stream(f"digit360/{f}/imu")) > 0
         devices[emus["ring"].path] = Digit360Devices("/dev/video6", None)  # the ring sensor's microphones are gone
         code = main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "1", "--digit360", spec,

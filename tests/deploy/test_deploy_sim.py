@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import pytest
+from deploy_checks import again_if_loaded, assert_done_or_load_fault
 
 from rotation.cli import main
 from rotation.data.session import SessionReader
@@ -39,28 +40,38 @@ def read_session(path, steps_at_least: int) -> SessionReader:
 
 
 def test_sim_allegro_cli_run_records_and_switches_motors_off(tmp_path, capsys, policy, hand_hook):
-    record = tmp_path / "allegro.h5"
-    code = main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "2.5", "--record", str(record),
-                 "--digit360", "sim", "--status-every-s", "0.5"])
-    out, err = capsys.readouterr()
-    summary = json.loads(out.strip().splitlines()[-1])
+    record, err, runs = tmp_path / "allegro.h5", "", iter(("allegro.h5", "allegro_again.h5"))
+
+    def deploy() -> dict:
+        nonlocal record, err
+        record = tmp_path / next(runs)  # a new session each time: none is overwritten
+        code = main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "2.5", "--record",
+                     str(record), "--digit360", "sim", "--status-every-s", "0.5"])
+        out, err = capsys.readouterr()
+        summary = json.loads(out.strip().splitlines()[-1])
+        assert code == summary["exit_code"]
+        return summary
+
+    summary = again_if_loaded(deploy)
     # rates and jitter are benchmark figures (scripts/bench_deploy.py), not asserted on a shared machine: with four
     # emulated Digit 360 streams beside the emulated hand, a cold 2-core machine can miss most 20 Hz slots of this
-    # short run, which deploy must then report as a fault (exit status 1), never as done
-    rate_fault = summary["fault"] is not None and "could not hold 20 Hz" in summary["fault"]
-    assert (code == 0 and summary["exit_code"] == 0 and summary["fault"] is None) or (
-        rate_fault and code == 1 and summary["exit_code"] == 1), summary["fault"]
+    # short run (or see the policy miss its deadline until the hold limit), which deploy must then report as a fault
+    # (exit status 1), never as done
+    assert_done_or_load_fault(summary)
+    faulted = summary["exit_code"] == 1
+    # a step that ended in the policy's hold fault was counted but not recorded
+    recorded = summary["steps"] - int(faulted and summary["fault"].startswith("policy fault"))
     assert summary["steps"] > 0 and summary["loop_hz"] > 0 and summary["late_steps"] <= summary["steps"]
     assert summary["rotation_rad"] is not None and summary["max_temperature_c"] >= 35.0
     assert summary["motors_off"] and summary["motors_off_witness"] == "emulator"
     assert "deploy " in err and " Hz | late " in err  # the live status line
     emu = hand_hook.opened.emulator
     assert not emu.servo_on and emu.periods_ms == (0, 0, 0)  # the hand heard SYSTEM_OFF and SET_PERIOD 0
-    with read_session(record, summary["steps"]) as r:
-        assert r.complete is not rate_fault and r.meta.source == "sim" and r.meta.hand == "allegro"
+    with read_session(record, recorded) as r:
+        assert r.complete is not faulted and r.meta.source == "sim" and r.meta.hand == "allegro"
         assert r.meta.extra["hand"] == "sim-allegro" and r.meta.extra["policy"] == policy
         assert r.meta.properties["scale"] == pytest.approx(0.78)
-        assert r.stream("labels/object_pose").data.shape == (summary["steps"], 7)
+        assert r.stream("labels/object_pose").data.shape == (recorded, 7)
         for finger in ("index", "middle", "ring", "thumb"):
             assert len(r.stream(f"digit360/{finger}/imu")) > 200 and len(r.stream(f"digit360/{finger}/pressure")) > 100
         # every step moves the targets by at most one action (1/24 rad; a held step by none); the first moves the
@@ -221,3 +232,26 @@ def test_shipped_student_rotates_the_emulated_cup(hand_hook):
     assert summary["exit_code"] == 0 and summary["motors_off"]
     assert not summary["object_fell"], summary
     assert summary["rotation_rad"] > 0.3, summary  # about the env's commanded axis (-z), the rewarded direction
+
+
+def test_a_failed_recording_drain_ends_the_run_with_the_motors_off(tmp_path, policy, hand_hook, monkeypatch):
+    """The sensors' samples reach the recording from the drain's own thread (rotation.deploy.loop.DrainThread); a
+    drain that fails there still ends the run at the loop's next step, as a recording fault, motors off."""
+    from rotation.data.session import SessionError
+    from rotation.deploy import sensors
+
+    real_drain, calls = sensors.DigitDrain.drain, []
+
+    def drain(self, append):
+        calls.append(1)
+        if len(calls) == 3:
+            raise SessionError("disk full")
+        real_drain(self, append)
+
+    monkeypatch.setattr(sensors.DigitDrain, "drain", drain)
+    summary = run(Config(hand="sim-allegro", policy=policy, duration=10.0, record=str(tmp_path / "r.h5"),
+                         digit360="sim"))
+    assert summary["exit_code"] == 1 and summary["fault"] == "recording failed: disk full", summary["fault"]
+    assert summary["motors_off"] and summary["steps"] < 150  # well before the 10 s were over
+    with SessionReader(tmp_path / "r.h5") as r:
+        assert not r.complete and len(r.stream("digit360/index/imu")) > 0  # what the first two drains moved

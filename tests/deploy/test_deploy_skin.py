@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from deploy_checks import assert_done_or_rate_fault
+from deploy_checks import assert_done_or_load_fault
 
 from rotation.data.session import SessionReader
 from rotation.deploy.job import Config, run
@@ -20,7 +20,7 @@ def test_skin_is_recorded_beside_the_joints(tmp_path, policy, hand_hook):
         # once the hand runs, one malformed message: skipped and counted, the run goes on
         hand_hook.after(0.3, lambda opened: server.inject("{ not json"))
         summary = run(Config(hand="sim-allegro", policy=policy, duration=1.5, record=str(record), skin=server.url))
-    assert_done_or_rate_fault(summary)
+    assert_done_or_load_fault(summary)
     skin = summary["skin"]
     # the stand-in sends 100 frames a second; a loaded machine runs fewer control steps in the same time
     least = min(150, 100 * 0.8 * summary["steps"] / 20)
@@ -56,7 +56,7 @@ def test_skin_option_errors_before_anything_starts(policy, capsys):
 
 def test_skin_sim_runs_the_stand_in_server(tmp_path, policy, hand_hook, capsys):
     summary = run(Config(hand="sim-allegro", policy=policy, duration=0.6, skin="sim"))
-    assert_done_or_rate_fault(summary)
+    assert_done_or_load_fault(summary)
     least = min(50, 100 * 0.8 * summary["steps"] / 20)  # as above
     assert summary["skin"]["frames"] > least and summary["record"] is None
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["skin"] == summary["skin"]

@@ -138,3 +138,50 @@ def test_emulated_hand_starts_at_a_cached_grasp_and_holds_until_released():
     assert physics.time > 0.0 and not physics.held
     with pytest.raises(ValueError, match="out of range"):
         HandPhysics.at_grasp("cup", grasp=cache.grasps.shape[1])
+
+
+# ------------------------------------------------------------------------------------------ the recording's drain
+def test_the_drain_thread_drains_off_the_loop_and_hands_over_its_error():
+    """DrainThread moves the sensors' samples into the recording on its own thread every ``every_s``, drains once
+    more when a run that ended well stops it, and keeps a failed drain's error for the loop's next check()."""
+    from rotation.data.session import SessionError
+    from rotation.deploy.loop import DrainThread
+
+    calls, appended = [], []
+
+    class Drain:
+        fail = False
+
+        def drain(self, append):
+            calls.append(time.monotonic())
+            if self.fail:
+                raise SessionError("disk full")
+            append("digit360/index/imu", np.zeros((1, 3)), np.array([len(calls)]))
+
+    def wait_until(condition):
+        deadline = time.monotonic() + 10.0
+        while not condition():
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+
+    drainer = DrainThread(Drain(), lambda *a: appended.append(a), every_s=0.02)
+    wait_until(lambda: len(calls) >= 3)
+    drainer.check()  # nothing failed
+    drainer.stop(final_drain=True)
+    n = len(calls)
+    assert len(appended) == n  # the final drain ran on the caller's thread before stop() returned
+    time.sleep(0.1)
+    assert len(calls) == n  # and nothing drains after it
+
+    failing = Drain()
+    failing.fail = True
+    drainer = DrainThread(failing, lambda *a: None, every_s=0.02)
+    wait_until(lambda: drainer.error is not None)
+    count = len(calls)
+    with pytest.raises(SessionError, match="disk full"):
+        drainer.check()
+    time.sleep(0.1)
+    assert len(calls) == count  # a failed drain ends the thread
+    drainer.stop(final_drain=False)  # a fault's stop: no drain, no raise
+    with pytest.raises(SessionError, match="disk full"):
+        drainer.stop(final_drain=True)

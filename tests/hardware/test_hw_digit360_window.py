@@ -26,6 +26,10 @@ def test_ring_buffer_copies_only_what_is_asked_for():
     t, v = buf.since(3.0)  # what a recording drain takes: the samples after its last one
     assert t.tolist() == [4, 5] and v.ravel().tolist() == [40, 50]
     assert buf.since(5.0)[0].size == 0 and buf.since(-1.0)[0].tolist() == [2, 3, 4, 5]
+    # a drain passes the count written when it last began: only the samples written after it are looked at
+    assert buf.written == 6 and buf.since(-1.0, written=4)[0].tolist() == [4, 5]
+    assert buf.since(4.0, written=4)[0].tolist() == [5] and buf.since(-1.0, written=6)[0].size == 0
+    assert buf.since(-1.0, written=1)[0].tolist() == [2, 3, 4, 5]  # overwritten samples are gone, not repeated
     t, v = buf.last(2)  # what an image window takes: the newest frames
     assert t.tolist() == [4, 5] and v.ravel().tolist() == [40, 50]
     assert buf.last(9)[0].tolist() == [2, 3, 4, 5] and dw.RingBuffer(3, (1,)).last(2)[0].size == 0
