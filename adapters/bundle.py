@@ -276,14 +276,7 @@ class AdaptedPolicy:
         trace keeps no Python checks)."""
         if self.traced_encoders is None:
             return self.encoder(inputs)
-        bad = [g for g, x in inputs.items() if not bool(torch.isfinite(x).all())]
-        if bad:
-            raise ValueError(f"non-finite values (NaN or inf) in the touch input(s) {bad}")
-        key = tuple((g, tuple(x.shape)) for g, x in inputs.items())
-        traced = self.traced_encoders.get(key)
-        if traced is None:
-            traced = self.traced_encoders[key] = trace_single(self.encoder, (inputs,))
-        return traced(inputs)
+        return run_traced(self.encoder, inputs, self.traced_encoders)
 
     @torch.no_grad()
     def student_latent(self, obs: Mapping[str, Any]) -> torch.Tensor:
@@ -357,6 +350,19 @@ class AdaptedPolicy:
         (path / CONFIG_FILE).write_text(json.dumps(to_jsonable(self.adapter_config), indent=2) + "\n")
         self.config = replace(self.config, adapter=str(path))
         return path
+
+
+def run_traced(module: nn.Module, inputs: dict[str, torch.Tensor], traced: dict) -> Any:
+    """``module(inputs)`` from its trace for these input shapes, traced on first use into ``traced`` (keyed by the
+    inputs' names and shapes; rotation.policy.bundle.trace_single). A trace keeps no Python checks, so the eager
+    module's ValueError on non-finite inputs is raised here first."""
+    bad = [g for g, x in inputs.items() if not bool(torch.isfinite(x).all())]
+    if bad:
+        raise ValueError(f"non-finite values (NaN or inf) in the touch input(s) {bad}")
+    key = tuple((g, tuple(x.shape)) for g, x in inputs.items())
+    if key not in traced:
+        traced[key] = trace_single(module, (inputs,))
+    return traced[key](inputs)
 
 
 def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch_every: int = 4,

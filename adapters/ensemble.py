@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from adapters.bundle import (
     AdaptedPolicy,
@@ -66,6 +67,7 @@ from adapters.bundle import (
     check_bundle_header,
     load_adapter,
     read_adapter,
+    run_traced,
 )
 from envs.validation import check_int, check_output_dir, check_types
 from rotation.configs import from_jsonable, to_jsonable
@@ -252,6 +254,11 @@ class EnsemblePolicy:
                              float(m.weight) * torch.tensor(m.dim_weights, dtype=torch.float32) for m in cfg.members)
         self.shares = tuple(k > 0 and shares_unimodal(lead, m) for k, m in enumerate(members))
         """Per member: whether it takes the first member's unimodal pass (the first member itself: False)."""
+        self.shared_pass = SharedPass(lead.encoder, [m.encoder for k, m in enumerate(members)
+                                                     if k == 0 or self.shares[k]]) if any(self.shares) else None
+        """The first member's unimodal layers and the fusion layers of it and of the members sharing them."""
+        self.traced_shared: dict | None = None
+        """Traces of :attr:`shared_pass` by input shapes once :meth:`prepare_realtime` ran (deploy); None: eager."""
         self.student = lead.student
         encoders = " + ".join(dict.fromkeys(f"{m.adapter_config.encoder} ({', '.join(m.adapter_config.modalities)})"
                                             for m in members))
@@ -304,12 +311,13 @@ class EnsemblePolicy:
         with torch.no_grad():
             inputs, n = lead.encoder_inputs(lead_windows)
             try:
-                xs = lead.encoder.unimodal(inputs)
+                fused = iter(self.shared_pass(inputs) if self.traced_shared is None else
+                             run_traced(self.shared_pass, inputs, self.traced_shared))
             except ValueError as err:  # non-finite or malformed windows
                 raise TouchUnavailable(str(err)) from None
             for m, shared in zip(self.members, self.shares, strict=True):
                 if m is lead or shared:
-                    out.append(m.per_finger(m.encoder.fuse({g: xs[g] for g in m.encoder.modalities}), n))
+                    out.append(m.per_finger(next(fused), n))
                 else:
                     out.append(m.tokens(self._part(windows, m)))
         return out
@@ -344,10 +352,30 @@ class EnsemblePolicy:
         return self.members[0].proprio_features(obs)
 
     def prepare_realtime(self) -> None:
-        """Trace the acting paths (first member) and every member's encoder from its first refresh on (deploy)."""
+        """Trace the acting paths (first member), and from the first refresh on every member's encoder and the
+        shared pass (deploy): run eagerly, the shared pass gave the interpreter's lock back after each of its
+        hundreds of operations, and the shipped ensemble's refreshes in the emulated deploy on a 2-core machine took
+        1.2-1.5 s median, 0.7-0.9 s traced (docs/adapter.md; rotation.policy.bundle.trace_single)."""
         self.members[0].prepare_realtime()
         for m in self.members[1:]:
             m.traced_encoders = {}
+        if self.shared_pass is not None:
+            self.traced_shared = {}
+
+
+class SharedPass(nn.Module):
+    """The first member's unimodal layers once, then the fusion layers of each encoder in ``fusing`` (the first
+    member's and those of the members sharing its unimodal layers): ``inputs -> (tokens of each, ...)``, one module
+    that deploy can trace."""
+
+    def __init__(self, lead: nn.Module, fusing: list[nn.Module]) -> None:
+        super().__init__()
+        self.lead = lead
+        self.fusing = nn.ModuleList(fusing)
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], ...]:
+        xs = self.lead.unimodal(inputs)
+        return tuple(enc.fuse({g: xs[g] for g in enc.modalities}) for enc in self.fusing)
 
 
 def shares_unimodal(lead: AdaptedPolicy, member: AdaptedPolicy) -> bool:

@@ -203,6 +203,15 @@ def test_members_share_the_first_members_unimodal_layers(ensemble_dir, env_obs, 
     # missing or non-finite touch in the shared pass: TouchUnavailable, as in the members' own passes
     ens.shares = (False, True)
     _refuses_missing_imu_and_non_finite_touch(ens, windows, groups, "imu", np.inf)
+    # deploy's traced shared pass (prepare_realtime): the same numbers, traced once per input shape, and the same
+    # refusals (a trace keeps no Python checks: the finite check runs before it)
+    eager = ens.correction(windows, groups)
+    ens.prepare_realtime()
+    assert ens.traced_shared == {}
+    np.testing.assert_allclose(ens.correction(windows, groups), eager, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(ens.correction(windows, groups), eager, rtol=0, atol=1e-6)
+    assert len(ens.traced_shared) == 1
+    _refuses_missing_imu_and_non_finite_touch(ens, windows, groups, "imu", np.inf)
 
 
 def test_bad_per_dimension_weights_are_refused(ensemble_dir, tmp_path, capsys):
