@@ -11,13 +11,14 @@ Streams, all in session time (s since the first joint measurement of the run):
 - ``digit360/<finger>/image`` (224, 224, 3) uint8 RGB at 30 fps and ``digit360/<finger>/audio`` (2,) int16 at 48 kHz:
   a real sensor's camera frames (centre crop, resized, as the reader keeps them for the encoder) and microphones,
   when deploy opened them (``--record-media``, or a policy that reads them; an emulated sensor renders its image and
-  audio only when a window is asked for, so it records none); about 4.5 MB/s per sensor, so these sessions are
-  written from the writer's own thread;
+  audio only when a window is asked for, so it records none); about 4.5 MB/s per sensor;
 - ``skin/xela`` (368, 3) raw counts at 100 Hz when ``--skin`` is given (baseline in ``extra["xela_baseline"]``).
 
 Joint streams share the control step's timestamp (the state read then was measured at most one driver cycle
-earlier: 3 ms Allegro, 10 ms LEAP). The writer flushes every ``flush_interval_s``, so a crash or a fault loses at
-most that much; a run that ends by a fault or a signal is left without the ``complete`` mark.
+earlier: 3 ms Allegro, 10 ms LEAP). The writer flushes every ``flush_interval_s`` from its own thread, never from
+the control loop's (a flush on the loop's thread made steps start late: 5-7 late steps in a 5 s run of the shipped
+adapter on the emulated 2-core deploy, 1-3 from the writer's thread), so a crash or a fault loses at most that
+much; a run that ends by a fault or a signal is left without the ``complete`` mark.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ class DeployRecorder:
         if skin:
             streams.append("skin/xela")
         self.writer = SessionWriter(path, meta, streams, flush_interval_s=flush_interval_s, overwrite=overwrite,
-                                    background=bool(media))
+                                    background=True)
         self.path = self.writer.path
         self.object_pose = object_pose
         self.steps = 0
