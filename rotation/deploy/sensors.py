@@ -328,7 +328,7 @@ class DigitDrain:
                     append(f"digit360/{finger}/{stream}", v, t - self.t0)
                     self._last[key] = float(t[-1])
                 if stream in STREAMS:  # a stall is the serial stream's; a frozen camera makes windows stale
-                    newest = max(newest, float(getattr(reader, stream).newest_time()))
+                    newest = max(newest, float(buf.newest_time()))
             stalled = now - newest > STALL_S
             if stalled != self._stalled[finger]:
                 if stalled:

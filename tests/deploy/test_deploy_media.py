@@ -339,21 +339,20 @@ def test_deploy_records_the_real_sensors_camera_frames_and_microphones(tmp_path,
     from rotation.data.session import SessionReader
 
     adapter = build_adapted(policy, ENCODER, ("img", "mic"), touch_every=4).save(tmp_path / "image_audio")
-    record, runs = tmp_path / "run.h5", iter(("run.h5", "run_again.h5"))
+    runs = iter(("run.h5", "run_again.h5"))  # a new session each time: none is overwritten
 
     def deploy() -> dict:
-        nonlocal record
-        record = tmp_path / next(runs)  # a new session each time: none is overwritten
         with contextlib.ExitStack() as stack:
             _, _, spec = whole_sensors(stack, monkeypatch)
             code = main(["deploy", "--hand", "sim-allegro", "--policy", str(adapter), "--duration", "2.5",
-                         "--digit360", spec, "--record", str(record)])
+                         "--digit360", spec, "--record", str(tmp_path / next(runs))])
         summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         assert code == summary["exit_code"]
         return summary
 
     summary = again_if_loaded(deploy)
     assert_done_or_load_fault(summary)
+    record = Path(summary["record"])  # the session of the run checked
     with SessionReader(record) as r:
         assert r.complete == (summary["exit_code"] == 0)
         joints = r.stream("joints/position")  # a run the machine slowed down: its true, slower timestamps

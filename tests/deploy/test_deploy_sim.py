@@ -40,13 +40,12 @@ def read_session(path, steps_at_least: int) -> SessionReader:
 
 
 def test_sim_allegro_cli_run_records_and_switches_motors_off(tmp_path, capsys, policy, hand_hook):
-    record, err, runs = tmp_path / "allegro.h5", "", iter(("allegro.h5", "allegro_again.h5"))
+    err, runs = "", iter(("allegro.h5", "allegro_again.h5"))  # a new session each time: none is overwritten
 
     def deploy() -> dict:
-        nonlocal record, err
-        record = tmp_path / next(runs)  # a new session each time: none is overwritten
+        nonlocal err
         code = main(["deploy", "--hand", "sim-allegro", "--policy", policy, "--duration", "2.5", "--record",
-                     str(record), "--digit360", "sim", "--status-every-s", "0.5"])
+                     str(tmp_path / next(runs)), "--digit360", "sim", "--status-every-s", "0.5"])
         out, err = capsys.readouterr()
         summary = json.loads(out.strip().splitlines()[-1])
         assert code == summary["exit_code"]
@@ -67,7 +66,7 @@ def test_sim_allegro_cli_run_records_and_switches_motors_off(tmp_path, capsys, p
     assert "deploy " in err and " Hz | late " in err  # the live status line
     emu = hand_hook.opened.emulator
     assert not emu.servo_on and emu.periods_ms == (0, 0, 0)  # the hand heard SYSTEM_OFF and SET_PERIOD 0
-    with read_session(record, recorded) as r:
+    with read_session(summary["record"], recorded) as r:  # the session of the run checked
         assert r.complete is not faulted and r.meta.source == "sim" and r.meta.hand == "allegro"
         assert r.meta.extra["hand"] == "sim-allegro" and r.meta.extra["policy"] == policy
         assert r.meta.properties["scale"] == pytest.approx(0.78)
