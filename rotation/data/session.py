@@ -45,12 +45,15 @@ labels/joystick               (3,)                float32/64       any        jo
 
 ``<finger>`` is one of index, middle, ring, thumb. Fixed rates are the Digit 360's (reference/hardware.md section 4)
 and Xela's (reference/sparsh.md); "any" rates are declared per session in the ``rate_hz`` attribute (e.g. the
-control rate) and checked against the timestamps. A Digit 360 fingertip is stored either as its recorded streams
-(real hand) or as its contact fields (simulation), from which the loader renders the four modalities
-(envs.sensors.digit360_render). A session with skin streams carries the static taxel facts in ``extra["skin"]``
-(envs.sensors.xela.skin_metadata: pad names, taxels per pad, taxel type ids and names). The object's properties
-(``properties``) are the simulated parameters in sim (scale, mass kg, friction, com m) and whatever was measured on
-the real object.
+control rate) and checked against the timestamps: a declared-rate stream off its rate makes a complete session
+unreadable (a writer's bug), while a sensor stream at a fixed rate, stamped on arrival at the host, may come out
+slower than its sensor when the host fell behind (a busy machine reading a camera): it is kept, with a warning that
+names the rate it had, as is every stream of an incomplete session (a run that ended in a fault). A Digit 360
+fingertip is stored either as its recorded streams (real hand) or as its contact fields (simulation), from which
+the loader renders the four modalities (envs.sensors.digit360_render). A session with skin streams carries the
+static taxel facts in ``extra["skin"]`` (envs.sensors.xela.skin_metadata: pad names, taxels per pad, taxel type ids
+and names). The object's properties (``properties``) are the simulated parameters in sim (scale, mass kg, friction,
+com m) and whatever was measured on the real object.
 
 Crash safety: the writer keeps the file in HDF5's single-writer/multiple-reader mode (SWMR, ``libver="latest"``),
 creates every dataset up front, buffers appends in memory and writes + flushes them every ``flush_interval_s``. In
@@ -522,11 +525,15 @@ class SessionReader:
             step = float(np.median(np.diff(t)))
             if not math.isclose(step, 1.0 / rate, rel_tol=RATE_TOLERANCE):
                 message = f"{where}: timestamps step {step:.6g} s, but rate_hz={rate} (expected {1.0 / rate:.6g} s)"
-                if self.complete:
+                if self.complete and spec.rate_hz is None:
                     raise SessionError(message)
-                # a run that ended in a fault (a control loop that could not hold its rate): its timestamps are
-                # the true ones, so the record is kept, and said to be off its declared rate
-                log.warning("%s; kept, as the session is not complete (its run ended early or in a fault)", message)
+                # a run that ended in a fault (a control loop that could not hold its rate), or a sensor the host
+                # read slower than it streams: the timestamps are the true ones, so the record is kept, and said
+                # to be off its declared rate
+                why = ("the session is not complete (its run ended early or in a fault)" if not self.complete else
+                       f"a sensor stream stamped on arrival: it came at {1.0 / step:.3g} of its declared {rate:g} "
+                       "samples a second")
+                log.warning("%s; kept, as %s", message, why)
         if lazy:
             data: Any = d
         else:

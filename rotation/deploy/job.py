@@ -66,6 +66,9 @@ EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
 TOUCH_JOIN_S = 5.0
 """Longest wait (s), after the motors are off, for a touch refresh still running (one takes up to ~1 s on a loaded
 2-core machine); torch still computing on a daemon thread when the interpreter exits aborts the process."""
+DRAIN_JOIN_S = 2.0
+"""Longest wait (s), after a fault and with the motors off, for a recording drain in progress (one took up to
+0.5 s on a loaded 2-core machine) before the sensors' last samples are moved into the session."""
 
 
 @dataclass(frozen=True)
@@ -424,6 +427,8 @@ def run(cfg: Config) -> dict[str, Any]:
         signals.defer()  # the hand has left (motors off): nothing may cut the rest short
         if loop is not None and loop.touch is not None:
             loop.touch.join(TOUCH_JOIN_S)  # a refresh still encoding; now that the motors are off it may be waited for
+        if loop is not None and loop.drainer is not None:  # after a fault: the moments before it (else a no-op)
+            loop.drainer.drain_rest(DRAIN_JOIN_S)
         sys.setswitchinterval(switch_interval)
         torch.set_num_threads(torch_threads)
         hw_log.removeHandler(critical)

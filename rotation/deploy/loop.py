@@ -226,6 +226,7 @@ class DrainThread:
     def __init__(self, drain: _Drains, append, every_s: float) -> None:
         self.drain, self.append, self.every_s = drain, append, every_s
         self.error: BaseException | None = None
+        self._drained = False  # the run's samples are all in the recording
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="deploy-drain", daemon=True)
         self._thread.start()
@@ -245,13 +246,38 @@ class DrainThread:
 
     def stop(self, final_drain: bool) -> None:
         """Stop. ``final_drain`` (a run that ended well): wait for a drain in progress, then move what came since.
-        Otherwise (a fault: the motors go off first) nothing is waited for; a drain still running may add its
-        samples until the recording closes, after which its append fails harmlessly on this daemon thread."""
+        Otherwise (a fault: the motors go off first) nothing is waited for here; :meth:`drain_rest` moves the
+        samples of the run's last moments once the hand is off."""
         self._stop.set()
         if final_drain:
             self._thread.join()
             self.check()
             self.drain.drain(self.append)
+            self._drained = True
+
+    def drain_rest(self, timeout_s: float) -> bool:
+        """After a fault, once the motors are off: wait up to ``timeout_s`` for a drain in progress, then move the
+        samples that came since (the moments before a fault are those a lab most wants to look at). False (logged)
+        when they could not be recorded: a drain still busy, or the recording failed."""
+        if self._drained:
+            return True
+        self._stop.set()
+        self._thread.join(timeout=timeout_s)
+        if self._thread.is_alive():
+            log.warning("recording: a drain still busy %.1f s after the run; the sensors' last samples are not in "
+                        "the session", timeout_s)
+            return False
+        if self.error is not None:
+            log.warning("recording: the sensors' last samples are not in the session (a drain failed: %s)",
+                        self.error)
+            return False
+        try:
+            self.drain.drain(self.append)
+        except Exception as err:  # noqa: BLE001 -- the hand is off; the run's outcome is already decided
+            log.error("recording: the sensors' last samples could not be recorded: %s", err)
+            return False
+        self._drained = True
+        return True
 
 
 class ControlLoop:
@@ -277,6 +303,9 @@ class ControlLoop:
         self._monitor: TemperatureMonitor | None = None
         self.touch: TouchWorker | None = None
         """The touch worker of a touch-reading policy (its ``stats`` stay valid after the run); None otherwise."""
+        self.drainer: DrainThread | None = None
+        """The recording's drain thread (a recorded run with sensors); after a fault, ``rotate deploy`` calls its
+        ``drain_rest`` once the motors are off."""
 
     def _act(self, request: tuple[dict[str, np.ndarray], np.ndarray | None]) -> np.ndarray:
         """The policy worker's call: one observation and the touch correction to act with (None: the policy alone,
@@ -318,10 +347,10 @@ class ControlLoop:
         last_status = start
         held_since: float | None = None
         k = 0
-        drainer: DrainThread | None = None
+        drainer = self.drainer = None
         try:
             if drain is not None and self.recorder is not None:
-                drainer = DrainThread(drain, self.recorder.append, cfg.drain_every_s)
+                drainer = self.drainer = DrainThread(drain, self.recorder.append, cfg.drain_every_s)
             while True:
                 now = time.monotonic()
                 if cfg.duration_s > 0 and now - start >= cfg.duration_s:
@@ -410,7 +439,7 @@ class ControlLoop:
                 drainer.stop(final_drain=True)
         finally:
             if drainer is not None:
-                drainer.stop(final_drain=False)  # after a fault: no more drains (a no-op after the one above)
+                drainer.stop(final_drain=False)  # after a fault: the motors first (job.py then calls drain_rest)
             worker.close(join_timeout_s=0.0)
             if touch is not None:
                 touch.close()

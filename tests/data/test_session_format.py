@@ -215,6 +215,22 @@ def test_reader_keeps_an_incomplete_session_off_its_rate_with_a_warning(tmp_path
     assert "timestamps step 0.062 s, but rate_hz=20.0" in caplog.text and "not complete" in caplog.text
 
 
+def test_reader_keeps_a_complete_session_whose_sensor_the_host_read_slowly(tmp_path, caplog):
+    """A sensor stream at its fixed rate is stamped on arrival: a busy host that took a third of a sensor's samples
+    gives a complete session whose stream is slower than declared. It is kept, with a warning naming the rate it
+    had; a declared-rate stream (the control loop's joints) off its rate in a complete session is still refused."""
+    path = write_basic(tmp_path / "slow_imu.h5")
+    _edit(path, lambda f: f["streams/digit360/index/imu/timestamps"].__setitem__(slice(None), np.arange(800) * 0.0075))
+    with SessionReader(path) as r, caplog.at_level("WARNING", logger="rotation.data.session"):
+        imu = r.stream("digit360/index/imu")
+        assert r.complete and len(imu) == 800 and imu.timestamps[-1] == pytest.approx(799 * 0.0075)
+    _edit(path, lambda f: f["streams/joints/position/timestamps"].__setitem__(slice(None), np.arange(40) * 0.1))
+    with SessionReader(path) as r, pytest.raises(SessionError, match=r"'joints/position': timestamps step 0\.1 s"):
+        r.stream("joints/position")
+    assert "timestamps step 0.0075 s, but rate_hz=400.0" in caplog.text
+    assert "it came at 133 of its declared 400 samples a second" in caplog.text
+
+
 def test_reader_rejects_wrong_shape_and_missing_streams(tmp_path):
     path = write_basic(tmp_path / "shape.h5")
 

@@ -254,3 +254,26 @@ def test_a_failed_recording_drain_ends_the_run_with_the_motors_off(tmp_path, pol
     assert summary["motors_off"] and summary["steps"] < 150  # well before the 10 s were over
     with SessionReader(tmp_path / "r.h5") as r:
         assert not r.complete and len(r.stream("digit360/index/imu")) > 0  # what the first two drains moved
+
+
+def test_a_fault_still_records_the_sensors_last_samples(tmp_path, policy, hand_hook, monkeypatch):
+    """After a fault the motors go off first; then the samples the drain thread had not yet moved (up to its
+    0.25 s interval, the moments before the fault) still reach the session before it closes. The drains are made
+    too rare to run during the run here, so everything recorded of the fingertips came after the fault."""
+    from rotation.deploy import loop as loop_module
+
+    class RareDrains(loop_module.DrainThread):
+        def __init__(self, drain, append, every_s):
+            super().__init__(drain, append, every_s=60.0)
+
+    monkeypatch.setattr(loop_module, "DrainThread", RareDrains)
+    hand_hook.after(1.0, send_sigint)
+    record = tmp_path / "signal.h5"
+    summary = run(Config(hand="sim-allegro", policy=policy, duration=10.0, record=str(record), digit360="sim"))
+    assert summary["exit_code"] == 130 and summary["motors_off"]
+    with read_session(record, 10) as r:
+        assert not r.complete
+        last_step = r.stream("joints/position").timestamps[-1]
+        for finger in ("index", "middle", "ring", "thumb"):
+            imu = r.stream(f"digit360/{finger}/imu").timestamps
+            assert len(imu) and imu[0] < 0.5 and imu[-1] >= last_step - 0.1, (finger, imu[[0, -1]], last_step)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -185,3 +186,47 @@ def test_the_drain_thread_drains_off_the_loop_and_hands_over_its_error():
     drainer.stop(final_drain=False)  # a fault's stop: no drain, no raise
     with pytest.raises(SessionError, match="disk full"):
         drainer.stop(final_drain=True)
+
+
+def test_after_a_fault_drain_rest_moves_the_last_samples_once_the_motors_are_off(caplog):
+    """DrainThread.drain_rest (called once the hand is off): one more drain after a fault's stop; a no-op after a
+    run that ended well; False, logged, when the drain is still busy or had failed (nothing is waited for forever)."""
+    from rotation.data.session import SessionError
+    from rotation.deploy.loop import DrainThread
+
+    class Drain:
+        def __init__(self, block: threading.Event | None = None, fail: bool = False):
+            self.calls, self.block, self.fail = 0, block, fail
+
+        def drain(self, append):
+            self.calls += 1
+            if self.block is not None:
+                self.block.wait()
+            if self.fail:
+                raise SessionError("disk full")
+            append("digit360/index/imu", np.zeros((1, 3)), np.array([float(self.calls)]))
+
+    appended = []
+    faulted = DrainThread(Drain(), lambda *a: appended.append(a), every_s=60.0)  # no drain before the fault
+    faulted.stop(final_drain=False)
+    assert appended == []
+    assert faulted.drain_rest(timeout_s=5.0) and len(appended) == 1
+    assert faulted.drain_rest(timeout_s=5.0) and len(appended) == 1  # once
+
+    ended = DrainThread(Drain(), lambda *a: appended.append(a), every_s=60.0)
+    ended.stop(final_drain=True)
+    assert len(appended) == 2 and ended.drain_rest(timeout_s=5.0) and len(appended) == 2
+
+    release = threading.Event()
+    busy = DrainThread(Drain(block=release), lambda *a: None, every_s=0.01)
+    time.sleep(0.2)  # a drain now blocks
+    busy.stop(final_drain=False)
+    t = time.monotonic()
+    assert not busy.drain_rest(timeout_s=0.3) and time.monotonic() - t < 2.0
+    assert "drain still busy" in caplog.text
+    release.set()
+
+    failing = DrainThread(Drain(fail=True), lambda *a: None, every_s=0.01)
+    time.sleep(0.2)
+    failing.stop(final_drain=False)
+    assert not failing.drain_rest(timeout_s=5.0) and "a drain failed: disk full" in caplog.text
