@@ -10,6 +10,7 @@ import time
 import pytest
 
 from rotation.deploy import job
+from rotation.deploy import loop as loop_module
 from rotation.policy.bundle import BundleConfig, PolicyBundle, shipped_bundles
 
 STUDENT_SHIPPED = "student" in shipped_bundles()
@@ -42,7 +43,9 @@ def no_leaks():
 
 
 class HandHook:
-    """Records the hand ``rotate deploy`` opened and runs ``after(delay_s, fn(opened))`` once it has started."""
+    """Records the hand ``rotate deploy`` opened and runs ``after(delay_s, fn(opened))`` that long after its control
+    loop started (the motors on, the recording open): a fault meant for mid-run never lands in a start that a slow
+    machine drew out (reading the hand's firmware, opening the recording)."""
 
     def __init__(self) -> None:
         self.opened = None
@@ -52,6 +55,13 @@ class HandHook:
     def after(self, delay_s: float, fn) -> None:
         self.actions.append((delay_s, fn))
 
+    def start(self, opened) -> None:
+        for delay, fn in self.actions:
+            timer = threading.Timer(delay, fn, args=(opened,))
+            timer.daemon = True
+            timer.start()
+            self.timers.append(timer)
+
 
 @pytest.fixture
 def hand_hook(monkeypatch):
@@ -59,16 +69,16 @@ def hand_hook(monkeypatch):
     real_open_hand = job.open_hand
 
     def open_hand(setup, stack, **kw):
-        opened = real_open_hand(setup, stack, **kw)
-        hook.opened = opened
-        for delay, fn in hook.actions:
-            timer = threading.Timer(delay, fn, args=(opened,))
-            timer.daemon = True
-            timer.start()
-            hook.timers.append(timer)
-        return opened
+        hook.opened = real_open_hand(setup, stack, **kw)
+        return hook.opened
+
+    class HookedLoop(loop_module.ControlLoop):
+        def run(self) -> None:
+            hook.start(self.opened)
+            super().run()
 
     monkeypatch.setattr(job, "open_hand", open_hand)
+    monkeypatch.setattr(loop_module, "ControlLoop", HookedLoop)  # job.run imports it when it runs
     yield hook
     for timer in hook.timers:
         timer.cancel()
