@@ -259,7 +259,7 @@ def test_a_failed_recording_drain_ends_the_run_with_the_motors_off(tmp_path, pol
 def test_a_fault_still_records_the_sensors_last_samples(tmp_path, policy, hand_hook, monkeypatch):
     """After a fault the motors go off first; then the samples the drain thread had not yet moved (up to its
     0.25 s interval, the moments before the fault) still reach the session before it closes. The drains are made
-    too rare to run during the run here, so everything recorded of the fingertips came after the fault."""
+    too rare to run during the run here, so all the fingertips' samples reach the session after the fault."""
     from rotation.deploy import loop as loop_module
 
     class RareDrains(loop_module.DrainThread):
