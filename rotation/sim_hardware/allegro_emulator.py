@@ -56,6 +56,9 @@ class AllegroFaults:
     """SLCAN only: corrupt the next N lines sent to the host [receive error logged; repeated -> motors off]."""
     error_frame: tuple[int, int] | None = None
     """Send one V5 error frame (motor id, bits) at the next tick [motors off]."""
+    ignore_system_off: int = 0
+    """Ignore the next N SYSTEM_OFF frames, as a hand that had not yet handled one when asked [HAND_INFO says the
+    servo is on; SYSTEM_OFF sent again; never off -> CRITICAL, motors off unconfirmed]."""
 
 
 class _VirtualTransport:
@@ -252,6 +255,8 @@ class AllegroEmulator(EmulatorThread):
             self._answer_request(msg_id)
         elif msg_id == ap.Msg.SYSTEM_ON:
             self.servo_on = True
+        elif msg_id == ap.Msg.SYSTEM_OFF and self.faults.ignore_system_off > 0:
+            self.faults.ignore_system_off -= 1
         elif msg_id == ap.Msg.SYSTEM_OFF:
             self.servo_on = False
             self._torque[:] = 0.0

@@ -156,6 +156,23 @@ def test_motors_off_is_confirmed_by_the_hands_answer(allegro_emu):
     assert not hand.motors_switched_on and hand.motors_off_confirmed is None  # read-only: nothing to confirm
 
 
+def test_a_hand_still_on_is_sent_system_off_again_until_it_answers_off(allegro_emu, caplog):
+    """A hand that says its servo is still on after SYSTEM_OFF gets SYSTEM_OFF again (a warning per repeat) until it
+    answers off; one that never does leaves the motors off unconfirmed, CRITICAL."""
+    with caplog.at_level(logging.WARNING), AllegroHand(allegro_emu.spec, CFG) as hand:
+        assert wait_until(lambda: allegro_emu.servo_on)
+        allegro_emu.faults.ignore_system_off = 2  # the safety layer's and the shutdown's, before the first request
+    assert hand.motors_off_confirmed is True and not allegro_emu.servo_on
+    assert "still reports its servo on (request 1 of" in caplog.text and "did not confirm" not in caplog.text
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+    with caplog.at_level(logging.WARNING), AllegroHand(allegro_emu.spec, CFG) as hand:
+        assert wait_until(lambda: allegro_emu.servo_on)
+        allegro_emu.faults.ignore_system_off = 10**9
+    assert hand.motors_off_confirmed is False and allegro_emu.servo_on
+    assert "did not confirm that its servo is off" in caplog.text and "power supply" in caplog.text
+
+
 def test_fault_bus_off_leaves_motors_off_unconfirmed(allegro_emu, caplog):
     """SYSTEM_OFF into a dead bus raises no error; only the missing answer shows the hand never got it."""
     with AllegroHand(allegro_emu.spec, CFG) as hand, caplog.at_level(logging.CRITICAL):
