@@ -258,13 +258,24 @@ def open_skin(spec: str, stack: contextlib.ExitStack) -> tuple[Any, Any]:
     return reader, baseline
 
 
-def fresh_samples(buf: Any, last: float, written: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Samples of a ring buffer newer than ``last`` (host s) among those written after the first ``written``
-    (RingBuffer.since), keeping the series strictly increasing (a clock re-anchoring may map a sample before an
-    earlier one): (t (n,), v (n, ...))."""
-    t, v = buf.since(last, written)
-    keep = t > np.maximum.accumulate(np.concatenate([[last], t]))[:-1]
-    return t[keep], v[keep]
+class SampleCursor:
+    """Where a recording drain stands in one ring buffer: the newest time it took (host s), and how many samples the
+    buffer had written when it last looked, so that each take looks only at newer ones (RingBuffer.since; its cost
+    follows what is new, not the buffer's capacity: four fingertips' audio are 576,000 slots)."""
+
+    def __init__(self, t0: float) -> None:
+        self.last, self.seen = t0, 0
+
+    def take(self, buf: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The samples newer than those taken before, strictly increasing (a clock re-anchoring may map a sample
+        before an earlier one): (t (n,), v (n, ...))."""
+        seen, self.seen = self.seen, buf.written  # read first: a sample written meanwhile is taken now or, being
+        t, v = buf.since(self.last, seen)  # newer than ``last``, next time
+        keep = t > np.maximum.accumulate(np.concatenate([[self.last], t]))[:-1]
+        t, v = t[keep], v[keep]
+        if len(t):
+            self.last = float(t[-1])
+        return t, v
 
 
 class SkinDrain:
@@ -272,16 +283,13 @@ class SkinDrain:
 
     def __init__(self, reader: Any, t0: float) -> None:
         self.reader, self.t0 = reader, t0
-        self._last = t0
-        self._seen = 0  # frames written when the last drain began (each drain looks only at newer ones)
+        self._cursor = SampleCursor(t0)
         self._stalled = False
 
     def drain(self, append) -> None:
-        seen, self._seen = self._seen, self.reader.frames.written
-        t, v = fresh_samples(self.reader.frames, self._last, seen)
+        t, v = self._cursor.take(self.reader.frames)
         if len(t):
             append("skin/xela", v, t - self.t0)
-            self._last = float(t[-1])
         age = time.monotonic() - self.reader.frames.newest_time()
         stalled = age > STALL_S
         if stalled != self._stalled:
@@ -309,10 +317,7 @@ class DigitDrain:
         self.readers = readers
         self.t0 = t0
         self._streams = {f: STREAMS + media_streams(r) for f, r in readers.items()}
-        self._last = {(f, s): t0 for f in readers for s in self._streams[f]}
-        # samples each buffer had written when the last drain began: a drain looks only at newer ones, so its cost
-        # follows what is new, not the buffers' capacity (four fingertips' audio: 576,000 slots)
-        self._seen = dict.fromkeys(self._last, 0)
+        self._cursors = {(f, s): SampleCursor(t0) for f in readers for s in self._streams[f]}
         self._stalled = dict.fromkeys(readers, False)
 
     def drain(self, append) -> None:
@@ -321,12 +326,10 @@ class DigitDrain:
         for finger, reader in self.readers.items():
             newest = -np.inf
             for stream in self._streams[finger]:
-                key, buf = (finger, stream), getattr(reader, stream)
-                seen, self._seen[key] = self._seen[key], buf.written  # read first: a sample written meanwhile is
-                t, v = fresh_samples(buf, self._last[key], seen)  # taken now or, being newer than _last, next time
+                buf = getattr(reader, stream)
+                t, v = self._cursors[finger, stream].take(buf)
                 if len(t):
                     append(f"digit360/{finger}/{stream}", v, t - self.t0)
-                    self._last[key] = float(t[-1])
                 if stream in STREAMS:  # a stall is the serial stream's; a frozen camera makes windows stale
                     newest = max(newest, float(buf.newest_time()))
             stalled = now - newest > STALL_S
