@@ -330,7 +330,7 @@ class AdaptedPolicy:
             if corr is None:
                 return self.student.act(dict(obs))
             tensors = self.student._tensors(dict(obs), batched=False)
-            return self.corrected(tensors, torch.as_tensor(corr))[0].numpy()
+            return self.corrected(tensors, torch.as_tensor(corr)).numpy()[0]  # as PolicyBundle.act
         batched = {k: np.asarray(obs[k])[None] for k in self.config.obs_groups}
         return self.act_batch(batched, corr)[0]
 

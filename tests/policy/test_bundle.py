@@ -198,6 +198,10 @@ def test_rejects_bad_observations(teacher):
         teacher.act_batch(obs)
     with pytest.raises(BundleError, match="non-finite"):
         teacher.act({**obs, "proprio": np.full((3, 32), np.nan)})
+    with pytest.raises(BundleError, match="'proprio' contains non-finite"):  # float64 past float32's range
+        teacher.act({**obs, "proprio": np.full((3, 32), 1e300)})
+    with pytest.raises(BundleError, match="'priv' is not an array of numbers"):
+        teacher.act({**obs, "priv": ["slippery"] * 9})
 
 
 @pytest.mark.parametrize("shipped", ["teacher", "student"])
