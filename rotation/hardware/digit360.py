@@ -370,16 +370,18 @@ class Digit360:
                 continue
             t_recv = time.monotonic()
             buf.extend(chunk)
-            if len(buf) > 1 << 16:  # no frame delimiter for 64 KiB: not our stream; resynchronize
-                log.error("%s: %d bytes without a frame delimiter dropped", self.name, len(buf))
-                buf.clear()
-            while (end := buf.find(b"\x00")) >= 0:
-                frame, buf = bytes(buf[:end]), buf[end + 1:]
+            start = 0  # frames are cut from the front once per read, not one by one (a late read holds hundreds)
+            while (end := buf.find(b"\x00", start)) >= 0:
+                frame, start = bytes(buf[start:end]), end + 1
                 if frame:
                     try:
                         self._on_frame(frame, t_recv)
                     except Exception:  # a reader thread must not die silently
                         log.exception("%s: error handling a frame", self.name)
+            del buf[:start]
+            if len(buf) > 1 << 16:  # no frame delimiter for 64 KiB: not our stream; resynchronize
+                log.error("%s: %d bytes without a frame delimiter dropped", self.name, len(buf))
+                buf.clear()
             if self.cfg.read_every_s > 0:
                 self._stop.wait(self.cfg.read_every_s)
 
@@ -398,7 +400,7 @@ class Digit360:
             self.pressure.append(self._clock(msg.pressure.ts, t_recv), msg.pressure.pressure)
         elif kind == "imu" and msg.imu.WhichOneof("data") == "raw" and msg.imu.raw.sensor == SENSOR["ACC"]:
             r = msg.imu.raw
-            self.imu.append(self._clock(msg.imu.ts, t_recv), np.array([r.x, r.y, r.z]) / ACC_PER_G)
+            self.imu.append(self._clock(msg.imu.ts, t_recv), (r.x / ACC_PER_G, r.y / ACC_PER_G, r.z / ACC_PER_G))
         elif kind == "system":
             self.version = msg.system.version
 

@@ -15,6 +15,7 @@ a stream that does not cover at least ``min_coverage`` of its window raises :cla
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -41,6 +42,7 @@ class RingBuffer:
         self.t = np.full(capacity, -np.inf)
         self.v = np.zeros((capacity, *shape), dtype=dtype)
         self._n = 0  # total samples ever written
+        self._sample_size = int(np.prod(shape))
         self._lock = threading.Lock()
 
     def __len__(self) -> int:
@@ -59,8 +61,17 @@ class RingBuffer:
             self.v[idx] = v
             self._n += len(t)
 
-    def append(self, t: float, v: np.ndarray | float) -> None:
-        self.extend(np.array([t]), np.asarray(v)[None])
+    def append(self, t: float, v: np.ndarray | Sequence[float] | float) -> None:
+        """Append one sample: what :meth:`extend` does for one, without its array building (a reader thread appends
+        every frame, hundreds a second per sensor, holding the interpreter's lock meanwhile)."""
+        if np.size(v) != self._sample_size:  # what extend's reshape refuses (no silent broadcast)
+            raise ValueError(f"a sample of {np.size(v)} value(s); this buffer holds samples of shape "
+                             f"{self.v.shape[1:]}")
+        with self._lock:
+            slot = self._n % len(self.t)
+            self.t[slot] = t
+            self.v[slot] = v
+            self._n += 1
 
     def _newest(self, k: int) -> np.ndarray:
         """Slots of the newest ``k`` stored samples (at most all of them), oldest first; call with the lock held."""

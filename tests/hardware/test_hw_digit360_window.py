@@ -19,6 +19,21 @@ def test_ring_buffer_wraps_in_time_order():
     assert buf.newest_time() == 5.0 and len(buf) == 4
 
 
+def test_ring_buffer_append_stores_what_extend_stores_and_refuses_a_sample_of_another_size():
+    """append is extend for one sample, without extend's array building (a reader appends every frame)."""
+    one, many = dw.RingBuffer(3, (3,)), dw.RingBuffer(3, (3,))
+    samples = [np.array([k, -k, 0.5 * k]) / 3.0 for k in range(5)]
+    for k, x in enumerate(samples):
+        one.append(k * 0.0025, x)
+    many.extend(np.arange(5) * 0.0025, np.stack(samples))
+    for a, b in zip(one.snapshot(), many.snapshot(), strict=True):
+        assert np.array_equal(a, b)
+    assert one.written == 5 and one.v.dtype == np.float32
+    with pytest.raises(ValueError, match=r"a sample of 1 value\(s\); this buffer holds samples of shape \(3,\)"):
+        one.append(1.0, 5.0)  # would broadcast to all three axes
+    assert one.written == 5
+
+
 def test_ring_buffer_copies_only_what_is_asked_for():
     buf = dw.RingBuffer(4, (1,))
     for k in range(6):

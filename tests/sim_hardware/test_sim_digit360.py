@@ -10,7 +10,7 @@ import pytest
 import serial
 from cobs import cobs
 
-from rotation.hardware.digit360 import Digit360, Digit360Config, SensorStale, messages
+from rotation.hardware.digit360 import ACC_PER_G, SENSOR, Digit360, Digit360Config, SensorStale, messages
 from rotation.hardware.digit360_window import WindowNotReady
 from rotation.sim_hardware.digit360_emulator import HPA_PER_N, REST_HPA, Digit360Emulator
 
@@ -63,6 +63,58 @@ def test_fault_corrupt_frames_dropped_and_logged(digit_emu, caplog):
             time.sleep(0.01)
         assert d.counters["bad_frames"] == 3 and "undecodable frame" in caplog.text
         d.window()  # the stream carries on
+
+
+class _Backlog:
+    """A serial port whose host fell behind: everything it holds comes in one read, then nothing."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self.data)
+
+    def read(self, n: int) -> bytes:
+        out, self.data = self.data[:n], self.data[n:]
+        if not out:
+            time.sleep(0.01)  # a port's read timeout
+        return out
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_late_read_keeps_every_frame_and_drops_only_bytes_without_a_delimiter(monkeypatch, caplog):
+    """A host that reads late gets many frames in one read (here 4,000 IMU frames, 10 s, over 64 KiB): every one
+    is kept. Only 64 KiB that hold no frame delimiter at all are dropped, with an error."""
+    msg = messages()["DigitMessage"]
+    frames = []
+    for k in range(4000):
+        m = msg()
+        m.imu.ts, m.imu.raw.sensor = 2500 * k, SENSOR["ACC"]
+        m.imu.raw.x, m.imu.raw.y, m.imu.raw.z = k % 7, -(k % 5), int(ACC_PER_G)
+        frames.append(cobs.encode(m.SerializeToString()) + b"\x00")
+    data = b"".join(frames)
+    assert len(data) > 1 << 16
+
+    def backlog(self: Digit360) -> None:
+        self._serial = _Backlog(data + b"\x01" * (1 << 17))  # then noise: no delimiter for 128 KiB
+        self.connected.set()
+
+    monkeypatch.setattr(Digit360, "_open_serial", backlog)
+    with caplog.at_level(logging.ERROR), Digit360(Digit360Config(port="backlog")) as d:
+        deadline = time.monotonic() + 10.0
+        while "without a frame delimiter" not in caplog.text and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert d.counters["frames"] == 4000 and d.counters["bad_frames"] == 0 and d.imu.written == 4000
+        t, v = d.imu.snapshot()  # the newest samples the buffer holds, in order
+    # all arrived at once, before any sample set the device clock's offset: stamped at their arrival, in order
+    assert np.all(np.diff(t) >= 0)
+    k = np.arange(4000 - len(v), 4000)
+    want = np.stack([k % 7, -(k % 5), np.full(len(k), ACC_PER_G)], 1) / ACC_PER_G
+    assert np.array_equal(v, want.astype(np.float32))
+    assert "bytes without a frame delimiter dropped" in caplog.text
 
 
 def test_fault_pause_makes_windows_stale_then_recovers(digit_emu):
