@@ -216,3 +216,23 @@ def fields_from_sensors(contact: np.ndarray, acc: np.ndarray, pos: np.ndarray, q
     )  # (..., K, 7) in _SLOT_FIELDS order
     out[..., 6:] = per_slot.reshape(*per_slot.shape[:-2], -1)
     return out
+
+
+def contact_frame_force(rows: np.ndarray) -> np.ndarray:
+    """Contact-field rows (..., NUM_FIELDS) -> (..., 2) float32 [normal, tangential] force on the dome (N) at its
+    strongest contact: the net force split along the dome's outward normal at that contact point (pressing > 0) and
+    across it (magnitude). Zeros without a contact. Exact for one contact; a second contact's force is split along
+    the first one's normal.
+
+    The ``force_n, force_x, force_y`` columns split the same force along the camera axis instead; for a contact on
+    the side of the dome (where many of this hand's grasps touch it) that axis is close to tangent to the contact."""
+    rows = np.asarray(rows, dtype=np.float64)
+    force = np.stack([rows[..., FIELD["force_x"]], rows[..., FIELD["force_y"]], -rows[..., FIELD["force_n"]]], -1)
+    point = np.stack([rows[..., FIELD[f"c0_{a}"]] for a in "xyz"], -1)
+    norm = np.linalg.norm(point, axis=-1, keepdims=True)
+    touching = (rows[..., FIELD["c0_found"]] > 0) & (norm[..., 0] > 1e-9)
+    outward = point / np.maximum(norm, 1e-9)
+    along = (force * outward).sum(-1, keepdims=True)
+    tangential = np.linalg.norm(force - along * outward, axis=-1)
+    out = np.stack([-along[..., 0], tangential], -1)
+    return np.where(touching[..., None], out, 0.0).astype(np.float32)

@@ -53,8 +53,10 @@ from envs.sensors.digit360_render import (
 from rotation.data.session import SessionError, SessionReader
 from rotation.tactile.audio import fbank
 
-LABELS = ("force", "slip", "contact", "object_pose", "priv", "z")
+LABELS = ("force", "contact_force", "slip", "contact", "object_pose", "priv", "z")
 """Per-step labels a sample may carry (streams ``labels/<name>``)."""
+PER_FINGERTIP = ("force", "contact_force", "slip", "contact")
+"""The labels with one value per fingertip (a sample carries its own fingertip's)."""
 _RECORDED = ("image", "audio", "imu", "pressure")
 _TIME_EPS = 1e-6
 
@@ -263,7 +265,7 @@ class TouchWindows(Dataset):
             st = r.stream(f"labels/{name}")
             j = int(np.searchsorted(st.timestamps, t_end + _TIME_EPS, side="right")) - 1  # last label <= t_end
             value = np.asarray(st.data[j])
-            if name in ("force", "slip", "contact"):
+            if name in PER_FINGERTIP:
                 value = value[fi]
             out[name] = torch.from_numpy(np.asarray(value, dtype=np.float32))
         return out

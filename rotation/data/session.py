@@ -30,6 +30,9 @@ skin/taxel_pos                (368, 3)            float32/64       100        ta
                                                                                each skin sample (sim: kinematics)
 labels/force                  (4, 3)              float32/64       any        per fingertip [normal, shear x, shear y]
                                                                                (N, force on the dome, sensor frame)
+labels/contact_force          (4, 2)              float32/64       any        per fingertip [normal, tangential]
+                                                                               (N, force on the dome at its
+                                                                               strongest contact, contact frame)
 labels/slip                   (4,)                float32/64       any        per fingertip slip speed (m/s)
 labels/contact                (4,)                uint8            any        per fingertip contact flag
 labels/object_pose            (7,)                float32/64       any        object position (m) + quaternion wxyz,
@@ -129,6 +132,7 @@ def _stream_registry() -> dict[str, StreamSpec]:
         "labels/skin_force": StreamSpec((XELA_PADS, 3), _FLOAT, None, "N, pad frame [normal, shear x, shear y]"),
         "labels/joystick": StreamSpec((3,), _FLOAT, None, "rad [roll, pitch, yaw]"),
         "labels/force": StreamSpec((len(FINGERS), 3), _FLOAT, None, "N"),
+        "labels/contact_force": StreamSpec((len(FINGERS), 2), _FLOAT, None, "N, contact frame [normal, tangential]"),
         "labels/slip": StreamSpec((len(FINGERS),), _FLOAT, None, "m/s"),
         "labels/contact": StreamSpec((len(FINGERS),), ("uint8", "bool"), None, "flag"),
         "labels/object_pose": StreamSpec((7,), _FLOAT, None, "m, quaternion wxyz"),

@@ -30,7 +30,7 @@ from tqdm import tqdm
 from envs import constants as C
 from envs.config import EnvConfig, Perturbation
 from envs.core import RotateCupVec
-from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, FINGERS
+from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, FINGERS, contact_frame_force
 from envs.sensors.xela import skin_metadata
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import to_jsonable
@@ -185,7 +185,7 @@ class _BundlePolicy:
 
 
 def _streams(control_hz: float, physics_hz: float, with_z: bool, skin: bool = False) -> list[StreamSetup]:
-    touch = () if skin else ("labels/force", "labels/slip", "labels/contact")
+    touch = () if skin else ("labels/force", "labels/contact_force", "labels/slip", "labels/contact")
     s = [StreamSetup(n, rate_hz=control_hz) for n in ("joints/position", "joints/target", "joints/torque", *touch,
                                                         "labels/object_pose", "labels/priv")]
     if with_z:
@@ -202,6 +202,7 @@ def _labels(rows: np.ndarray) -> dict[str, np.ndarray]:
     slip = np.stack([rows[..., FIELD[f"c{k}_slip"]] for k in range(CONTACT_SLOTS)], axis=-1)
     return {
         "force": rows[..., [FIELD["force_n"], FIELD["force_x"], FIELD["force_y"]]].astype(np.float32),  # (N, 4, 3)
+        "contact_force": contact_frame_force(rows),  # (N, 4, 2)
         "slip": np.where(fn > 0, slip, 0.0).max(axis=-1).astype(np.float32),  # (N, 4)
         "contact": (fn.max(axis=-1) > 0).astype(np.uint8),  # (N, 4)
     }

@@ -15,8 +15,11 @@ share of the training sessions and scored on held-out sessions (reference/sparsh
   ``--image-checkpoint``).
 
 Sparsh-X tasks, from the labels simulated sessions store (rotation.data.session): ``force`` per-fingertip contact
-force, normal and shear (N, sensor frame; RMSE of each); ``slip`` whether the fingertip slides faster than
-``slip_threshold`` (balanced accuracy); ``mass`` and ``friction`` of the object (RMSE; from ``labels/priv``).
+force, along the camera axis and across it (N, sensor frame; RMSE of each); ``contact_force`` the same force split
+at the strongest contact, normal and tangential (N; RMSE of each: many of this hand's contacts sit on the side of
+the dome, where the camera axis is close to tangent to the contact); ``slip`` whether the fingertip slides
+faster than ``slip_threshold`` (balanced accuracy); ``mass`` and ``friction`` of the object (RMSE; from
+``labels/priv``).
 Sparsh-skin tasks (``--encoder skin``, rotation.tactile.probe_skin): ``force`` per pad (instantaneous), ``pose``
 and ``joystick`` (temporal: sequences of ``sequence_windows`` windows, a causal transformer block over the pooled
 windows). Sessions are split into train and test by file; a budget b trains on the first max(1, round(b n)) of
@@ -97,6 +100,9 @@ _MASS, _FRICTION = PRIV_FIELDS.index("mass"), PRIV_FIELDS.index("friction")
 TASKS: dict[str, Task] = {
     "force": Task("force", 3, False, lambda y, _: y[:, :3],
                   lambda p, t: {"rmse_normal_N": _rmse(p[:, 0], t[:, 0]), "rmse_shear_N": _rmse(p[:, 1:], t[:, 1:])}),
+    "contact_force": Task("contact_force", 2, False, lambda y, _: y[:, :2],
+                          lambda p, t: {"rmse_normal_N": _rmse(p[:, 0], t[:, 0]),
+                                        "rmse_tangential_N": _rmse(p[:, 1], t[:, 1])}),
     "slip": Task("slip", 1, True, lambda y, thr: (y.reshape(-1, 1) > thr).float(),
                  lambda p, t: {"balanced_accuracy": balanced_accuracy(p[:, 0], t[:, 0])}),
     "mass": Task("priv", 1, False, lambda y, _: y[:, _MASS : _MASS + 1],
@@ -132,8 +138,8 @@ class Config:
     out: Path = Path("runs/probe")
     """Report directory: results.json, results.md, probe.png, config.json, tb/."""
     tasks: tuple[str, ...] | None = None
-    """Tasks: Sparsh-X force, slip, mass, friction; skin force, pose, joystick. None: every task of the encoder
-    whose label all the sessions hold (skin cup sessions: force, pose; joystick sessions: force, joystick)."""
+    """Tasks: Sparsh-X force, contact_force, slip, mass, friction; skin force, pose, joystick. None: every task of the
+    encoder whose label all the sessions hold (skin cup sessions: force, pose; joystick sessions: force, joystick)."""
     variants: tuple[str, ...] | None = None
     """Variants among pretrained (frozen), e2e (trained end to end from scratch), image_only (Sparsh-X: frozen,
     image tokens). None: all of the encoder's."""

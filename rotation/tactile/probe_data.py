@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
+from rotation.data.dataset import PER_FINGERTIP
 from rotation.data.session import SessionReader
 from rotation.data.window_cache import CachedWindows
 from rotation.tactile.loading import open_encoder_windows
@@ -60,7 +61,7 @@ def window_labels(ds: Dataset, name: str) -> np.ndarray:
             st = r.stream(f"labels/{name}")
             j = np.searchsorted(st.timestamps, ds.end_times[rows] + _TIME_EPS, side="right") - 1  # type: ignore[attr-defined]
             value = np.asarray(st.data)[j]
-        if name in ("force", "slip", "contact"):  # per fingertip
+        if name in PER_FINGERTIP:
             value = value[np.arange(len(rows)), ds.index[rows, 1]]  # type: ignore[attr-defined]
         out.append(value.astype(np.float32))
     return np.concatenate(out)

@@ -13,7 +13,15 @@ from envs.grasps import CANONICAL_POSE
 from envs.objects import get_object
 from envs.scene import build_model, hand_xml_path
 from envs.sensors import digit360_render as R
-from envs.sensors.digit360 import DOME_RADIUS, FIELD, FINGERS, NUM_FIELDS, Digit360Readout, add_digit360_sensors
+from envs.sensors.digit360 import (
+    DOME_RADIUS,
+    FIELD,
+    FINGERS,
+    NUM_FIELDS,
+    Digit360Readout,
+    add_digit360_sensors,
+    contact_frame_force,
+)
 from envs.sensors.tactile_obs import WINDOW_SHAPES, TactileObs
 
 SUBSTEPS = 5
@@ -75,6 +83,26 @@ def test_contact_fields_are_physical(grasp):
         assert row[FIELD["c0_fn"]] > 0 and row[FIELD["c0_slip"]] >= 0
     acc = rows[:, FIELD["acc_x"] : FIELD["acc_z"] + 1]
     assert np.allclose(np.linalg.norm(acc, axis=1), 9.81, atol=1.5)  # a hand at rest reads about 1 g
+
+
+def test_contact_frame_force_splits_the_force_at_the_contact(grasp):
+    # a contact on the side of the dome (+x): pressed 2 N inward and dragged 1 N down. Along the camera axis (z) the
+    # sensor-frame columns read 1 N "normal" and 2 N across; at the contact it is 2 N normal, 1 N tangential
+    row = np.zeros(NUM_FIELDS, np.float32)
+    row[FIELD["force_x"]], row[FIELD["force_n"]] = -2.0, 1.0  # force on the dome (-2, 0, -1): force_n = -F_z
+    row[FIELD["c0_found"]], row[FIELD["c0_fn"]], row[FIELD["c0_x"]] = 1.0, 2.0, DOME_RADIUS
+    assert np.allclose(contact_frame_force(row), [2.0, 1.0])
+    row[FIELD["c0_found"]] = 0.0
+    assert np.array_equal(contact_frame_force(row), [0.0, 0.0])  # no contact: zeros
+
+    model, data = grasp  # the real grasp: the normal part is the contact's normal force, the magnitude is kept
+    rows = Digit360Readout(model).read_current(data.sensordata[None])[0, :, 0]  # (4, D)
+    split = contact_frame_force(rows)
+    touching = rows[:, FIELD["c0_found"]] > 0
+    assert touching.sum() >= 2 and np.all(split[~touching] == 0)
+    net = np.linalg.norm(rows[:, [FIELD["force_n"], FIELD["force_x"], FIELD["force_y"]]], axis=1)
+    assert np.allclose(np.linalg.norm(split, axis=1)[touching], net[touching], rtol=1e-4)
+    assert np.allclose(split[touching, 0], rows[touching, FIELD["c0_fn"]], rtol=0.05)
 
 
 def test_touch_leaves_the_dynamics_unchanged():

@@ -41,8 +41,13 @@ def test_collect_writes_complete_sessions(collected):
         steps = r.stream("joints/position")
         assert contact.rate_hz == 100.0 and steps.rate_hz == 20.0
         assert len(contact) == 5 * (len(steps) - 1)  # 5 substeps per policy step; steps include t = 0
+        force, split = r.stream("labels/force").data[:], r.stream("labels/contact_force").data[:]
+        assert split.shape == (len(steps), 4, 2)
+        touching = split[..., 0] > 0  # the same force, split at the contact: the magnitude is kept
+        assert touching.any() and np.allclose(np.linalg.norm(split, axis=-1)[touching],
+                                              np.linalg.norm(force, axis=-1)[touching], rtol=1e-4)
     ds = TouchWindows(paths)
-    assert len(ds) > 0 and {"force", "slip", "contact", "object_pose", "priv"} <= set(ds.labels)
+    assert len(ds) > 0 and {"force", "contact_force", "slip", "contact", "object_pose", "priv"} <= set(ds.labels)
 
 
 def test_collect_resumes_and_is_deterministic(collected, tmp_path):

@@ -63,8 +63,8 @@ def test_tiny_probe_writes_a_well_formed_report(tmp_path, touch_sessions, touch_
     report = probe.run(cfg)
     data = json.loads((cfg.out / "results.json").read_text())
     assert data["rows"] == report["rows"]
-    metrics = {"force": {"rmse_normal_N", "rmse_shear_N"}, "slip": {"balanced_accuracy"}, "mass": {"rmse_kg"},
-               "friction": {"rmse"}}
+    metrics = {"force": {"rmse_normal_N", "rmse_shear_N"}, "contact_force": {"rmse_normal_N", "rmse_tangential_N"},
+               "slip": {"balanced_accuracy"}, "mass": {"rmse_kg"}, "friction": {"rmse"}}
     want = {(t, v, b, m) for t in metrics for m in metrics[t] for v in probe.VARIANTS for b in (0.5, 1.0)}
     got = {(r["task"], r["variant"], r["budget"], r["metric"]) for r in data["rows"]}
     assert got == want and len(data["rows"]) == len(want)
