@@ -42,6 +42,8 @@ from rotation.policy.bundle import load_bundle
 
 SOURCES = ("domes", "hand", "floor")
 """What exerts a contact force on the object: the fingertip domes, the rest of the hand, the floor."""
+COLUMNS = (*(f"{s}_z" for s in SOURCES), "weight", "dome_normal", "dome_tangential")
+"""What is averaged over the counted steps: the vertical force from each source, m g, and the dome forces (N)."""
 
 
 @dataclass
@@ -111,9 +113,8 @@ def measure(cfg: Config, bundle, perturb: Perturbation) -> dict[str, float]:
         weight = np.array([m.body_subtreemass[obj] * float(np.linalg.norm(m.opt.gravity))
                            for m in (env.get_data(i)[0] for i in range(cfg.envs))])
         alive = np.ones(cfg.envs, bool)
-        sums: dict[str, float] = {}
-        samples = 0
-        per_episode = np.zeros((cfg.envs, 2))  # summed dome normal and tangential force of each episode
+        samples = 0  # counted steps, over every episode
+        totals = np.zeros((cfg.envs, len(COLUMNS)))  # each episode's sums over its counted steps
         for step in tqdm(range(cfg.steps), desc=condition_name(perturb), unit="step", leave=False):
             obs, _, terminated, truncated, _ = env.step(bundle.act_batch(obs))
             alive &= ~(terminated | truncated)
@@ -121,22 +122,20 @@ def measure(cfg: Config, bundle, perturb: Perturbation) -> dict[str, float]:
                 continue
             for i in np.flatnonzero(alive):
                 m, d = env.get_data(i)
-                forces = object_forces(m, d, obj, domes, floor)
-                vertical = {f"{s}_z": float(forces[s][2]) for s in SOURCES}
-                for k, v in {**vertical, "weight": float(weight[i]), "dome_normal": float(forces["dome_normal"]),
-                             "dome_tangential": float(forces["dome_tangential"])}.items():
-                    sums[k] = sums.get(k, 0.0) + v
-                per_episode[i] += (float(forces["dome_normal"]), float(forces["dome_tangential"]))
+                f = object_forces(m, d, obj, domes, floor)
+                totals[i] += (*(f[s][2] for s in SOURCES), weight[i], f["dome_normal"], f["dome_tangential"])
                 samples += 1
     finally:
         env.close()
-    mean = {k: v / max(samples, 1) for k, v in sums.items()}
-    out = {"samples": samples, "episodes_to_the_end": int(alive.sum()), **{k: round(v, 4) for k, v in mean.items()}}
+    out = {"samples": samples, "episodes_to_the_end": int(alive.sum())}
     if samples:
+        mean = dict(zip(COLUMNS, totals.sum(0) / samples, strict=True))
+        out.update({k: round(float(v), 4) for k, v in mean.items()})
         for s in ("domes", "hand"):
-            out[f"{s}_share"] = round(mean[f"{s}_z"] / mean["weight"], 4)
-    touched = per_episode[:, 0] > 0
-    out["episode_ratio"] = [round(float(r), 4) for r in per_episode[touched, 1] / per_episode[touched, 0]]
+            out[f"{s}_share"] = round(float(mean[f"{s}_z"] / mean["weight"]), 4)
+    normal, tangential = totals[:, COLUMNS.index("dome_normal")], totals[:, COLUMNS.index("dome_tangential")]
+    touched = normal > 0
+    out["episode_ratio"] = [round(float(r), 4) for r in tangential[touched] / normal[touched]]
     return out
 
 

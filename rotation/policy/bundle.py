@@ -264,7 +264,7 @@ class PolicyBundle:
                 n = a.shape[0]
             # numpy, not torch, up to here: each torch op gives the interpreter's lock back and waits to take it
             # again, and in deploy the policy's thread, among a dozen busy driver threads, waited up to tens of ms
-            # each time (rotate deploy: 8-15 held steps in 100, now 0-4)
+            # each time (rotate deploy: 8-15 held steps in 100, now 0-3)
             if not np.isfinite(a).all():
                 raise BundleError(f"observation group {key!r} contains non-finite values (NaN or inf)")
             b = a if batched else a[None]
