@@ -42,7 +42,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from adapters.model import AdapterNetConfig, TouchAdapter
+from adapters.model import AdapterNetConfig, TouchAdapter, tracking_features
 from rotation.configs import from_jsonable, to_jsonable
 from rotation.policy.bundle import (
     BundleConfig,
@@ -296,10 +296,18 @@ class AdaptedPolicy:
         return self.student.net.proprio_features(self.student._tensors(dict(obs), batched=True))
 
     @torch.no_grad()
+    def tracking(self, obs: Mapping[str, Any]) -> torch.Tensor:
+        """(N, 48) joint tracking features of the batched observation's ``proprio_hist`` for an adapter that reads
+        them (adapters.model.tracking_features), (N, 0) for one that does not."""
+        if not self.adapter.cfg.tracking:
+            return torch.zeros(len(obs["proprio_hist"]), 0)
+        return tracking_features(self.student._tensors(dict(obs), batched=True)["proprio_hist"])
+
+    @torch.no_grad()
     def correction(self, windows: Mapping[str, Mapping[str, Any]], obs: Mapping[str, Any]) -> np.ndarray:
-        """(N, Z) latent correction from touch windows and the batched observation (for phi); TouchUnavailable
-        when touch is missing or the result is not finite."""
-        corr = self.adapter(self.tokens(windows), self.student_latent(obs))
+        """(N, Z) latent correction from touch windows and the batched observation (for phi, and the joint
+        tracking where the adapter reads it); TouchUnavailable when touch is missing or the result is not finite."""
+        corr = self.adapter(self.tokens(windows), self.student_latent(obs), self.tracking(obs))
         if not torch.isfinite(corr).all():
             raise TouchUnavailable("non-finite touch embeddings")
         return corr.numpy()
@@ -367,7 +375,7 @@ def run_traced(module: nn.Module, inputs: dict[str, torch.Tensor], traced: dict)
 
 def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch_every: int = 4,
                   hidden: tuple[int, ...] = (256, 128), with_latent: bool = True, seed: int = 0,
-                  device: str = "cpu") -> AdaptedPolicy:
+                  device: str = "cpu", tracking: bool = False) -> AdaptedPolicy:
     """A fresh adapter (zero correction) for ``student`` reading ``encoder`` restricted to ``modalities``: a
     Sparsh-X encoder reads the four fingertips, a Sparsh-skin encoder the whole hand (one sample)."""
     from envs.constants import FINGERS
@@ -378,7 +386,8 @@ def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch
     samples = (SKIN_SAMPLE,) if kind_of(enc) == "skin" else tuple(FINGERS)
     torch.manual_seed(seed)
     net = AdapterNetConfig(samples=samples, groups=tuple(interface.groups), width=interface.width,
-                           latent_dim=student_bundle.config.latent_dim, hidden=tuple(hidden), with_latent=with_latent)
+                           latent_dim=student_bundle.config.latent_dim, hidden=tuple(hidden), with_latent=with_latent,
+                           tracking=tracking)
     cfg = AdapterConfig(student=student, student_sha256=file_digest(student_weights(student)), encoder=encoder,
                         encoder_sha256=file_digest(encoder_weights(encoder)), modalities=tuple(interface.names),
                         net=net, touch_every=touch_every)

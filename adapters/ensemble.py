@@ -327,7 +327,7 @@ class EnsemblePolicy:
         """(N, Z) weighted sum of the members' corrections (per latent dimension where a member has dim_weights);
         TouchUnavailable when a member's touch is missing or the result is not finite."""
         z = self.members[0].student_latent(obs)
-        total = sum(w * m.adapter(tokens, z) for w, m, tokens in
+        total = sum(w * m.adapter(tokens, z, m.tracking(obs)) for w, m, tokens in
                     zip(self.weights, self.members, self.tokens(windows), strict=True))
         if self.ensemble_config.gate is not None:
             total = self.ensemble_config.gate.apply(total)

@@ -137,6 +137,12 @@ class Config:
     """Refit: cross-validation folds over whole episodes that choose the ridge strength."""
     hidden: tuple[int, ...] = (256, 128)
     """Hidden widths of the adapter's MLP g."""
+    tracking: bool = False
+    """Also feed g the joints' tracking over the proprioceptive history (per joint the mean and spread of target -
+    position and the mean position: adapters.model.tracking_features): on the palm-up hand the joints under the cup
+    sag with its weight. Their normalization is measured on the student's own rollouts (simulation) or the training
+    sessions before the first update, unless ``--init-from`` is an adapter that reads them; ``--init-from`` an
+    adapter without them starts with zero weights on them (the same corrections at the start)."""
     checkpoint_every: int = 20_000
     """Env transitions between checkpoints (rounded to whole touch periods); each interval starts afresh, so one
     shorter than num_envs x the env's episode_steps cuts every episode short (2,048 with 16 envs: 6.4 s episodes)."""
@@ -249,23 +255,27 @@ class Result:
 
 
 class TokenBuffer:
-    """A ring buffer of samples: per fingertip and token group (S, N_g, D) float16 tokens, phi's z, the target z and
-    the student actor's proprioceptive input (for the action-matching loss)."""
+    """A ring buffer of samples: per fingertip and token group (S, N_g, D) float16 tokens, phi's z, the target z,
+    the student actor's proprioceptive input (for the action-matching loss) and the joint tracking features (width
+    ``track`` 0 for an adapter that reads none)."""
 
     def __init__(self, capacity: int, samples: tuple[str, ...], groups: dict[str, int], width: int, latent: int,
-                 proprio: int):
+                 proprio: int, track: int = 0):
         self.capacity, self.samples, self.size, self.next = capacity, samples, 0, 0
         self.tokens = {g: torch.zeros(capacity, len(samples), n, width, dtype=torch.float16) for g, n in groups.items()}
         self.z_student = torch.zeros(capacity, latent)
         self.z_teacher = torch.zeros(capacity, latent)
         self.proprio = torch.zeros(capacity, proprio)
+        self.track = torch.zeros(capacity, track)
 
     def clear(self) -> None:
         self.size = self.next = 0
 
     def add(self, tokens: dict[str, dict[str, torch.Tensor]], z_student: torch.Tensor, z_teacher: torch.Tensor,
-            proprio: torch.Tensor) -> None:
+            proprio: torch.Tensor, track: torch.Tensor | None = None) -> None:
         n = z_student.shape[0]
+        if track is not None and track.shape[-1]:
+            self.track[(self.next + torch.arange(n)) % self.capacity] = track
         idx = (self.next + torch.arange(n)) % self.capacity
         for g, store in self.tokens.items():
             store[idx] = torch.stack([tokens[s][g] for s in self.samples], dim=1).to(torch.float16)  # (n, S, N, D)
@@ -275,7 +285,7 @@ class TokenBuffer:
 
     def batch(self, idx: torch.Tensor) -> Sample:
         toks = {s: {g: store[idx, i].float() for g, store in self.tokens.items()} for i, s in enumerate(self.samples)}
-        return Sample(toks, self.z_student[idx], self.z_teacher[idx], self.proprio[idx])
+        return Sample(toks, self.z_student[idx], self.z_teacher[idx], self.proprio[idx], self.track[idx])
 
 
 @dataclass
@@ -286,6 +296,7 @@ class Sample:
     z_student: torch.Tensor
     z_teacher: torch.Tensor
     proprio: torch.Tensor
+    track: torch.Tensor
 
 
 def _latest(out: Path) -> Path | None:
@@ -324,6 +335,9 @@ class Job:
     """Wall time (s) of the run before the resumed checkpoint."""
     anchor: torch.nn.Module | None = None
     """The frozen ``cfg.anchor`` adapter, or None."""
+    tracking_norm_needed: bool = False
+    """The adapter reads joint tracking whose normalization is still to be measured (a fresh one, or one started
+    from an adapter without it)."""
     t_start: float = field(default_factory=time.perf_counter)
 
     @classmethod
@@ -337,7 +351,7 @@ class Job:
         teacher = load_bundle(cfg.teacher).require("privileged", f"--teacher {cfg.teacher}")
         modalities = parse_groups(cfg.modalities, cfg.touch_kind)
         policy = build_adapted(cfg.student, cfg.encoder, modalities, touch_every=cfg.touch_every, hidden=cfg.hidden,
-                               seed=cfg.seed)
+                               seed=cfg.seed, tracking=cfg.tracking)
         if teacher.config.latent_dim != policy.config.latent_dim:
             raise ValueError(f"the teacher's latent size {teacher.config.latent_dim} differs from the student's "
                              f"{policy.config.latent_dim}: give the student's own teacher")
@@ -349,11 +363,13 @@ class Job:
             anchor = copy.deepcopy(policy.adapter)
             anchor.load_state_dict(_compatible_weights(policy, cfg.anchor, "anchor"), strict=True)
             anchor.requires_grad_(False).eval()
+        norm_needed = cfg.tracking
         if cfg.init_from:
             policy.adapter.load_state_dict(_compatible_weights(policy, cfg.init_from, "init_from"), strict=True)
+            norm_needed = cfg.tracking and not read_adapter(cfg.init_from)[1].net.tracking
         student_sha = file_digest(student_weights(cfg.student))
         job = cls(cfg, out, checkpoints, teacher, policy, torch.optim.Adam(policy.adapter.parameters(), lr=cfg.lr),
-                  student_sha, anchor=anchor)
+                  student_sha, anchor=anchor, tracking_norm_needed=norm_needed)
         if cfg.resume:
             job._resume()
         return job
@@ -372,6 +388,7 @@ class Job:
             raise ValueError(f"--resume: {path} was trained for another student (weights {ckpt['student_sha256']}, "
                              f"this student {self.student_sha})")
         self.policy.adapter.load_state_dict(ckpt["adapter"])
+        self.tracking_norm_needed = False  # the checkpoint holds the run's normalization
         self.optim.load_state_dict(ckpt["optim"])
         self.start = int(ckpt["iteration"])
         self.wall_before = float(ckpt.get("wall_time_s", 0.0))
@@ -425,12 +442,32 @@ def _compatible_weights(policy: Any, name: str, option: str) -> dict[str, torch.
     except ValueError as err:
         raise ValueError(f"{option}: {err}") from None
     want = policy.adapter_config
+    if option == "init_from" and want.net.tracking and not other.net.tracking and \
+            dataclasses.replace(other.net, tracking=True) == want.net:
+        weights = padded_for_tracking(weights, policy.adapter)
+        other = dataclasses.replace(other, net=want.net)
     if other.encoder_sha256 != want.encoder_sha256 or other.net != want.net:
         raise ValueError(f"{option}: adapter {path} reads encoder {other.encoder!r} ({other.encoder_sha256}) "
                          f"with modalities {list(other.modalities)} and network {to_jsonable(other.net)}; this "
                          f"run has {want.encoder!r} ({want.encoder_sha256}), {list(want.modalities)}, "
                          f"{to_jsonable(want.net)}")
     return weights
+
+
+def padded_for_tracking(weights: dict[str, torch.Tensor], adapter: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """The weights of an adapter without joint tracking made to fit ``adapter`` (the same network with it): zero
+    input weights on the tracking features in g's first layer, and ``adapter``'s own (yet unmeasured) normalization,
+    so the padded adapter gives the same corrections as the original."""
+    out = dict(weights)
+    state = adapter.state_dict()
+    first = "g.0.weight"
+    w, want = weights[first], state[first]
+    if w.shape[0] != want.shape[0] or w.shape[1] + adapter.tracking_dim != want.shape[1]:
+        raise ValueError(f"init_from: g's first layer {tuple(w.shape)} does not fit {tuple(want.shape)} less the "
+                         "tracking features")
+    out[first] = torch.cat([w, w.new_zeros(w.shape[0], adapter.tracking_dim)], dim=1)
+    out["track_mean"], out["track_std"] = state["track_mean"].clone(), state["track_std"].clone()
+    return out
 
 
 def config_from_args(args) -> Config:
@@ -460,7 +497,7 @@ def adam_step(adapter: torch.nn.Module, optim: torch.optim.Optimizer, batch: Sam
     """One Adam step on MSE(phi + adapter(tokens, phi), z_teacher), plus with ``action_weight`` > 0
     ``action_weight`` x MSE(head(proprio, that latent), head(proprio, z_teacher)) where ``head`` is the frozen
     student's :meth:`ActorNet.head <rotation.policy.bundle.ActorNet.head>`; returns the loss."""
-    z = batch.z_student + adapter(batch.tokens, batch.z_student)
+    z = batch.z_student + adapter(batch.tokens, batch.z_student, batch.track)
     loss = torch.nn.functional.mse_loss(z, batch.z_teacher)
     if action_weight > 0.0:
         with torch.no_grad():

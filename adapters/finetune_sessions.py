@@ -51,6 +51,10 @@ def train_on_sessions(job: Job) -> Result:
     if train.size == 0:
         raise ValueError(f"sessions: no usable samples in the training sessions {[str(p) for p in train_files]} (each "
                          "needs more than the 1.1 s of touch history the windows span)")
+    if job.tracking_norm_needed:  # the joint tracking's normalization, from the training samples
+        track = train.track[:train.size]
+        adapter.set_tracking_norm(track.mean(0), track.std(0) if train.size > 1 else torch.ones(track.shape[1]))
+        job.tracking_norm_needed = False
 
     curves, writer = job.open_outputs("epoch", job.start)
     batches = math.ceil(train.size / cfg.batch_size)
@@ -130,11 +134,12 @@ def encode_sessions(job: Job, infos: Sequence[SessionInfo], what: str) -> TokenB
             except TouchUnavailable as err:
                 raise SessionError(f"session {info.path}: its touch windows cannot be encoded ({err})") from None
             tokens = {f: {g: t.half() for g, t in d.items()} for f, d in tokens.items()}
-            proprio = policy.proprio_features({g: x[rows] for g, x in s.obs.items()})
-            parts.append((tokens, torch.as_tensor(s.z_student[rows]), torch.as_tensor(s.z[rows]), proprio))
+            obs = {g: x[rows] for g, x in s.obs.items()}
+            parts.append((tokens, torch.as_tensor(s.z_student[rows]), torch.as_tensor(s.z[rows]),
+                          policy.proprio_features(obs), policy.tracking(obs)))
     interface = adapter.interface
     buf = TokenBuffer(max(1, sum(len(p[1]) for p in parts)), adapter.cfg.samples, interface.counts, interface.width,
-                      adapter.cfg.latent_dim, policy.proprio_dim)
+                      adapter.cfg.latent_dim, policy.proprio_dim, adapter.tracking_dim)
     for part in parts:
         buf.add(*part)
     return buf
@@ -146,7 +151,7 @@ def latent_errors(adapter: torch.nn.Module, buf: TokenBuffer, head: Any) -> dict
     sums = dict.fromkeys(("latent_mse", "student_mse", "action_mse", "student_action_mse"), 0.0)
     for i in range(0, buf.size, EVAL_BATCH):
         b = buf.batch(torch.arange(i, min(i + EVAL_BATCH, buf.size)))
-        z = b.z_student + adapter(b.tokens, b.z_student)
+        z = b.z_student + adapter(b.tokens, b.z_student, b.track)
         for key, value in errors_to_teacher(head, b.proprio, z, b.z_student, b.z_teacher).items():
             sums[key] += value * len(b.z_student)
     return {k: v / max(buf.size, 1) for k, v in sums.items()}

@@ -8,6 +8,7 @@ is bit-identical.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import signal
 import time
@@ -41,8 +42,11 @@ def train_in_sim(job: Job) -> Result:
     curves, writer = job.open_outputs("env_steps", start_iter * n)
 
     interface = adapter.interface
+    if job.tracking_norm_needed:
+        adapter.set_tracking_norm(*tracking_norm(policy, cfg))
+        job.tracking_norm_needed = False
     buffer = TokenBuffer(cfg.buffer_size, adapter.cfg.samples, interface.counts, interface.width,
-                         adapter.cfg.latent_dim, policy.proprio_dim)
+                         adapter.cfg.latent_dim, policy.proprio_dim, adapter.tracking_dim)
     head = policy.student.net.head
     tracker = EpisodeTracker(n, cfg.env.control_dt, cfg.env.episode_steps)
     history: list[dict[str, float]] = []
@@ -68,9 +72,11 @@ def train_in_sim(job: Job) -> Result:
             groups = {key: obs[key] for key in policy.config.obs_groups}
             if it % k == 0:
                 z_teacher, z_student, proprio, tokens = refresh_inputs(policy, teacher, obs, groups)
-                buffer.add(tokens, z_student, anchored_target(job, obs["priv"], tokens, z_student, z_teacher), proprio)
+                track = policy.tracking(groups)
+                buffer.add(tokens, z_student, anchored_target(job, obs["priv"], tokens, z_student, z_teacher, track),
+                           proprio, track)
                 with torch.no_grad():
-                    corr = adapter(tokens, z_student)
+                    corr = adapter(tokens, z_student, track)
                 correction[:] = corr.numpy()
                 # errors on the fresh samples, before the adapter trains on them
                 for key, value in errors_to_teacher(head, proprio, z_student + corr, z_student, z_teacher).items():
@@ -162,15 +168,45 @@ def refresh_inputs(policy: Any, teacher: Any, obs: dict[str, Any], groups: dict[
 
 
 def anchored_target(job: Job, priv: np.ndarray, tokens: dict, z_student: torch.Tensor,
-                    z_teacher: torch.Tensor) -> torch.Tensor:
+                    z_teacher: torch.Tensor, track: torch.Tensor | None = None) -> torch.Tensor:
     """The regression target of a refresh's samples: the teacher's z, or with ``job.anchor`` on cups lighter than
     ``cfg.anchor_mass`` (the privileged vector's mass) the student's latent plus the anchor's correction."""
     if job.anchor is None:
         return z_teacher
     with torch.no_grad():
-        held = z_student + job.anchor(tokens, z_student)
+        held = z_student + job.anchor(tokens, z_student, track)
     light = torch.as_tensor(np.asarray(priv)[:, _MASS] < job.cfg.anchor_mass)
     return torch.where(light[:, None], held, z_teacher)
+
+
+@torch.no_grad()
+def tracking_norm(policy: Any, cfg: Any, steps: int = 200, warmup: int = 30, every: int = 5
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and standard deviation of the joint tracking features (adapters.model.tracking_features) on the
+    student's own rollouts, without touch, in the training env (``cfg.env``, ``cfg.num_envs`` envs, ``steps`` control
+    steps, every ``every``-th after ``warmup``; an env whose episode ends restarts): what an adapter that reads them
+    normalizes them by."""
+    from rotation.sim_warp.host import make_vec
+
+    env_cfg = dataclasses.replace(cfg.env, tactile=False, skin=False)
+    env = make_vec("cpu", env_cfg, num_envs=cfg.num_envs, seed=cfg.seed, nthread=cfg.nthread or None, device="cpu")
+    groups_of = tuple(policy.config.obs_groups)
+    rows = []
+    try:
+        obs = env.reset(seed=cfg.seed)
+        for t in tqdm(range(steps), desc="finetune-adapter: tracking statistics", unit="step",
+                      disable=not cfg.progress, leave=False, dynamic_ncols=True):
+            groups = {key: obs[key] for key in groups_of}
+            if t >= warmup and t % every == 0:
+                rows.append(policy.tracking(groups))
+            obs, _, terminated, truncated, _ = env.step(policy.act_batch(groups))
+            done = np.flatnonzero(terminated | truncated)
+            if len(done):
+                obs = env.reset(ids=done)
+    finally:
+        env.close()
+    x = torch.cat(rows)
+    return x.mean(0), x.std(0)
 
 
 def _add(sums: dict[str, float], key: str, value: float) -> None:

@@ -69,7 +69,7 @@ def refit_in_sim(job: Job) -> Result:
             if it % k == 0:
                 z_teacher, z_student, proprio, tokens = refresh_inputs(policy, teacher, obs, groups)
                 with torch.no_grad():
-                    h = adapter.hidden(adapter.pooled(tokens), z_student)
+                    h = adapter.hidden(adapter.pooled(tokens), z_student, policy.tracking(groups))
                     corr = adapter.zero(h)
                 features.append(h.double().numpy())
                 targets.append((z_teacher - z_student).double().numpy())
