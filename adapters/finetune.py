@@ -274,9 +274,9 @@ class TokenBuffer:
     def add(self, tokens: dict[str, dict[str, torch.Tensor]], z_student: torch.Tensor, z_teacher: torch.Tensor,
             proprio: torch.Tensor, track: torch.Tensor | None = None) -> None:
         n = z_student.shape[0]
-        if track is not None and track.shape[-1]:
-            self.track[(self.next + torch.arange(n)) % self.capacity] = track
         idx = (self.next + torch.arange(n)) % self.capacity
+        if track is not None and track.shape[-1]:
+            self.track[idx] = track
         for g, store in self.tokens.items():
             store[idx] = torch.stack([tokens[s][g] for s in self.samples], dim=1).to(torch.float16)  # (n, S, N, D)
         self.z_student[idx], self.z_teacher[idx], self.proprio[idx] = z_student, z_teacher, proprio

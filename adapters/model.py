@@ -20,7 +20,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -46,7 +45,7 @@ def tracking_features(hist: Tensor) -> Tensor:
         raise ValueError(f"tracking_features: expected a (batch, steps, {2 * NUM_JOINTS}) history, got "
                          f"{tuple(hist.shape)}")
     lower = torch.as_tensor(JOINT_LOWER, dtype=hist.dtype)
-    span = torch.as_tensor(np.asarray(JOINT_UPPER) - np.asarray(JOINT_LOWER), dtype=hist.dtype)
+    span = torch.as_tensor(JOINT_UPPER - JOINT_LOWER, dtype=hist.dtype)
     q = lower + (hist[..., :NUM_JOINTS] + 1.0) * 0.5 * span  # rad (envs.constants.unscale_joints)
     err = hist[..., NUM_JOINTS:] - q
     return torch.cat([err.mean(1), err.std(1, unbiased=False), q.mean(1)], dim=-1)

@@ -251,3 +251,18 @@ def test_deploy_properties_option():
         deploy_job.Config(hand="sim-allegro", policy="student", properties="mass=0.1")
     with pytest.raises(ValueError, match="unknown property"):
         deploy_job.Config(hand="sim-allegro", policy="student", properties="mas=0.1", record="x.h5")
+
+
+def test_finetune_on_sessions_with_joint_tracking_normalizes_by_the_training_samples(sessions, tmp_path):
+    """--tracking on recorded sessions: the features come from the rebuilt history, their normalization from the
+    training samples (the sessions' own joints), and the adapter learns from them."""
+    from adapters.model import TRACKING_DIM
+
+    root, _ = sessions
+    result = finetune.run(_tiny(tmp_path / "run", root, epochs=4, tracking=True))
+    adapter = load_adapter(result.bundle_dir).adapter
+    assert adapter.cfg.tracking
+    assert not torch.equal(adapter.track_std, torch.ones(TRACKING_DIM))
+    assert 0.0 < float(adapter.track_std[:16].median()) < 0.2  # tracking errors in rad, not the defaults
+    assert float(adapter.g[0].weight[:, -TRACKING_DIM:].abs().sum()) > 0
+    assert result.history[-1]["latent_mse"] < result.history[0]["latent_mse"]
