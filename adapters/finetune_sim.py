@@ -71,8 +71,7 @@ def train_in_sim(job: Job) -> Result:
                 correction[:] = 0.0
             groups = {key: obs[key] for key in policy.config.obs_groups}
             if it % k == 0:
-                z_teacher, z_student, proprio, tokens = refresh_inputs(policy, teacher, obs, groups)
-                track = policy.tracking(groups)
+                z_teacher, z_student, proprio, tokens, track = refresh_inputs(policy, teacher, obs, groups)
                 buffer.add(tokens, z_student, anchored_target(job, obs["priv"], tokens, z_student, z_teacher, track),
                            proprio, track)
                 with torch.no_grad():
@@ -156,15 +155,16 @@ def rollout_point(base: dict[str, float], sums: dict[str, float], refreshes: int
 
 @torch.no_grad()
 def refresh_inputs(policy: Any, teacher: Any, obs: dict[str, Any], groups: dict[str, Any]
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict, torch.Tensor]:
     """What a touch refresh of the simulated env gives the adapter's training: the teacher's z, phi's latent, the
-    student actor's proprioceptive input and the frozen encoder's tokens of every env."""
+    student actor's proprioceptive input, the frozen encoder's tokens and the joint tracking features (width 0 for
+    an adapter that reads none) of every env."""
     z_teacher = teacher.net.extractor.z({key: torch.as_tensor(obs[key]) for key in teacher.config.obs_groups})
     try:
         tokens = policy.tokens(policy.env_windows(obs))
     except TouchUnavailable as err:  # cannot happen in simulation unless the renderer breaks
         raise RuntimeError(f"simulated touch unusable: {err}") from None
-    return z_teacher, policy.student_latent(groups), policy.proprio_features(groups), tokens
+    return z_teacher, policy.student_latent(groups), policy.proprio_features(groups), tokens, policy.tracking(groups)
 
 
 def anchored_target(job: Job, priv: np.ndarray, tokens: dict, z_student: torch.Tensor,

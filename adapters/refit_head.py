@@ -67,9 +67,9 @@ def refit_in_sim(job: Job) -> Result:
         for it in range(total_iters):
             groups = {key: obs[key] for key in policy.config.obs_groups}
             if it % k == 0:
-                z_teacher, z_student, proprio, tokens = refresh_inputs(policy, teacher, obs, groups)
+                z_teacher, z_student, proprio, tokens, track = refresh_inputs(policy, teacher, obs, groups)
                 with torch.no_grad():
-                    h = adapter.hidden(adapter.pooled(tokens), z_student, policy.tracking(groups))
+                    h = adapter.hidden(adapter.pooled(tokens), z_student, track)
                     corr = adapter.zero(h)
                 features.append(h.double().numpy())
                 targets.append((z_teacher - z_student).double().numpy())

@@ -154,14 +154,15 @@ def run(cfg: Config) -> dict[str, dict[str, dict[str, float]]]:
                 "r2": round(r2(pred[test], y[test]), 3),
                 "separation": round(separation(pred[test], data["episode"][test], data["heavy"][test]), 2)}
     n_test = len(np.unique(data["episode"][test]))
-    print(f"{cfg.student}: {len(train)} samples of {cfg.envs} episodes per condition (nominal, "
+    samples = len(data["mass"])
+    print(f"{cfg.student}: {samples} samples of {cfg.envs} episodes per condition (nominal, "
           f"+{cfg.added_mass:g} kg), fitted on the even episodes, R² on the {n_test} odd ones per condition; "
           "separation: heavy minus nominal episodes' mean prediction in nominal standard deviations")
     print(f"{'target':<14}" + "".join(f"{f + ' R²':>20}{'sep':>7}" for f in FEATURES))
     for tname, row in result.items():
         print(f"{tname:<14}" + "".join(f"{row[f]['r2']:>20.3f}{row[f]['separation']:>+7.2f}" for f in FEATURES))
     print(json.dumps({"student": cfg.student, "teacher": cfg.teacher, "envs": cfg.envs, "steps": cfg.steps,
-                      "seed": cfg.seed, "samples": int(len(train)), "result": result}))
+                      "seed": cfg.seed, "samples": samples, "result": result}))
     return result
 
 
