@@ -138,9 +138,20 @@ class PatchEmbed2d(nn.Module):
     def forward(self, x: Tensor, avg: Tensor | None = None, div: Tensor | None = None) -> Tensor:
         """With ``avg``/``div`` (C, 1, 1) the input is normalized as (x - avg) / div, folded into the convolution:
         conv(W, (x - a) / d) = conv(W / d, x) + b - sum(W / d * a), so no normalized copy of the image is made
-        (a fresh multi-megabyte tensor per call costs more than the convolution on a small CPU)."""
+        (a fresh multi-megabyte tensor per call costs more than the convolution on a small CPU).
+
+        On the CPU the convolution always runs in float32: the reduced-precision 16 x 16, stride-16 convolution of
+        some CPU builds returns values wrong by as much as the output itself (bfloat16 weights or autocast), while
+        every other layer of the encoder stays within rounding."""
+        if x.device.type == "cpu" and (x.dtype != torch.float32 or torch.is_autocast_enabled("cpu")):
+            with torch.autocast("cpu", enabled=False):
+                return self._tokens(x.float(), avg, div).to(x.dtype)
+        return self._tokens(x, avg, div)
+
+    def _tokens(self, x: Tensor, avg: Tensor | None, div: Tensor | None) -> Tensor:
         if avg is None or div is None:
-            return self.proj(x).flatten(2).transpose(1, 2)  # (B, D, h, w) -> (B, h w, D)
+            y = F.conv2d(x, self.proj.weight.to(x.dtype), self.proj.bias.to(x.dtype), stride=self.proj.stride)
+            return y.flatten(2).transpose(1, 2)  # (B, D, h, w) -> (B, h w, D)
         w = self.proj.weight.float() / div.float()[None]  # (D, C, p, p), folded in float32
         b = self.proj.bias.float() - (w * avg.float()[None]).sum(dim=(1, 2, 3))  # (D,)
         y = F.conv2d(x, w.to(x.dtype), b.to(x.dtype), stride=self.proj.stride)  # (B, D, h, w)

@@ -178,6 +178,17 @@ def test_training_mode_drop_path_and_gradients():
     assert model.fusion_blocks[0]["img"].drop_path.p == pytest.approx(0.1)  # linear in depth
 
 
+def test_bfloat16_autocast_on_the_cpu_keeps_every_modality_within_rounding():
+    """The image tokenizer's convolution runs in float32 on the CPU (some CPUs' bfloat16 kernel for it is wrong)."""
+    model, x = shallow(), inputs()
+    with torch.no_grad():
+        full = model(x)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            half = model(x)
+    for m in MODALITIES:
+        assert (half[m].float() - full[m]).abs().max() < 0.2, m
+
+
 def test_half_precision_keeps_float32_buffers():
     model, x = shallow(), inputs()
     with torch.no_grad():
