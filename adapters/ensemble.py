@@ -9,14 +9,15 @@ weighted mean of their corrections (weights 1/K) is the plain ensemble. An ensem
                              their weights), the touch refresh period, a free-form card
     <ensemble>/members/<m>/  the member adapter bundles, when copied in (``rotate ensemble-adapters``' default)
 
-A member is a path relative to the ensemble's directory (members shipped inside it, e.g. ``members/imu_pressure``),
-any other path, or the name of a shipped adapter. Each member loads as its own checked adapter bundle (its student
-and encoder digests, adapters.bundle.load_adapter); all must correct the same student and read the same sensor
-samples (the four Digit 360 fingertips, or the Xela skin). Each member keeps its own encoder restricted to its own
-modalities (a modality subset is encoded on its own: Sparsh-X fuses the modalities it is given), so the ensemble
-reads the union of its members' windows and costs the sum of their encoder passes, except that a member whose
-modalities are among the first member's, on the same encoder weights, starts from the first member's unimodal
-layers and runs only its own fusion layers (:func:`shares_unimodal`; the same tokens bit for bit).
+A member is a path relative to the ensemble's directory (members shipped inside it, e.g.
+``members/imu_pressure_tracking``), any other path, or the name of a shipped adapter. Each member loads as its own
+checked adapter bundle (its student and encoder digests, adapters.bundle.load_adapter); all must correct the same
+student and read the same sensor samples (the four Digit 360 fingertips, or the Xela skin). Each member keeps its
+own encoder restricted to its own modalities (a modality subset is encoded on its own: Sparsh-X fuses the modalities
+it is given), so the ensemble reads the union of its members' windows and costs the sum of their encoder passes,
+except that a member whose modalities are among the first member's, on the same encoder weights, starts from the
+first member's unimodal layers and runs only its own fusion layers (:func:`shares_unimodal`; the same tokens bit for
+bit).
 
 Loaded, an ensemble is an :class:`EnsemblePolicy`: the same interface as ``AdaptedPolicy`` (``config``,
 ``act``/``act_batch`` with a correction, ``correction(windows, obs)``, ``fingers``, ``windows``, ``touch_every``),
