@@ -149,11 +149,10 @@ class PatchEmbed2d(nn.Module):
         return self._tokens(x, avg, div)
 
     def _tokens(self, x: Tensor, avg: Tensor | None, div: Tensor | None) -> Tensor:
-        if avg is None or div is None:
-            y = F.conv2d(x, self.proj.weight.to(x.dtype), self.proj.bias.to(x.dtype), stride=self.proj.stride)
-            return y.flatten(2).transpose(1, 2)  # (B, D, h, w) -> (B, h w, D)
-        w = self.proj.weight.float() / div.float()[None]  # (D, C, p, p), folded in float32
-        b = self.proj.bias.float() - (w * avg.float()[None]).sum(dim=(1, 2, 3))  # (D,)
+        w, b = self.proj.weight, self.proj.bias
+        if avg is not None and div is not None:
+            w = w.float() / div.float()[None]  # (D, C, p, p), folded in float32
+            b = b.float() - (w * avg.float()[None]).sum(dim=(1, 2, 3))  # (D,)
         y = F.conv2d(x, w.to(x.dtype), b.to(x.dtype), stride=self.proj.stride)  # (B, D, h, w)
         return y.flatten(2).transpose(1, 2)  # (B, h w, D)
 
