@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 TORCH_SPEC ?= torch==2.13.0
 export MUJOCO_GL ?= egl
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test test-hardware test-gpu lint bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -21,9 +21,20 @@ $(VENV)/.installed: pyproject.toml | $(BIN)/python
 demo: $(VENV)/.installed
 	$(BIN)/rotate demo --out demo_out
 
+# The suite ends with the skipped tests' reasons (-rs) and what -m deselected, with the command that runs it.
 test: $(VENV)/.installed
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q -x --durations=15
+	$(BIN)/python -m pytest -q -x -rs --durations=15
+
+# Tests against real devices (a hand on its bus, Digit 360 or Xela sensors): see tests/hardware/test_hw_real_devices.py
+# for the environment variables that name them.
+test-hardware: $(VENV)/.installed
+	$(BIN)/python -m pytest -q -rs -m hardware
+
+# Tests that need a CUDA GPU (the MuJoCo Warp backend at scale): a CUDA build of torch and the [warp] extra.
+test-gpu: $(VENV)/.installed
+	$(BIN)/pip install --quiet -e ".[warp]"
+	$(BIN)/python -m pytest -q -rs -m gpu
 
 lint: $(VENV)/.installed
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .

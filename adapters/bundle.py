@@ -29,136 +29,41 @@ evaluate, view) takes either; deploy and recorded sessions take Digit 360 adapte
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from torch import nn
 
-from adapters.model import AdapterNetConfig, TouchAdapter, tracking_features
-from rotation.configs import from_jsonable, to_jsonable
-from rotation.policy.bundle import (
-    BundleConfig,
-    BundleError,
-    CorrectedActor,
-    PolicyBundle,
-    load_bundle,
-    resolve_bundle,
-    trace_single,
+from adapters.bundle_config import (
+    CONFIG_FILE,
+    FORMAT_VERSION,
+    KIND,
+    MODALITY_WINDOWS,
+    SKIN_SAMPLE,
+    WEIGHTS_FILE,
+    AdapterConfig,
+    encoder_weights,
+    file_digest,
+    read_adapter,
+    student_weights,
 )
-from rotation.tactile.encoders import ENCODERS, SHIPPED_ENCODERS, kind_of, load_encoder, shipped_encoders
-
-KIND = "adapter"
-CONFIG_FILE = "config.json"
-WEIGHTS_FILE = "adapter.safetensors"
-FORMAT_VERSION = 1
-SHIPPED_ADAPTERS = Path(__file__).resolve().parent.parent / "rotation" / "policies"
-"""Adapter bundles ship beside the policy bundles (``rotation/policies/adapter``), so `--policy adapter` finds them."""
-
-MODALITY_WINDOWS = {"img": "image", "mic": "audio", "imu": "imu", "pressure": "pressure"}
-"""Sparsh-X token group -> the window (env `tactile` group, dataset, sensor) it is computed from."""
-SKIN_SAMPLE = "hand"
-"""The one sensor sample of a skin adapter (Sparsh-skin): the whole hand's Xela skin, the env's `skin` group."""
+from adapters.model import AdapterNetConfig, TouchAdapter, tracking_features
+from rotation.configs import to_jsonable
+from rotation.policy.actor import CorrectedActor, trace_single
+from rotation.policy.bundle import PolicyBundle, load_policy_bundle
+from rotation.policy.bundle_config import BundleConfig, BundleError
+from rotation.tactile.models.encoders import ENCODERS, kind_of, load_encoder
 
 
 class TouchUnavailable(RuntimeError):
     """No usable touch for this step (a missing fingertip, a modality the sensors do not stream, non-finite
     embeddings); the caller acts as the student alone."""
-
-
-def check_bundle_header(what: str, kind: str, want_kind: str, version: int, want_version: int,
-                        touch_every: Any) -> None:
-    """BundleError unless a touch bundle's config.json is of ``want_kind``, in a format this version reads, with a
-    refresh period of at least one control step."""
-    if kind != want_kind:
-        raise BundleError(f"not an {what} (kind {kind!r})")
-    if version != want_version:
-        raise BundleError(f"{what} format {version} is not readable by this version (reads {want_version})")
-    if isinstance(touch_every, bool) or not isinstance(touch_every, int) or touch_every < 1:
-        raise BundleError(f"touch_every must be an integer >= 1, got {touch_every!r}")
-
-
-@dataclass(frozen=True)
-class AdapterConfig:
-    """What an adapter bundle's config.json holds."""
-
-    student: str
-    """The student bundle it corrects: a shipped name or a directory."""
-    student_sha256: str
-    """sha256 (first 16 hex digits) of the student's model.safetensors."""
-    encoder: str
-    """The frozen touch encoder: a shipped name (rotation/tactile/pretrained) or a checkpoint path."""
-    encoder_sha256: str
-    """sha256 (first 16 hex digits) of the encoder's weights file."""
-    modalities: tuple[str, ...]
-    """Encoder token groups it reads (img, mic, imu, pressure for Sparsh-X); the encoder is restricted to them."""
-    net: AdapterNetConfig
-    """Adapter network sizes."""
-    touch_every: int = 4
-    """Control steps between touch refreshes (the correction is held in between)."""
-    card: dict[str, Any] = field(default_factory=dict)
-    """Free-form metadata: training command, steps, evaluation."""
-    kind: str = KIND
-    format_version: int = FORMAT_VERSION
-
-    def __post_init__(self) -> None:
-        check_bundle_header("adapter bundle", self.kind, KIND, self.format_version, FORMAT_VERSION, self.touch_every)
-        if tuple(self.modalities) != tuple(n for n, _ in self.net.groups):
-            raise BundleError(f"modalities {self.modalities} differ from the network's token groups "
-                              f"{[n for n, _ in self.net.groups]}")
-
-
-def file_digest(path: Path) -> str:
-    """sha256 (first 16 hex digits) of a file, read in chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()[:16]
-
-
-def student_weights(ref: str) -> Path:
-    return resolve_bundle(ref) / "model.safetensors"
-
-
-def encoder_weights(ref: str) -> Path:
-    """The weights file of an encoder reference (shipped name, run directory or checkpoint file)."""
-    path = Path(ref)
-    if not path.exists() and ref in shipped_encoders():
-        path = SHIPPED_ENCODERS / ref
-    if path.is_dir():
-        path = path / "encoder.safetensors"
-    if not path.is_file():
-        raise BundleError(f"no touch encoder at {ref!r} (shipped encoders: {', '.join(shipped_encoders()) or 'none'})")
-    return path
-
-
-def adapter_dir(name_or_path: str | Path) -> Path:
-    """The directory of a shipped adapter's name (``rotation/policies/<name>``) when no directory of that path
-    exists; else the path as given."""
-    path = Path(name_or_path)
-    if not path.is_dir() and (SHIPPED_ADAPTERS / str(name_or_path)).is_dir():
-        return SHIPPED_ADAPTERS / str(name_or_path)
-    return path
-
-
-def is_adapter_dir(path: str | Path) -> bool:
-    """True when ``path`` (a directory or a shipped name) holds an adapter bundle."""
-    path = adapter_dir(path)
-    cfg = path / CONFIG_FILE
-    if not cfg.is_file() or not (path / WEIGHTS_FILE).is_file():
-        return False
-    try:
-        return json.loads(cfg.read_text()).get("kind") == KIND
-    except (OSError, ValueError):
-        return False
 
 
 def frozen_encoder(ref: str, modalities: tuple[str, ...], device: str = "cpu") -> nn.Module:
@@ -323,7 +228,7 @@ class AdaptedPolicy:
 
     def prepare_realtime(self) -> None:
         """Trace the student's acting paths, with and without a correction, for single observations, and from the
-        first touch refresh on the encoder (deploy; see rotation.policy.bundle.trace_single); :meth:`act` and
+        first touch refresh on the encoder (deploy; see rotation.policy.actor.trace_single); :meth:`act` and
         :meth:`correction` then use them."""
         self.traced_encoders = {}
         self.student.prepare_realtime()
@@ -362,7 +267,7 @@ class AdaptedPolicy:
 
 def run_traced(module: nn.Module, inputs: dict[str, torch.Tensor], traced: dict) -> Any:
     """``module(inputs)`` from its trace for these input shapes, traced on first use into ``traced`` (keyed by the
-    inputs' names and shapes; rotation.policy.bundle.trace_single). A trace keeps no Python checks, so the eager
+    inputs' names and shapes; rotation.policy.actor.trace_single). A trace keeps no Python checks, so the eager
     module's ValueError on non-finite inputs is raised here first."""
     bad = [g for g, x in inputs.items() if not bool(torch.isfinite(x).all())]
     if bad:
@@ -380,7 +285,7 @@ def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch
     Sparsh-X encoder reads the four fingertips, a Sparsh-skin encoder the whole hand (one sample)."""
     from envs.constants import FINGERS
 
-    student_bundle = load_bundle(student)
+    student_bundle = load_policy_bundle(student)
     enc = frozen_encoder(encoder, modalities, device)
     interface = enc.token_interface
     samples = (SKIN_SAMPLE,) if kind_of(enc) == "skin" else tuple(FINGERS)
@@ -392,28 +297,6 @@ def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch
                         encoder_sha256=file_digest(encoder_weights(encoder)), modalities=tuple(interface.names),
                         net=net, touch_every=touch_every)
     return AdaptedPolicy(cfg, student_bundle, enc, TouchAdapter(net).to(device))
-
-
-def read_adapter(name_or_path: str | Path) -> tuple[Path, AdapterConfig, dict[str, torch.Tensor]]:
-    """An adapter bundle's directory, config and weights, without resolving its student or encoder (what
-    ``finetune-adapter --init-from`` starts from); :func:`load_adapter` is the checked way to use one."""
-    path = adapter_dir(name_or_path)
-    if not is_adapter_dir(path):
-        members = sorted(d.name for d in (path / "members").glob("*") if is_adapter_dir(d))
-        if members:  # an adapter ensemble (adapters.ensemble): its members are adapter bundles
-            raise BundleError(f"{name_or_path}: an adapter ensemble, not one adapter; name one of its members: "
-                              + ", ".join(str(path / "members" / m) for m in members))
-        raise BundleError(f"{name_or_path}: not an adapter bundle (needs {CONFIG_FILE} with kind 'adapter' and "
-                          f"{WEIGHTS_FILE})")
-    try:
-        cfg = from_jsonable(AdapterConfig, json.loads((path / CONFIG_FILE).read_text()))
-    except (TypeError, ValueError, KeyError) as err:
-        raise BundleError(f"{path / CONFIG_FILE}: {err}") from None
-    try:
-        weights = load_file(str(path / WEIGHTS_FILE))
-    except (SafetensorError, OSError) as err:
-        raise BundleError(f"{path / WEIGHTS_FILE}: {str(err).splitlines()[0]}") from None
-    return path, cfg, weights
 
 
 def load_adapter(name_or_path: str | Path, device: str = "cpu") -> AdaptedPolicy:
@@ -428,7 +311,7 @@ def load_adapter(name_or_path: str | Path, device: str = "cpu") -> AdaptedPolicy
         if got != want:
             raise BundleError(f"adapter {path} was trained for the {what} {ref!r} with weights sha256 {want}, but "
                               f"{ref!r} now has {got}: retrain the adapter for this {what}")
-    student = load_bundle(cfg.student)
+    student = load_policy_bundle(cfg.student)
     encoder = frozen_encoder(cfg.encoder, cfg.modalities, device)
     adapter = TouchAdapter(cfg.net)
     try:

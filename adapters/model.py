@@ -3,7 +3,7 @@
     z_hat = phi(history) + ZeroLinear(g(pooled fingertip tokens, phi(history) [, joint tracking]))
 
 ``g`` pools each sensor sample's tokens (one Digit 360 fingertip for Sparsh-X, the whole hand for Sparsh-skin)
-with one attentive pooler shared by the samples (rotation.tactile.pooling, over ``TokenInterface.concat``: every
+with one attentive pooler shared by the samples (rotation.tactile.models.pooling, over ``TokenInterface.concat``: every
 token group layer-normed, so any encoder and any modality subset plug in unchanged), adds a learned per-sample
 embedding (which finger), concatenates the samples and, optionally, the student's own latent and the joints' tracking
 over the proprioceptive history (:func:`tracking_features`), and runs a small MLP.
@@ -25,8 +25,8 @@ from torch import Tensor, nn
 
 from envs.constants import JOINT_LOWER, JOINT_UPPER, NUM_JOINTS
 from rotation.policy.networks import mlp
-from rotation.tactile.pooling import AttentivePooler
-from rotation.tactile.tokens import TokenInterface
+from rotation.tactile.models.pooling import AttentivePooler
+from rotation.tactile.models.tokens import TokenInterface
 
 TRACKING_DIM = 3 * NUM_JOINTS
 """Width of :func:`tracking_features`: per joint, the mean and the standard deviation of its tracking error and its
@@ -38,9 +38,9 @@ def tracking_features(hist: Tensor) -> Tensor:
     16 joint targets in rad; the env's ``proprio_hist``) -> (B, 48): per joint over the T steps, the mean and the
     standard deviation of the tracking error (target - position, rad), then the mean position (rad).
 
-    On the palm-up hand the palm and the phalanges carry the cup (scripts/load_share.py), and the position-controlled
-    joints under them sag by what they carry: these features say how heavy a cup is far better than the student's
-    phi does (docs/adapter.md), and a real hand measures them as the simulator does."""
+    On the palm-up hand the palm and the phalanges carry the cup (experiments/tools/load_share.py), and the
+    position-controlled joints under them sag by what they carry: these features say how heavy a cup is far better
+    than the student's phi does (docs/adapter.md), and a real hand measures them as the simulator does."""
     if hist.ndim != 3 or hist.shape[-1] != 2 * NUM_JOINTS:
         raise ValueError(f"tracking_features: expected a (batch, steps, {2 * NUM_JOINTS}) history, got "
                          f"{tuple(hist.shape)}")

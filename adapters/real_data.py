@@ -11,10 +11,10 @@ or an emulated hand) gives, for every ``every``-th control step k (row k of ``jo
   holds start frames) match the loop's to the hand's stillness, and from step 30 on they match exactly (to the
   float32 rounding of the recorded joints).
 - ``windows``: per fingertip, the Sparsh-X windows the adapter reads, made as a deployed adapter's reader makes them
-  (rotation.hardware.digit360 ``Digit360.window``) from the streams deploy records. IMU (224, 3) g and pressure
+  (rotation.hardware.digit360.reader ``Digit360.window``) from the streams deploy records. IMU (224, 3) g and pressure
   (224, 1) hPa (the serial streams) end at the older of the newest IMU and pressure samples at or before t_k (and
   of the newest audio sample, when the adapter reads the audio), resampled by
-  rotation.hardware.digit360_window.series_from_samples. With the image (a session recorded with ``--record-media``
+  rotation.hardware.digit360.window.series_from_samples. With the image (a session recorded with ``--record-media``
   or by an adapter that reads it), every window ends at the newest camera frame at or before t_k: the image is that
   frame and the one 5 frames before it, (2, 224, 224, 3) uint8 RGB; the audio is the 27,000 samples up to the
   window's end, (2, 27000) int16. A step is skipped when any fingertip's window is not ready (the first ~1.1 s, a
@@ -42,38 +42,29 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
 
+from adapters.session_checks import (
+    SERIAL_WINDOWS,
+    Position,
+    SessionInfo,
+)
 from envs import constants as C
-from envs.config import RandomizationConfig
 from envs.observation import ProprioHistory
-from rotation.data.dataset import center_resize, find_sessions
-from rotation.data.properties import check_properties
-from rotation.data.session import SessionError, SessionReader
-from rotation.hardware import digit360_window as dw
-from rotation.hardware.digit360 import Digit360Config
+from rotation.data.dataset import center_resize
+from rotation.data.session import SessionError
+from rotation.data.session_reader import SessionReader
+from rotation.hardware.digit360 import window as dw
+from rotation.hardware.digit360.reader import Digit360Config
 
 log = logging.getLogger(__name__)
 
-Position = Literal["fit", "average", "recorded"]
-POSITIONS: tuple[str, ...] = ("fit", "average", "recorded")
-SERIAL_WINDOWS: dict[str, float] = {"imu": dw.IMU_RATE, "pressure": dw.PRESSURE_RATE}
-"""The Digit 360 serial streams (``digit360/<finger>/<window>``, recorded by every deploy with --digit360) -> their
-rate (Hz)."""
-MEDIA_WINDOWS = ("image", "audio")
-"""The camera frames and microphones (``digit360/<finger>/image``, ``audio``), recorded by deploy with
---record-media or for an adapter that reads them."""
-RECORDED_WINDOWS = (*MEDIA_WINDOWS, *SERIAL_WINDOWS)
-"""Windows a recorded session can give."""
-HANDS = ("allegro", "leap")
-"""Hands with the Allegro joint layout that the student runs on (rotation.deploy.hands)."""
-JOINT_STREAMS = ("joints/position", "joints/target")
 POSITION_FIELDS = ("pos_x", "pos_y", "pos_z")
 """The privileged entries a real hand does not measure (envs.constants.PRIV_FIELDS)."""
 Encoder = Callable[[torch.Tensor], torch.Tensor]
@@ -96,17 +87,6 @@ STALE_S = _READER["stale_timeout_s"]
 """A fingertip whose newest serial sample is older than this (s) is stale (the reader raises SensorStale)."""
 MEDIA_STALE_S = _READER["media_stale_timeout_s"]
 """A fingertip whose newest camera frame or audio sample is older than this (s) is stale."""
-
-
-@dataclass(frozen=True)
-class SessionInfo:
-    """What :func:`check_session` found: the session's hand and source, and its measured properties."""
-
-    path: Path
-    hand: str
-    source: str
-    properties: dict[str, float | list[float]]
-    steps: int
 
 
 @dataclass
@@ -133,100 +113,6 @@ class SessionSamples:
 
     def __len__(self) -> int:
         return len(self.steps)
-
-
-def session_files(sources: Iterable[str | Path]) -> list[Path]:
-    """The .h5 session files of ``sources`` (files, or directories searched recursively), sorted, each once;
-    ValueError when a source is missing or holds none."""
-    files: set[Path] = set()
-    for source in sources:
-        found = find_sessions(source)
-        if not found:
-            raise ValueError(f"sessions: no .h5 session files under {source}")
-        files.update(p.resolve() for p in found)
-    if not files:
-        raise ValueError("sessions: give at least one session file or directory")
-    return sorted(files)
-
-
-def check_session(path: str | Path, fingers: Sequence[str], windows: Sequence[str], control_hz: float,
-                  position: Position = "fit") -> SessionInfo:
-    """Everything about one session that can be checked without reading its streams; SessionError naming the
-    session and what is missing (a stream, a property, the control rate, the hand)."""
-    path = Path(path)
-    need = [*JOINT_STREAMS, *(f"digit360/{f}/{w}" for f in fingers for w in windows)]
-    if position == "recorded":
-        need.append("labels/object_pose")
-    with SessionReader(path) as r:
-        missing = [n for n in need if not r.has(n)]
-        if missing:
-            hint = ""
-            if any(n.startswith("digit360/") for n in missing):
-                simulated = [f for f in fingers if r.has(f"digit360/{f}/contact")]
-                media = any(n.rsplit("/", 1)[-1] in MEDIA_WINDOWS for n in missing)
-                hint = (" (a simulated session from `rotate collect`: fine-tune in simulation instead)" if simulated
-                        else " (record with `rotate deploy --digit360 ... --record FILE --record-media`, which also "
-                             "records every fingertip's camera frames and microphones)" if media
-                        else " (record with `rotate deploy --digit360 ... --record`, which records every fingertip's "
-                             "imu and pressure)")
-            elif "labels/object_pose" in missing:
-                hint = " (position 'recorded' needs the object's tracked pose; use 'fit' or 'average')"
-            raise SessionError(f"session {path}: missing stream(s) {', '.join(missing)} needed to train the "
-                               f"adapter{hint}")
-        meta = r.meta
-        if meta.hand not in HANDS:
-            raise SessionError(f"session {path}: recorded on the hand {meta.hand!r}; the student runs on "
-                               f"{' or '.join(HANDS)} (the Allegro joint layout)")
-        if not np.isclose(meta.control_hz, control_hz):
-            raise SessionError(f"session {path}: recorded at {meta.control_hz:g} Hz, the student acts at "
-                               f"{control_hz:g} Hz")
-        try:
-            props = check_properties(meta.properties, f"session {path}")
-        except ValueError as err:
-            raise SessionError(f"{err}. Record with `rotate deploy ... --properties mass=...,friction=...,"
-                               "com=X,Y,Z,scale=...` (docs/adapter.md)") from None
-        steps = min(len(r.stream(n)) for n in JOINT_STREAMS)
-    return SessionInfo(path, meta.hand, meta.source, props, steps)
-
-
-def check_sessions(paths: Sequence[str | Path], fingers: Sequence[str], windows: Sequence[str], control_hz: float,
-                   position: Position = "fit") -> list[SessionInfo]:
-    """:func:`check_session` for every session, and one hand for all: an adapter learns one hand's touch, so
-    sessions of another hand kind (allegro / leap) or source (a real hand / its emulator) are refused."""
-    bad = [w for w in windows if w not in RECORDED_WINDOWS]
-    if bad:
-        raise ValueError(f"recorded sessions give the windows {', '.join(RECORDED_WINDOWS)}; the adapter reads "
-                         f"{', '.join(bad)}")
-    if position not in POSITIONS:
-        raise ValueError(f"position must be one of {', '.join(POSITIONS)}, got {position!r}")
-    if not paths:
-        raise ValueError("sessions: give at least one session file or directory")
-    infos = [check_session(p, fingers, windows, control_hz, position) for p in paths]
-    first = infos[0]
-    for info in infos[1:]:
-        if (info.hand, info.source) != (first.hand, first.source):
-            raise SessionError(f"session {info.path} comes from another hand ({info.hand}, {info.source}) than "
-                               f"{first.path} ({first.hand}, {first.source}): fine-tune one adapter per hand")
-    for info in infos:
-        notes = outside_training_ranges(info.properties)
-        if notes:
-            log.warning("session %s: %s outside the teacher's training ranges; its z there is an extrapolation",
-                        info.path, "; ".join(notes))
-    return infos
-
-
-def outside_training_ranges(props: dict[str, float | list[float]],
-                            rc: RandomizationConfig | None = None) -> list[str]:
-    """The measured properties outside the env's randomization (the shipped teacher's), as 'key value (range)'."""
-    rc = rc or RandomizationConfig()
-    ranges = {"scale": (min(rc.scales) - rc.scale_jitter, max(rc.scales) + rc.scale_jitter), "mass": rc.mass,
-              "friction": rc.friction, "com": rc.com}
-    out = []
-    for key, (lo, hi) in ranges.items():
-        values = np.atleast_1d(props[key])
-        if np.any(values < lo - 1e-9) or np.any(values > hi + 1e-9):
-            out.append(f"{key} {props[key]} ({lo:g}..{hi:g})")
-    return out
 
 
 # ------------------------------------------------------------------------------------------------------- pieces
@@ -324,7 +210,7 @@ def priv_vectors(props: dict[str, float | list[float]], positions: np.ndarray) -
 
 def _start_table() -> tuple[np.ndarray, np.ndarray]:
     """The shipped grasp cache's bucket scales (S,) and the object's start positions (S, G, 3) m in the env."""
-    from envs.grasps import load_default_cache
+    from envs.grasp_cache import load_default_cache
 
     cache = load_default_cache(POSITION_OBJECT)
     return cache.scales, cache.grasps[..., C.NUM_JOINTS : C.NUM_JOINTS + 3].astype(np.float64)

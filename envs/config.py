@@ -1,6 +1,6 @@
 """Typed configs of the RotateCup task: physics timing, randomization, reward, perturbations.
 
-Defaults follow Hora's recipe (reference/hora.md). Every config validates itself on construction and raises a
+Defaults follow Hora's recipe (docs/reference/hora.md). Every config validates itself on construction and raises a
 ValueError that names the field and the allowed values; nothing is clamped silently.
 """
 
@@ -44,7 +44,8 @@ def _check_range(name: str, lo_hi: tuple[float, float], low: float = -math.inf, 
 
 @dataclass(frozen=True)
 class RandomizationConfig:
-    """Domain randomization (reference/hora.md "Domain randomization"). Ranges are (low, high), sampled uniformly."""
+    """Domain randomization (docs/reference/hora.md "Domain randomization"). Ranges are (low, high), sampled
+    uniformly."""
 
     enabled: bool = True
     """Master switch; when False every env uses the nominal values: the middle scale bucket without jitter, the
@@ -100,7 +101,7 @@ class RandomizationConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Scales of Hora's reward terms (reference/hora.md "Reward"); each scaled term is reported in ``info``."""
+    """Scales of Hora's reward terms (docs/reference/hora.md "Reward"); each scaled term is reported in ``info``."""
 
     rotate: float = 1.0
     """Rotation about the commanded axis, clip(omega . axis, -rotate_back_clip, rotate_clip) (rad/s)."""
@@ -110,7 +111,7 @@ class RewardConfig:
     """Lower clip (as a positive number, rad/s): turning backward faster than this costs no more. Hora's symmetric
     0.5 lets a policy ratchet: turn forward at the cap, snap back faster than the cap for a fraction of the cost, and
     earn the term with no net rotation (a from-scratch run found it: 70% of the shipped teacher's clipped rotate
-    term at 15% of its net rotation; docs/results/teacher_scratch). A larger value (e.g. 5) makes that snap cost
+    term at 15% of its net rotation; experiments/teacher_scratch). A larger value (e.g. 5) makes that snap cost
     what it undoes; the default keeps the shipped policies' reward."""
     obj_linvel: float = -0.3
     """L1 norm of the object's linear velocity (m/s)."""

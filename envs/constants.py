@@ -1,7 +1,8 @@
 """Hand constants shared by simulation, training and hardware.
 
 Everything here is in the Allegro bus order (index 0-3, middle 4-7, ring 8-11, thumb 12-15; each finger
-[abduction, MCP, PIP, DIP]), in SI units. Sources: reference/hora.md ("Allegro hand facts", "Timing and actuation").
+[abduction, MCP, PIP, DIP]), in SI units. Sources: docs/reference/hora.md ("Allegro hand facts", "Timing and
+actuation").
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ ACTUATOR_NAMES = tuple(f"act_{name}" for name in JOINT_NAMES)
 FINGERTIP_SITES = tuple(f"{finger}_tip" for finger in FINGERS)
 """One site per Digit 360 fingertip, at the centre of the dome (sensor frame: z out of the dome)."""
 
-# Joint limits (rad), public Allegro V4 description (reference/hora.md).
+# Joint limits (rad), public Allegro V4 description (docs/reference/hora.md).
 _FINGER_LOWER = (-0.47, -0.196, -0.174, -0.227)
 _FINGER_UPPER = (0.47, 1.61, 1.709, 1.618)
 _THUMB_LOWER = (0.263, -0.105, -0.189, -0.162)
@@ -25,15 +26,15 @@ _THUMB_UPPER = (1.396, 1.163, 1.644, 1.719)
 JOINT_LOWER = np.array(_FINGER_LOWER * 3 + _THUMB_LOWER, dtype=np.float64)
 JOINT_UPPER = np.array(_FINGER_UPPER * 3 + _THUMB_UPPER, dtype=np.float64)
 
-# Vendor home pose (deg -> rad), reference/hora.md.
+# Vendor home pose (deg -> rad), docs/reference/hora.md.
 HOME_POSE = np.deg2rad([0, -10, 45, 45, 0, -10, 45, 45, 5, -5, 50, 45, 60, 25, 15, 45]).astype(np.float64)
 
-# Host PD law of the real hand, normalized torque units = N m in simulation (reference/hora.md).
+# Host PD law of the real hand, normalized torque units = N m in simulation (docs/reference/hora.md).
 DEFAULT_KP = 3.0
 DEFAULT_KD = 0.1
 DEFAULT_TORQUE_LIMIT = 0.5
 
-# Per-joint torque limits of the real V4 hand (PWM limits / 1200), reference/hardware.md section 1.
+# Per-joint torque limits of the real V4 hand (PWM limits / 1200), docs/reference/hardware.md section 1.
 TORQUE_LIMITS = np.array([0.312, 0.562, 0.375, 0.237] * 3 + [0.438, 0.338, 0.225, 0.225], dtype=np.float64)
 
 CONTROL_HZ = 20.0

@@ -21,7 +21,7 @@ from envs import constants as C
 from envs import task
 from envs.config import EnvConfig
 from envs.geometry import angular_velocity  # noqa: F401 (re-exported for rotation.deploy)
-from envs.grasps import GraspCache, load_default_cache
+from envs.grasp_cache import GraspCache, load_default_cache
 from envs.objects import ObjectSpec, get_object
 from envs.observation import ProprioHistory
 from envs.rng import CounterRNG, env_keys

@@ -1,6 +1,6 @@
 """Object registry: Hora's cylinder family and cups with a handle.
 
-Each object is described at scale 1.0 in meters; the env scales it per simulation (reference/hora.md: scale
+Each object is described at scale 1.0 in meters; the env scales it per simulation (docs/reference/hora.md: scale
 0.70..0.86). Objects are added to the hand model with MjSpec so the hand MJCF stays a plain, readable file.
 """
 
@@ -48,7 +48,7 @@ class ObjectSpec:
 
 
 def _cylinders() -> dict[str, ObjectSpec]:
-    # Hora's nine training cylinders: radius 4 cm, lengths 6.4 .. 9.6 cm (reference/hora.md)
+    # Hora's nine training cylinders: radius 4 cm, lengths 6.4 .. 9.6 cm (docs/reference/hora.md)
     lengths = np.linspace(0.064, 0.096, 9)
     return {f"cylinder_{i}": ObjectSpec(f"cylinder_{i}", "cylinder", 0.04, float(length))
             for i, length in enumerate(lengths)}

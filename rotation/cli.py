@@ -32,10 +32,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "deploy": ("rotation.deploy.job", "run a policy on a real or emulated hand with safety limits and recording"),
     "encoder-info": ("rotation.tactile.encoder_info", "describe a touch encoder; check that a checkpoint loads"),
     "cache-touch": ("rotation.data.window_cache", "pre-render touch windows of sessions into shards for fast training"),
-    "pretrain": ("rotation.tactile.pretrain", "pretrain a touch encoder by self-distillation (DINO, EMA teacher)"),
-    "probe": ("rotation.tactile.probe", "probe frozen vs end-to-end touch encoders at several label budgets"),
-    "finetune-adapter": ("adapters.finetune", "fine-tune the tactile adapter toward the teacher's latent"),
-    "ensemble-adapters": ("adapters.ensemble", "combine tactile adapters of one student into one policy"),
+    "pretrain": ("rotation.tactile.pretrain.job", "pretrain a touch encoder by self-distillation (DINO, EMA teacher)"),
+    "probe": ("rotation.tactile.probes.job", "probe frozen vs end-to-end touch encoders at several label budgets"),
+    "finetune-adapter": ("adapters.finetune.job", "fine-tune the tactile adapter toward the teacher's latent"),
+    "ensemble-adapters": ("adapters.ensemble_job", "combine tactile adapters of one student into one policy"),
 }
 """Subcommand registry; later issues add their jobs here."""
 

@@ -57,7 +57,8 @@ class Config:
 
 
 def raw_windows(fingers: tuple[str, ...], rng: np.random.Generator) -> dict[str, dict[str, np.ndarray]]:
-    """One batch-of-one raw window per fingertip, shaped as rotation.hardware.digit360's ``window()`` returns it."""
+    """One batch-of-one raw window per fingertip, shaped as rotation.hardware.digit360.reader's ``window()``
+    returns it."""
     return {f: {"image": rng.integers(0, 256, (1, 2, 224, 224, 3), dtype=np.uint8),
                 "audio_wave": rng.integers(-2000, 2000, (1, 2, 27000), dtype=np.int16),
                 "imu": rng.normal(0.0, 0.05, (1, 224, 3)).astype(np.float32) + np.float32([0, 0, 1]),
@@ -77,7 +78,7 @@ def _median_ms(fn, iters: int) -> float:
 
 def run(cfg: Config) -> dict:
     from adapters.bundle import build_adapted
-    from rotation.policy.bundle import load_bundle
+    from rotation.bundles import load_bundle
 
     if cfg.threads < 1 or cfg.iters < 1 or cfg.touch_every < 1:
         raise ValueError(f"threads, iters and touch_every must be >= 1, got {cfg}")

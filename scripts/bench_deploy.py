@@ -28,7 +28,7 @@ from typing import Literal
 import numpy as np
 
 from rotation.configs import script_main
-from rotation.hardware.allegro import AllegroConfig, AllegroHand
+from rotation.hardware.allegro.driver import AllegroConfig, AllegroHand
 from rotation.hardware.hand import JOINT_LOWER, JOINT_UPPER
 from rotation.hardware.realtime import set_realtime_priority
 from rotation.sim_hardware.allegro_emulator import AllegroEmulator
@@ -98,9 +98,10 @@ def run(cfg: Config) -> dict:
 
 def policy_loop(cfg: Config) -> dict:
     """Policy-loop rate and jitter of ``rotate deploy`` on the emulated Allegro (virtual CAN), with a bundle."""
-    from rotation.deploy.job import Config as DeployConfig
+    from rotation.deploy.config import Config as DeployConfig
     from rotation.deploy.job import run as deploy
-    from rotation.policy.bundle import BundleConfig, PolicyBundle, shipped_bundles
+    from rotation.policy.bundle import PolicyBundle, shipped_bundles
+    from rotation.policy.bundle_config import BundleConfig
 
     duration = cfg.duration_s if cfg.policy_duration_s is None else cfg.policy_duration_s
     with tempfile.TemporaryDirectory() as tmp:

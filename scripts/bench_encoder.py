@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import torch
 
 from rotation.configs import num_cores, script_main
-from rotation.tactile.sparshx import SIZES, SparshX, SparshXConfig
-from rotation.tactile.sparshx_inputs import INPUT_SHAPES, MODALITIES
+from rotation.tactile.models.sparshx import SIZES, SparshX, SparshXConfig
+from rotation.tactile.models.sparshx_inputs import INPUT_SHAPES, MODALITIES
 
 
 @dataclass

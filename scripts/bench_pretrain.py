@@ -34,10 +34,10 @@ from rotation.configs import script_main
 from rotation.data.dataset import TouchWindows, find_sessions
 from rotation.data.window_cache import CachedWindows, build_cache
 from rotation.jobs import collect
-from rotation.tactile import pretrain
 from rotation.tactile.loading import to_device
+from rotation.tactile.models.sparshx import SparshX, SparshXConfig
+from rotation.tactile.pretrain import job as pretrain
 from rotation.tactile.runtime import resolve_device
-from rotation.tactile.sparshx import SparshX, SparshXConfig
 
 
 @dataclass

@@ -102,7 +102,7 @@ def measure_encoder(cfg: Config) -> dict:
     import torch
 
     from envs.sensors.xela import NUM_TAXELS, REST, WINDOW
-    from rotation.tactile.sparsh_skin import SIZES, SparshSkin, SparshSkinConfig
+    from rotation.tactile.models.sparsh_skin import SIZES, SparshSkin, SparshSkinConfig
 
     if cfg.encoder_size not in SIZES or cfg.iters < 1 or cfg.threads < 0:
         raise ValueError(f"encoder_size must be one of {', '.join(SIZES)}, iters >= 1 and threads >= 0, got "

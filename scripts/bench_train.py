@@ -31,7 +31,8 @@ import torch
 
 from envs.core import RotateCupVec, random_steps_per_s
 from rotation.configs import num_cores, script_main
-from rotation.train import teacher
+from rotation.train import ppo, teacher
+from rotation.train.teacher_config import TEACHER_GROUPS
 from rotation.train.vec_env import RotateCupSB3VecEnv
 
 
@@ -94,8 +95,8 @@ def bench_train(cfg: Config, tcfg: teacher.Config) -> tuple[float, int, dict[str
     torch.set_num_threads(tcfg.torch_threads)
     torch.manual_seed(cfg.seed)
     env = RotateCupSB3VecEnv(tcfg.env_config(), cfg.num_envs, seed=cfg.seed, nthread=cfg.nthread or None,
-                             reward_scale=tcfg.reward_scale, obs_groups=teacher.TEACHER_GROUPS)
-    model = teacher.build_model(tcfg, env)
+                             reward_scale=tcfg.reward_scale, obs_groups=TEACHER_GROUPS)
+    model = ppo.build_model(tcfg, env)
     rollout = cfg.num_envs * cfg.n_steps
     total = max(1, -(-cfg.train_steps // rollout)) * rollout
     start = time.perf_counter()

@@ -104,7 +104,7 @@ def warp_env_rate(cfg: Config, worlds: int) -> float:
 def warp_train_rate(cfg: Config) -> float:
     """Transitions/s of the GPU teacher's PPO (rollout + update) with the GPU recipe's settings."""
     from rotation.sim_warp.core import RotateCupWarp, WarpConfig
-    from rotation.train.teacher import Config as TeacherConfig
+    from rotation.train.teacher_config import Config as TeacherConfig
     from rotation.train.teacher_warp import WarpPPO
 
     n = cfg.train_worlds

@@ -2,7 +2,7 @@
 
     python scripts/export_encoder.py --checkpoint runs/pretrain_tinier --out rotation/tactile/pretrained/NAME
 
-Writes OUT/encoder.safetensors (loads with ``rotation.tactile.encoders.load_encoder(OUT)`` or, once under
+Writes OUT/encoder.safetensors (loads with ``rotation.tactile.models.encoders.load_encoder(OUT)`` or, once under
 rotation/tactile/pretrained/, by NAME) and prints the largest difference of the tokens it encodes on random inputs
 from the float32 original's, so the export's cost is measured, not assumed.
 """
@@ -15,9 +15,9 @@ from pathlib import Path
 import torch
 
 from rotation.configs import script_main
-from rotation.tactile.encoders import kind_of, load_encoder
-from rotation.tactile.sparshx_checkpoint import save_checkpoint
-from rotation.tactile.sparshx_inputs import INPUT_SHAPES
+from rotation.tactile.models.encoders import kind_of, load_encoder
+from rotation.tactile.models.sparshx_checkpoint import save_checkpoint
+from rotation.tactile.models.sparshx_inputs import INPUT_SHAPES
 
 
 @dataclass

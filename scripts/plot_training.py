@@ -1,9 +1,9 @@
 """Plot training curves from a run's TensorBoard logs or its curves.jsonl (PNG + CSV), e.g. for a model card.
 
-    python scripts/plot_training.py --run runs/teacher --out docs/results/teacher_training
-    python scripts/plot_training.py --run runs/student --out docs/results/student_training --tags train/latent_mse
+    python scripts/plot_training.py --run runs/teacher --out runs/teacher_plots
+    python scripts/plot_training.py --run runs/student --out runs/student_plots --tags train/latent_mse
     python scripts/plot_training.py --curves runs/a/curves.jsonl runs/b/curves.jsonl \
-        --out docs/results/teacher_training --tags rotation_rate ttf upright l
+        --out runs/teacher_plots --tags rotation_rate ttf upright l
 
 With --curves, the files are read in order as one history: each file's steps continue after the previous file's
 last step (a run started with `train-teacher --init-from` counts its steps from zero).
@@ -12,7 +12,7 @@ With --compare, each NAME=curves.jsonl is its own run, drawn as one smoothed lin
 raw points faint in the same colour), e.g. two recipes step for step:
 
     python scripts/plot_training.py --compare overlap=runs/a/curves.jsonl no-overlap=runs/b/curves.jsonl \
-        --out docs/results/teacher_scratch --name compare --tags rotation_rate ttf upright l
+        --out runs/compare --name compare --tags rotation_rate ttf upright l
 
 The CSV then has a leading ``run`` column.
 """
@@ -38,7 +38,7 @@ from rotation.configs import script_main  # noqa: E402
 class Config:
     run: Path = Path("runs/teacher")
     """Run directory holding tb/ (TensorBoard event files, searched recursively)."""
-    out: Path = Path("docs/results/teacher_training")
+    out: Path = Path("runs/training_plots")
     """Output directory for curves.png and curves.csv."""
     tags: tuple[str, ...] = ("episode/rotation_rate", "episode/ttf", "episode/rew_rotate", "episode/return")
     """Scalar tags to plot, one panel each."""

@@ -4,7 +4,8 @@ Three panels: the hand curled around the grasp pose (3-D, taxels coloured by typ
 flat hand seen from above with every pad named, and one fingertip pad's 30 taxels in its pad frame with their
 normals (the 6 x 6 grid bent over the dome).
 
-    python scripts/plot_xela_taxels.py --out docs/images/xela_taxels.png
+    python scripts/plot_xela_taxels.py                                   # runs/xela_taxels.png
+    python scripts/plot_xela_taxels.py --out docs/images/xela_taxels.png # the picture in docs/skin.md
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ COLORS = {"phalanx": "tab:blue", "palm": "tab:green", "fingertip": "tab:red"}
 
 @dataclass
 class Config:
-    out: Path = Path("docs/images/xela_taxels.png")
+    out: Path = Path("runs/xela_taxels.png")
     """Output PNG."""
     dpi: int = 110
     """Resolution of the PNG."""

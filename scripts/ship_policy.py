@@ -1,11 +1,13 @@
 """Ship a trained policy bundle inside the package, with a model card.
 
-Copies a bundle directory (config.json + model.safetensors) to rotation/policies/<name>/ (replacing the old one)
-and writes MODEL_CARD.md beside it: the exact training command, seed, steps, wall time, machine, and the rows of
-an evaluation report (results.json from `rotate evaluate`) for this policy.
+Copies a bundle directory (config.json + model.safetensors) to rotation/policies/<name>/ and writes MODEL_CARD.md
+beside it: the exact training command, seed, steps, wall time, machine, and the rows of an evaluation report
+(results.json from `rotate evaluate`) for this policy.
 
-    python scripts/ship_policy.py --bundle runs/teacher/bundle --name teacher \
-        --command "rotate train-teacher --out runs/teacher" --evaluation docs/results/policies/results.json
+    python scripts/ship_policy.py --bundle runs/teacher/bundle --name teacher --replace \
+        --command "rotate train-teacher --out runs/teacher" --evaluation runs/evaluation/results.json
+
+A bundle already shipped under that name (tracked files of the repository) is replaced only with --replace.
 """
 
 from __future__ import annotations
@@ -16,8 +18,8 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from rotation.bundles import load_bundle
 from rotation.configs import script_main
-from rotation.policy.bundle import load_bundle
 
 PACKAGE_POLICIES = Path(__file__).resolve().parents[1] / "rotation" / "policies"
 METRICS = ("net_rotation_rate", "rotation_rate", "ttf", "upright", "vertical_drift", "lin_vel", "torque")
@@ -39,6 +41,8 @@ class Config:
     """Total training wall time (s) across resumes; default: the bundle card's own figure."""
     notes: str = ""
     """Free text for the card (what was tried, known weaknesses)."""
+    replace: bool = False
+    """Replace the bundle already shipped under ``name`` (its directory is deleted first); without it, refused."""
 
 
 def machine() -> str:
@@ -57,6 +61,9 @@ def run(cfg: Config) -> Path:
             raise ValueError(f"{cfg.evaluation} has no rows for policy {label!r}")
     card = dict(bundle.config.card)
     dest = PACKAGE_POLICIES / cfg.name
+    if dest.exists() and not cfg.replace:
+        raise ValueError(f"a bundle ships as {cfg.name!r} already ({dest}); pass --replace to replace it, or choose "
+                         "another --name")
     if dest.exists():
         shutil.rmtree(dest)
     dest.mkdir(parents=True)

@@ -1,5 +1,5 @@
 """The teacher from random weights on a CPU alone, then its student: five `rotate train-teacher` stages, then
-`rotate train-student` and `rotate finetune-student` (docs/results/teacher_cpu_recipe).
+`rotate train-student` and `rotate finetune-student` (experiments/teacher_cpu_recipe).
 
 The shipped teacher's first stage ran on a GPU machine. This recipe needs none: on 2 CPU cores it took about 2.8 h
 (37.1 M environment steps) to a teacher that meets issue 8's targets on fresh seeds (net rate >= 0.30 rad/s, ttf
@@ -76,7 +76,7 @@ the previous stage's bundle (stage 5's for the distillation), {run} the stage's 
 train in the default env (the shipped hold-checked grasps), as stage 5 did."""
 
 DISTILL_CHECKPOINTS = "ckpt_*.pt"
-"""train-student's checkpoints, in its run folder (rotation.train.student.CHECKPOINT_GLOB)."""
+"""train-student's checkpoints, in its run folder (rotation.train.student_config.CHECKPOINT_GLOB)."""
 
 
 @dataclass

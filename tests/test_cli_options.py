@@ -341,7 +341,7 @@ def test_every_help_prints(command, capsys):
 def test_a_nested_option_keeps_the_rest_of_its_config():
     """Giving one field of a nested config changes that field only: the others keep the field's default, here
     finetune-adapter's training env (touch on, slippery and heavy cups), not the nested class's own defaults."""
-    from adapters import finetune
+    from adapters.finetune import job as finetune
     from rotation.configs import add_dataclass_arguments, dataclass_from_args
 
     parser = argparse.ArgumentParser()

@@ -1,7 +1,7 @@
 """Kaldi-compatible log-mel filterbank in numpy, for the env's `tactile` observation (envs/ has no torch).
 
-The same computation as ``rotation.tactile.audio.fbank`` (whose docstring lists the steps and options, from the
-Sparsh-X audio contract in reference/sparsh.md); both are tested against tests/fixtures/kaldi_fbank_48k_128mel.npz.
+The same computation as ``rotation.data.audio.fbank`` (whose docstring lists the steps and options, from the
+Sparsh-X audio contract in docs/reference/sparsh.md); both are tested against tests/fixtures/kaldi_fbank_48k_128mel.npz.
 The torch one serves the data loaders (batched, GPU); this one serves the simulator's per-step windows.
 """
 
@@ -14,7 +14,7 @@ import numpy as np
 SAMPLE_RATE = 48000
 NUM_MEL_BINS = 128
 WINDOW_SIZE = 240
-"""5 ms frames at 48 kHz (reference/sparsh.md)."""
+"""5 ms frames at 48 kHz (docs/reference/sparsh.md)."""
 WINDOW_SHIFT = 120
 """2.5 ms hop at 48 kHz."""
 FFT_SIZE = 256

@@ -3,7 +3,7 @@
 With ``EnvConfig.skin`` (on the Xela hand) the core feeds :class:`SkinState` from the pad sensors' history after
 every policy step: each physics substep is one 100 Hz skin sample (envs.sensors.xela.SAMPLE_HZ), turned into raw
 counts by the reading model (envs.sensors.xela.XelaSkin). The observation's ``skin`` entry is the Sparsh-skin window
-(reference/sparsh.md), the last ``WINDOW`` samples, oldest first::
+(docs/reference/sparsh.md), the last ``WINDOW`` samples, oldest first::
 
     obs["skin"]    # (N, 10, 368, 6) float32: [..., :3] raw counts (X, Y, Z, around 32768),
                    #                          [..., 3:] taxel positions (m, hand frame) at the same sample

@@ -3,7 +3,7 @@
 With ``EnvConfig.tactile`` the core keeps, per env and fingertip, the contact-field rows (envs.sensors.digit360) of
 the last ``HISTORY_S`` seconds in a ring (:class:`TouchState`, fed from the sensors' history after each policy
 step, a few microseconds per env). The observation's ``tactile`` entry is a :class:`TactileObs`: a snapshot of those
-rings that renders the Sparsh-X windows (reference/sparsh.md) only when they are read::
+rings that renders the Sparsh-X windows (docs/reference/sparsh.md) only when they are read::
 
     obs["tactile"]["index"]["image"]     # (N, 6, 224, 224) float32 in [0, 1], [R(t-5), R(t), G(t-5), ...]
     obs["tactile"]["index"]["audio"]     # (N, 224, 256) float32 log-mel (Kaldi fbank of int16-count audio)
@@ -30,7 +30,8 @@ import numpy as np
 from envs.rng import splitmix64
 from envs.sensors import kaldi
 from envs.sensors.digit360 import FINGERS, NUM_FIELDS, Digit360Readout
-from envs.sensors.digit360_render import (
+from envs.sensors.digit360_image import pack_image
+from envs.sensors.digit360_model import (
     AUDIO_SAMPLES,
     DEFAULT_MODEL,
     HISTORY_S,
@@ -41,9 +42,8 @@ from envs.sensors.digit360_render import (
     ContactTrack,
     Digit360Model,
     finger_key,
-    pack_image,
-    render_window,
 )
+from envs.sensors.digit360_render import render_window
 
 MODALITIES = ("image", "audio", "imu", "pressure")
 WINDOW_SHAPES: dict[str, tuple[int, ...]] = {
@@ -52,7 +52,7 @@ WINDOW_SHAPES: dict[str, tuple[int, ...]] = {
     "imu": (IMU_SAMPLES, 3),
     "pressure": (PRESSURE_SAMPLES, 1),
 }
-"""Per-fingertip window shapes of the Sparsh-X input contract (reference/sparsh.md)."""
+"""Per-fingertip window shapes of the Sparsh-X input contract (docs/reference/sparsh.md)."""
 
 
 def tactile_space() -> gym.spaces.Dict:

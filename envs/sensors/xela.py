@@ -44,6 +44,7 @@ from envs.sensors.xela_layout import (  # noqa: F401 (re-exported: the layout's 
     TIP_PITCH,
     TIP_RADIUS,
     TIP_START,
+    VALID_RANGE,
     WINDOW,
     PadSpec,
     TaxelLayout,

@@ -1,6 +1,6 @@
 """Simulated Xela uSkin on the Allegro hand: the pad layout (numpy only; re-exported by envs.sensors.xela).
 
-Layout (reference/hardware.md section 5, reference/sparsh.md "Sparsh-skin"): 368 taxels on 18 pads, 4 curved
+Layout (docs/reference/hardware.md section 5, docs/reference/sparsh.md "Sparsh-skin"): 368 taxels on 18 pads, 4 curved
 fingertip pads x 30 taxels (a 6 x 6 grid of which 30 are used, 31 x 39 x 29 mm), 11 phalanx pads x 16 (4 x 4,
 26 x 24 mm) and 3 palm pads x 24 (4 x 6, 52 x 32 mm); 3 axes per taxel, 16-bit counts around 32768 at rest, 100 Hz.
 ``PADS`` is the table (the taxel order of every stream and observation is the order of this table, then row-major
@@ -25,20 +25,23 @@ from functools import cache
 import numpy as np
 
 REST = 32768.0
-"""Raw count of an unloaded taxel (16-bit mid-scale, reference/hardware.md section 5)."""
+"""Raw count of an unloaded taxel (16-bit mid-scale, docs/reference/hardware.md section 5)."""
 FULL_SCALE = 65535.0
 """Largest raw count (16-bit)."""
+VALID_RANGE = (20_000.0, 60_000.0)
+"""Raw readings outside this range (16-bit counts, about 32768 at rest) are faults and zeroed
+(docs/reference/sparsh.md)."""
 SAMPLE_HZ = 100.0
 """Xela sample rate (Hz), = the env's physics rate at the default 10 ms step: one sample per physics step."""
 WINDOW = 10
-"""Frames of a Sparsh-skin window (0.1 s at 100 Hz, reference/sparsh.md): the length of the `skin` observation."""
+"""Frames of a Sparsh-skin window (0.1 s at 100 Hz, docs/reference/sparsh.md): the length of the `skin` observation."""
 AXES = ("x", "y", "z")
 """Channels of a taxel reading: X, Y shear, Z normal."""
 
 TAXEL_TYPES = ("phalanx", "palm", "fingertip")
 """Taxel type names; a taxel's type id is its index here (Sparsh-skin's 3 types: 4x4 pad, 4x6 pad, fingertip)."""
 
-# geometry of the pads (m); sizes from reference/hardware.md section 5
+# geometry of the pads (m); sizes from docs/reference/hardware.md section 5
 PHALANX_SIZE = (0.026, 0.024)
 """4 x 4 pad: 26 mm along the phalanx x 24 mm across."""
 PALM_SIZE = (0.052, 0.032)
@@ -130,7 +133,7 @@ PAD_NAMES: tuple[str, ...] = tuple(p.name for p in PADS)
 PAD_TAXELS: tuple[int, ...] = tuple(p.taxels for p in PADS)
 NUM_PADS = len(PADS)
 NUM_TAXELS = sum(PAD_TAXELS)
-"""368 (reference/hardware.md section 5)."""
+"""368 (docs/reference/hardware.md section 5)."""
 TAXEL_PAD = np.repeat(np.arange(NUM_PADS), PAD_TAXELS)
 """(368,) pad index of each taxel."""
 TAXEL_TYPE = np.repeat([TAXEL_TYPES.index(p.kind) for p in PADS], PAD_TAXELS)

@@ -1,10 +1,11 @@
 """Sparsh-X input windows from session files (simulated or real), one fingertip per sample.
 
-A sample is one fingertip's window ending at one of its image timestamps (reference/sparsh.md "Sparsh-X input
+A sample is one fingertip's window ending at one of its image timestamps (docs/reference/sparsh.md "Sparsh-X input
 contract"), with the labels known at that time::
 
     image     (6, 224, 224) float32 in [0, 1], channels [R(t-5), R(t), G(t-5), G(t), B(t-5), B(t)]
-    audio     (224, 256) float32 log-mel (Kaldi fbank of the 2 x 27000 int16-count window, rotation.tactile.audio)
+    audio     (224, 256) float32 log-mel (Kaldi fbank of the 2 x 27000 int16-count window,
+              rotation.data.audio)
               or, with ``audio_features=False``, ``audio_wave`` (2, 27000) float32 for a batched fbank on the GPU
     imu       (224, 3) float32, g (400 Hz)
     pressure  (224, 1) float32, hPa (200 Hz)
@@ -33,7 +34,8 @@ from torch.utils.data import Dataset
 
 from envs.constants import FINGERS
 from envs.rng import splitmix64
-from envs.sensors.digit360_render import (
+from envs.sensors.digit360_image import pack_image
+from envs.sensors.digit360_model import (
     AUDIO_SAMPLES,
     DEFAULT_MODEL,
     FRAME_GAP,
@@ -45,13 +47,12 @@ from envs.sensors.digit360_render import (
     PRESSURE_SAMPLES,
     ContactTrack,
     Digit360Model,
-    WindowIndex,
     finger_key,
-    pack_image,
-    render_window,
 )
-from rotation.data.session import SessionError, SessionReader
-from rotation.tactile.audio import fbank
+from envs.sensors.digit360_render import WindowIndex, render_window
+from rotation.data.audio import fbank
+from rotation.data.session import SessionError
+from rotation.data.session_reader import SessionReader
 
 LABELS = ("force", "contact_force", "slip", "contact", "object_pose", "priv", "z")
 """Per-step labels a sample may carry (streams ``labels/<name>``)."""

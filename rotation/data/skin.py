@@ -1,8 +1,8 @@
 """Xela skin windows from session files: the Sparsh-skin dataset (the whole hand per sample) and its baselines.
 
 A sample is the whole hand's skin over the 10 frames (0.1 s at 100 Hz) ending at one ``skin/xela`` frame
-(reference/sparsh.md "Sparsh-skin"), in the layout of the env's `skin` observation (envs.sensors.skin_obs) and of
-the live reader (rotation.hardware.xela), with the labels known at that time::
+(docs/reference/sparsh.md "Sparsh-skin"), in the layout of the env's `skin` observation (envs.sensors.skin_obs) and of
+the live reader (rotation.hardware.xela.reader), with the labels known at that time::
 
     skin           (10, 368, 6) float32  [..., :3] raw counts (X, Y, Z, about 32768 at rest), [..., 3:] taxel
                                          positions (m, hand frame) at the same frame
@@ -11,7 +11,7 @@ the live reader (rotation.hardware.xela), with the labels known at that time::
     labels         any of skin_force (18, 3), object_pose (7,), joystick (3,), priv (9,), z (8,): the last label
                    sample at or before the window's end
 
-The encoder's ``preprocess`` (rotation.tactile.sparsh_skin) subtracts the baseline and zeroes raw values outside
+The encoder's ``preprocess`` (rotation.tactile.models.sparsh_skin) subtracts the baseline and zeroes raw values outside
 VALID_RANGE: one conditioning step for sessions, the env and the live reader. With ``sequence=S`` a sample is S
 consecutive, non-overlapping windows ending at the same frame (the temporal decoders' input): ``skin``
 (S, 10, 368, 6), ``time`` (S,) and every label (S, ...), one per window.
@@ -36,11 +36,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from envs.sensors.xela import NUM_TAXELS, REST, SAMPLE_HZ, WINDOW, XelaSkin
-from rotation.data.session import SessionError, SessionReader
+from envs.sensors.xela import NUM_TAXELS, REST, SAMPLE_HZ, VALID_RANGE, WINDOW, XelaSkin
+from rotation.data.session import SessionError
+from rotation.data.session_reader import SessionReader
 
-VALID_RANGE = (20_000.0, 60_000.0)
-"""Raw readings outside this range (16-bit counts, about 32768 at rest) are faults and zeroed (reference/sparsh.md)."""
 SKIN_LABELS = ("skin_force", "object_pose", "joystick", "priv", "z")
 """Labels a skin sample may carry (streams ``labels/<name>``)."""
 BASELINE_KEY = "xela_baseline"

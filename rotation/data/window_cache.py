@@ -12,7 +12,7 @@ cache holds exactly what the reader returns; recorded sessions work the same way
     OUT/<shard>/shard.json                  written last: the shard is complete (session size and mtime, counts)
     OUT/<shard>/frames.npy      (F, 224, 224, 3) uint8   every image frame the windows use, once
     OUT/<shard>/frame_rows.npy  (W, 2) int32             rows of each window's [t-5, t] frames in frames.npy
-    OUT/<shard>/audio.npy       (W, 224, 256) float16    log-mel features (rotation.tactile.audio.fbank)
+    OUT/<shard>/audio.npy       (W, 224, 256) float16    log-mel features (rotation.data.audio.fbank)
     OUT/<shard>/imu.npy         (W, 224, 3) float32      g
     OUT/<shard>/pressure.npy    (W, 224, 1) float32      hPa
     OUT/<shard>/finger.npy, time.npy (W,)                fingertip (0..3), window end (s)
@@ -23,7 +23,7 @@ so a window costs one 150 kB frame + 115 kB of audio features: about 1 GB per ho
 Images and IMU/pressure are stored exactly; audio features in float16 (absolute error below 0.016 on log-mel
 values within +-32, far below their spread). :class:`CachedWindows` reads a cache like TouchWindows reads
 sessions, returning the image as its two raw frames ``(2, 224, 224, 3)`` uint8 and the audio as float16, which
-``rotation.tactile.sparshx_inputs.window_inputs`` (the encoders' ``preprocess``) converts on the device: a loader
+``rotation.tactile.models.sparshx_inputs.window_inputs`` (the encoders' ``preprocess``) converts on the device: a loader
 worker moves 4x fewer bytes than with float32 windows.
 """
 
@@ -47,9 +47,9 @@ from tqdm import tqdm
 from envs.constants import FINGERS
 from envs.validation import check_int, check_output_dir, check_types
 from rotation.configs import to_jsonable
+from rotation.data.audio import fbank
 from rotation.data.dataset import TouchWindows, check_fingers, check_session_sources, find_sessions
 from rotation.data.session import SessionError
-from rotation.tactile.audio import fbank
 
 CACHE_VERSION = 1
 MANIFEST = "manifest.json"

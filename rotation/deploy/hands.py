@@ -129,7 +129,7 @@ def _safety(setup: HandSetup) -> SafetyConfig:
 
 
 def _allegro(setup: HandSetup, spec: str):
-    from rotation.hardware.allegro import AllegroConfig, AllegroHand
+    from rotation.hardware.allegro.driver import AllegroConfig, AllegroHand
 
     base = AllegroConfig()
     gains = dict(kp=base.kp * setup.gain_scale, kd=base.kd * setup.gain_scale, safety=_safety(setup))
@@ -145,7 +145,7 @@ def _allegro(setup: HandSetup, spec: str):
 
 
 def _leap(setup: HandSetup, port: str):
-    from rotation.hardware.leap import LeapConfig, LeapHand
+    from rotation.hardware.leap.driver import LeapConfig, LeapHand
 
     base = LeapConfig()
     options: dict[str, Any] = dict(baudrate=setup.baud, p_gain=int(round(base.p_gain * setup.gain_scale)),

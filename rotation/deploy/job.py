@@ -35,172 +35,41 @@ the summary's "motors_off" is true only when confirmed (by the emulated hand, or
 motors-off that was not confirmed ends with a non-zero status and the instruction to cut the hand's power. With
 --skin the summary's "skin" counts the frames received, the malformed messages skipped and the disconnects; with a
 touch-reading policy its "touch" counts the refreshes, the steps acted with the adapter and as the student alone
-(fallback), and the refresh time (rotation.deploy.touch.TouchStats).
+(fallback), and the refresh time (rotation.deploy.touch_worker.TouchStats).
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import logging
 import math
 import signal
 import sys
-import tempfile
 import threading
 import time
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
-from envs.validation import check_int, check_number, check_types
-from rotation.configs import add_dataclass_arguments, dataclass_from_args, to_jsonable
+from rotation.configs import to_jsonable
 from rotation.data.properties import parse_properties
-from rotation.deploy.hands import HANDS, HandSetup, OpenedHand, emulated_physics, open_hand
-from rotation.deploy.sensors import check_digit360, check_skin, parse_digit360, parse_skin
+from rotation.deploy.config import (  # Config, add_arguments, config_from_args: what `rotate deploy` reads here
+    Config,
+    add_arguments,  # noqa: F401
+    check_before_start,
+    config_from_args,  # noqa: F401
+)
+from rotation.deploy.hands import HandSetup, OpenedHand, emulated_physics, open_hand
+from rotation.deploy.outcome import EXIT_FAULT, EXIT_OK, CriticalRecords, classify, finish
+from rotation.deploy.sensors import check_digit360, parse_digit360, parse_skin
 
 log = logging.getLogger("rotation.deploy")
 
-EXIT_OK, EXIT_FAULT, EXIT_SIGINT, EXIT_SIGTERM = 0, 1, 130, 143
 TOUCH_JOIN_S = 5.0
 """Longest wait (s), after the motors are off, for a touch refresh still running (one takes up to ~1 s on a loaded
 2-core machine); torch still computing on a daemon thread when the interpreter exits aborts the process."""
 DRAIN_JOIN_S = 2.0
 """Longest wait (s), after a fault and with the motors off, for a recording drain in progress (one took up to
 0.5 s on a loaded 2-core machine) before the sensors' last samples are moved into the session."""
-
-
-@dataclass(frozen=True)
-class Config:
-    hand: Literal["allegro", "leap", "sim-allegro", "sim-leap"] = "sim-allegro"
-    """Real Allegro (CAN) or LEAP (Dynamixel), or its MuJoCo emulator driven through the real driver and protocol."""
-    policy: str = ""
-    """Policy bundle: a directory (config.json + model.safetensors) or a shipped name (student); or a tactile adapter
-    bundle (a directory with adapter.safetensors, or a shipped name such as adapter), which reads the Digit 360
-    fingertips."""
-    can: str = "socketcan:can0"
-    """Allegro bus as INTERFACE:CHANNEL: socketcan:can0, pcan:PCAN_USBBUS1, slcan:/dev/ttyACM0 (any serial device)."""
-    port: str = "/dev/ttyUSB0"
-    """LEAP serial device (U2D2 adapter; any serial device path)."""
-    baud: int = 4_000_000
-    """LEAP baud rate."""
-    digit360: str = ""
-    """Digit 360 sensors to record (and to read, for a tactile adapter policy): 4 comma-separated USB serials in
-    finger order (index,middle,ring,thumb), FINGER=SERIAL pairs, tty paths, or 'sim' (emulated sensors that sense the
-    emulated hand, emulated hands only; what an adapter policy on an emulated hand starts without this option)."""
-    skin: str = ""
-    """Xela skin to record (skin/xela, 100 Hz): the vendor xela_server's WebSocket URL (ws://HOST:5000), or 'sim'
-    (a stand-in server, emulated hands only); empty: none. Start with the skin free of contact (baseline)."""
-    duration: float = 10.0
-    """Run length (s); 0 runs until Ctrl-C / SIGTERM."""
-    record: str = ""
-    """Session file (.h5) to record to (must not exist unless --overwrite); empty: no recording."""
-    overwrite: bool = False
-    """Replace an existing --record file."""
-    record_media: bool = False
-    """Also record each real --digit360 sensor's camera frames and microphones (digit360/<finger>/image, audio;
-    about 4.5 MB/s per sensor; needs the hardware extra), whatever the policy reads: what fine-tuning an adapter
-    that reads the image or the audio on your sessions needs. A policy that reads them records them anyway."""
-    gain_scale: float = 1.0
-    """Factor in (0, 1] on the driver's gains (Allegro kp/kd, LEAP position P/D): start a new hand low."""
-    object: str = "cup"
-    """Object in the hand: recorded as metadata; emulated hands simulate it (needs a shipped grasp cache)."""
-    properties: str = ""
-    """Measured object properties to store in the recording (its metadata's ``properties``; needs --record), e.g.
-    'mass=0.12,friction=0.8,com=0,0,0.01,scale=0.8': kg, friction coefficient against the fingertips, center of
-    mass offset (m, object frame), size relative to the simulated cup (rotation.data.properties). Fine-tuning the
-    tactile adapter on the recording needs all four. An emulated hand records its simulated values; stated ones
-    replace them."""
-    grasp: int = 0
-    """Emulated hands: the row of the shipped grasp cache to start from (nominal scale)."""
-    sim_transport: Literal["virtual", "slcan"] = "virtual"
-    """Emulated Allegro: python-can virtual bus, or an SLCAN serial adapter on a pseudo-terminal."""
-    rt_priority: int = 0
-    """SCHED_FIFO priority (1..99) for the control threads; 0 leaves scheduling alone (needs CAP_SYS_NICE)."""
-    policy_budget: float = 0.6
-    """Longest wait for the policy's action, as a fraction of the control period; later = hold the last target."""
-    hold_limit_s: float = 1.0
-    """Fault (end the run) after this long without a usable action from the policy (s)."""
-    status_every_s: float = 1.0
-    """Status line period (s)."""
-
-    def __post_init__(self) -> None:
-        if self.hand not in HANDS:
-            raise ValueError(f"hand: unknown hand {self.hand!r}; choose one of {', '.join(HANDS)}")
-        check_types(self)
-        if not self.policy:
-            raise ValueError("policy: give a bundle directory or a shipped bundle name (--policy student)")
-        if not (math.isfinite(self.duration) and self.duration >= 0):
-            raise ValueError(f"duration must be >= 0 s (0: until Ctrl-C), got {self.duration}")
-        if not (0 < self.gain_scale <= 1):
-            raise ValueError(f"gain_scale must be in (0, 1] (a fraction of the driver's gains), got {self.gain_scale}")
-        if self.hand == "allegro":
-            from rotation.hardware.can_bus import parse_can_spec
-
-            parse_can_spec(self.can)
-        if self.hand == "leap":
-            from rotation.hardware.dynamixel_protocol import BAUD_CODES
-
-            if self.baud not in BAUD_CODES:
-                raise ValueError(f"baud: {self.baud} is not a Dynamixel baud rate; choose one of {sorted(BAUD_CODES)}")
-        digit_specs = parse_digit360(self.digit360, emulated=self.hand.startswith("sim-"))
-        parse_skin(self.skin, emulated=self.hand.startswith("sim-"))
-        if parse_properties(self.properties) and not self.record:
-            raise ValueError("properties: they are stored in the recording; give --record FILE.h5 as well")
-        if self.record_media:
-            if not self.record:
-                raise ValueError("record_media: it records the sensors' cameras and microphones; give --record "
-                                 "FILE.h5 as well")
-            if not digit_specs or any(v == "sim" for v in digit_specs.values()):
-                raise ValueError("record_media: name real Digit 360 sensors with --digit360 (serials or tty paths); "
-                                 "emulated sensors render their image and audio only for a window and record none")
-        if self.grasp < 0:
-            raise ValueError(f"grasp must be >= 0, got {self.grasp}")
-        if self.sim_transport not in ("virtual", "slcan"):
-            raise ValueError(f"sim_transport must be 'virtual' or 'slcan', got {self.sim_transport!r}")
-        if not 0 <= self.rt_priority <= 99:
-            raise ValueError(f"rt_priority must be 0..99, got {self.rt_priority}")
-        if not 0 < self.policy_budget <= 1:
-            raise ValueError(f"policy_budget must be in (0, 1] control periods, got {self.policy_budget}")
-        if not (self.hold_limit_s > 0 and self.status_every_s > 0):
-            raise ValueError("hold_limit_s and status_every_s must be > 0 s")
-        # ceilings that catch typos and unit slips (every option is checked, whether this hand uses it or not)
-        from rotation.hardware.dynamixel_protocol import BAUD_CODES
-
-        if self.baud not in BAUD_CODES:
-            raise ValueError(f"baud: {self.baud} is not a Dynamixel baud rate; choose one of {sorted(BAUD_CODES)}")
-        check_number("duration", self.duration, 0.0, 7 * 24 * 3600.0, unit="s (0: until Ctrl-C)")
-        check_int("grasp", self.grasp, 0, 10**6)
-        check_number("hold_limit_s", self.hold_limit_s, 0.0, 60.0, low_open=True, unit="s")
-        check_number("status_every_s", self.status_every_s, 0.0, 3600.0, low_open=True, unit="s")
-
-
-REQUIRED = ("hand", "policy")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_dataclass_arguments(parser, Config)
-    for action in parser._actions:  # the hand and the policy are never implied
-        if action.dest in REQUIRED:
-            action.required = True
-            action.help = (action.help or "").split(" (default:")[0]
-
-
-def config_from_args(args: argparse.Namespace) -> Config:
-    return dataclass_from_args(Config, args)
-
-
-class _CriticalRecords(logging.Handler):
-    """Collects CRITICAL records of the drivers: each one means a motors-off command could not be sent or was not
-    confirmed (rotation.hardware logs exactly those at CRITICAL)."""
-
-    def __init__(self) -> None:
-        super().__init__(level=logging.CRITICAL)
-        self.messages: list[str] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.messages.append(record.getMessage())
 
 
 class _RunSignals:
@@ -248,71 +117,6 @@ def _ensure_logging() -> None:
         pkg.setLevel(logging.INFO)
 
 
-def _check_record_path(path: Path, overwrite: bool) -> None:
-    """ValueError unless a session file can be created at ``path``: never an existing file without ``--overwrite``
-    (a recording is never replaced silently), never a directory, and a location this process can write to."""
-    if path.is_dir():
-        raise ValueError(f"record: {path} is a directory; give a file name such as {path / 'run.h5'}")
-    if path.exists() and not overwrite:
-        raise ValueError(f"record: {path} exists; choose a new file name, or pass --overwrite to replace it")
-    parent = path.parent if str(path.parent) else Path(".")
-    existing = next((p for p in (parent, *parent.parents) if p.exists()), Path("."))
-    if not existing.is_dir():
-        raise ValueError(f"record: cannot create {path}: {existing} is not a directory")
-    # try it: permission bits say nothing when running as root or on a read-only file system
-    try:
-        if path.exists():
-            with open(path, "r+b"):
-                pass
-        else:
-            with tempfile.TemporaryFile(dir=existing):
-                pass
-    except OSError as err:
-        raise ValueError(f"record: cannot write {path} ({err.strerror or err} in {existing}); choose a writable "
-                         "location") from err
-
-
-def _check_before_start(cfg: Config) -> None:
-    """Everything that can be checked without touching the hardware (ValueError: bad input)."""
-    if cfg.record:
-        _check_record_path(Path(cfg.record), cfg.overwrite)
-    check_skin(parse_skin(cfg.skin, emulated=cfg.hand.startswith("sim-")))
-    if cfg.hand.startswith("sim-"):
-        from envs.grasps import load_default_cache
-
-        cache = load_default_cache(cfg.object)
-        if cfg.grasp >= cache.grasps.shape[1]:
-            raise ValueError(f"grasp {cfg.grasp} out of range: the {cfg.object!r} cache has "
-                             f"{cache.grasps.shape[1]} grasps per scale")
-
-
-def _classify(err: BaseException) -> tuple[str, int, bool]:
-    """(fault line, exit status, expected) for whatever ended the run; ``expected`` False = a bug: log a traceback."""
-    import can
-
-    from rotation.data.session import SessionError
-    from rotation.deploy.policy import PolicyFault
-    from rotation.deploy.sensors import SensorError
-    from rotation.hardware.hand import HandFault
-
-    if isinstance(err, KeyboardInterrupt):
-        return "interrupted (Ctrl-C / SIGINT)", EXIT_SIGINT, True
-    if isinstance(err, SystemExit):
-        code = err.code if isinstance(err.code, int) else EXIT_FAULT
-        return ("terminated (SIGTERM)" if code == EXIT_SIGTERM else f"exit requested (status {code})"), code, True
-    if isinstance(err, HandFault):
-        return f"hand fault: {err}", EXIT_FAULT, True
-    if isinstance(err, PolicyFault):
-        return f"policy fault: {err}", EXIT_FAULT, True
-    if isinstance(err, SessionError):
-        return f"recording failed: {err}", EXIT_FAULT, True
-    if isinstance(err, SensorError):
-        return f"touch sensor failed: {err}", EXIT_FAULT, True
-    if isinstance(err, can.CanError | OSError):
-        return f"hand connection failed: {err}", EXIT_FAULT, True
-    return f"{type(err).__name__}: {err}", EXIT_FAULT, False
-
-
 def run(cfg: Config) -> dict[str, Any]:
     """Deploy ``cfg.policy`` on ``cfg.hand``; returns the summary (also printed as JSON on the last stdout line).
 
@@ -324,13 +128,13 @@ def run(cfg: Config) -> dict[str, Any]:
     import numpy as np
     import torch
 
+    from rotation.bundles import load_bundle
     from rotation.deploy.loop import ControlLoop, LoopConfig
     from rotation.deploy.policy import check_deployable
     from rotation.deploy.recording import DeployRecorder
     from rotation.deploy.sensors import MEDIA_STREAMS, check_media_extras, find_media, open_digit360, open_skin
     from rotation.deploy.touch import reads_touch, touch_sensors, wait_for_touch
     from rotation.hardware.realtime import frozen_heap, set_realtime_priority
-    from rotation.policy.bundle import load_bundle
 
     bundle = load_bundle(cfg.policy)
     touch = reads_touch(bundle)
@@ -352,7 +156,7 @@ def run(cfg: Config) -> dict[str, Any]:
             raise ValueError(f"record_media: no camera or microphones found on the USB hub of the Digit 360 "
                              f"{', '.join(lacking)} (is the whole sensor plugged in, not only its serial port?)")
     check_media_extras(media)
-    _check_before_start(cfg)
+    check_before_start(cfg)
     loop_cfg = LoopConfig(control_hz=hz, duration_s=cfg.duration, policy_budget=cfg.policy_budget,
                           hold_limit_s=cfg.hold_limit_s, status_every_s=cfg.status_every_s)
     kind = bundle.config.latent_source + (f" + tactile adapter: {', '.join(bundle.windows)}, every "
@@ -361,7 +165,7 @@ def run(cfg: Config) -> dict[str, Any]:
              bundle.config.action_scale, cfg.hand,
              f"{cfg.duration:g} s" if cfg.duration > 0 else "until Ctrl-C")
 
-    critical = _CriticalRecords()
+    critical = CriticalRecords()
     hw_log = logging.getLogger("rotation.hardware")
     hw_log.addHandler(critical)
     switch_interval, torch_threads = sys.getswitchinterval(), torch.get_num_threads()
@@ -420,7 +224,7 @@ def run(cfg: Config) -> dict[str, Any]:
         if shortfall is not None:
             fault, exit_code = f"the loop could not hold {hz:g} Hz: {shortfall}", EXIT_FAULT
     except BaseException as err:  # noqa: B036 - every way out ends here, Ctrl-C and SIGTERM included
-        fault, exit_code, expected = _classify(err)
+        fault, exit_code, expected = classify(err)
         if not expected:
             log.error("deploy: unexpected error", exc_info=err)
     finally:
@@ -441,7 +245,7 @@ def run(cfg: Config) -> dict[str, Any]:
                 exit_code = exit_code or EXIT_FAULT
     try:
         opened = created[0] if created else None
-        return _finish(cfg, hz, opened, loop, recorder, critical, fault, exit_code, time.monotonic() - t_start,
+        return finish(cfg, hz, opened, loop, recorder, critical, fault, exit_code, time.monotonic() - t_start,
                        skin)
     finally:
         signals.restore()
@@ -494,66 +298,3 @@ def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, readers: dict[
         raise SessionError(f"could not create {cfg.record}: {err}") from err
     log.info("recording to %s", recorder.path)
     return recorder
-
-
-def _motors_off_state(opened: OpenedHand | None) -> tuple[bool, bool | None, str | None]:
-    """(motors_off, motors_off_confirmed, witness) at the end of a run.
-
-    ``motors_off`` is True only when it is known: the motors were never switched on (confirmed None, witness
-    None), or the emulated hand saw them off (witness 'emulator'), or the real hand answered that they are off
-    (witness 'hand', rotation.hardware.hand.FeedbackMixin.motors_off_confirmed). A motors-off command that was
-    merely sent is not enough: after a lost bus it goes nowhere without an error."""
-    driver = opened.driver if opened is not None else None
-    if driver is None or not getattr(driver, "motors_switched_on", True):
-        return True, None, None
-    if opened is not None and opened.emulator is not None:
-        confirmed = bool(opened.emulator_saw_motors_off)
-        return confirmed, confirmed, "emulator"
-    confirmed = getattr(driver, "motors_off_confirmed", None) is True
-    return confirmed, confirmed, "hand"
-
-
-def _finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, critical: _CriticalRecords,
-            fault: str | None, exit_code: int, wall_s: float, skin=None) -> dict[str, Any]:
-    """Summary dict, final log lines, and the JSON line on stdout."""
-    motors_off, confirmed, witness = _motors_off_state(opened)
-    stats = loop.stats.summary(1.0 / hz) if loop is not None else {
-        "steps": 0, "loop_hz": None, "late_steps": 0, "skipped_slots": 0, "held_steps": 0, "rejected_actions": 0,
-        "jitter_p50_ms": None, "jitter_p99_ms": None, "max_temperature_c": None, "rotation_rad": None,
-        "object_fell": None}
-    summary: dict[str, Any] = {
-        "hand": cfg.hand, "source": "sim" if cfg.hand.startswith("sim-") else "real", "policy": cfg.policy,
-        "control_hz": hz, **stats, "wall_s": wall_s, "fault": fault, "motors_off": motors_off,
-        "motors_off_confirmed": confirmed, "motors_off_witness": witness,
-        "record": str(recorder.path) if recorder is not None else None, "exit_code": exit_code,
-        "skin": None if skin is None else {k: skin.counters[k] for k in ("frames", "skipped", "disconnects")},
-        "touch": None if loop is None or loop.touch is None else loop.touch.stats.summary(),
-    }
-    rot = "" if summary["rotation_rad"] is None else f" (object rotation {summary['rotation_rad']:+.2f} rad)"
-    rate = "n/a" if summary["loop_hz"] is None else f"{summary['loop_hz']:.1f} Hz"
-    if witness is None:
-        off = "motors never switched on"
-    elif motors_off:
-        off = "motors off (" + ("the emulated hand saw it" if witness == "emulator" else "confirmed by the hand") + ")"
-    else:
-        msgs = critical.messages or [f"the {'emulated hand' if witness == 'emulator' else 'hand'} did not confirm it"]
-        why_not = "; ".join(msgs[:2]) + (f"; and {len(msgs) - 2} more" if len(msgs) > 2 else "")
-        off = (f"MOTORS NOT CONFIRMED OFF ({why_not}): the hand may still be driving its joints; SWITCH THE HAND OFF "
-               "AT ITS POWER SUPPLY NOW")
-    touch = summary["touch"]
-    if touch is not None:  # with the rotation: what the adapter did
-        rot += (f"; touch: {touch['refreshes']} refreshes (median {touch['refresh_ms_p50'] or 0:.0f} ms), the "
-                f"adapter acted {touch['adapter_steps']} steps, the student alone {touch['fallback_steps']}")
-    if fault is None:
-        log.info("deploy: done after %d steps at %s, late %d, held %d%s -- %s", summary["steps"], rate,
-                 summary["late_steps"], summary["held_steps"], rot, off)
-    else:
-        level = logging.WARNING if exit_code in (EXIT_SIGINT, EXIT_SIGTERM) else logging.ERROR
-        log.log(level, "deploy: stopped after %d steps%s: %s -- %s", summary["steps"], rot, fault, off)
-    if not motors_off:
-        log.critical("deploy: %s", off)
-        # also straight to the terminal: whatever the logging setup, the person at the hand must read this
-        print(f"rotate deploy: {off}", file=sys.stderr, flush=True)
-        summary["exit_code"] = summary["exit_code"] or EXIT_FAULT
-    print(json.dumps(summary))
-    return summary

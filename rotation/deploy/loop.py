@@ -28,32 +28,25 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TextIO
 
 import numpy as np
 
-from envs.config import EnvConfig
-from envs.core import angular_velocity
+from rotation.deploy.drain import Drains, DrainThread
 from rotation.deploy.hands import OpenedHand
+from rotation.deploy.monitors import LoopStats, RotationMeter, StatusLine, TemperatureMonitor
 from rotation.deploy.policy import PolicyFault, PolicyState, PolicyWorker, action_problem
 from rotation.deploy.recording import DeployRecorder
 from rotation.deploy.sensors import DigitDrain, SkinDrain
-from rotation.deploy.touch import STALE_REFRESHES, TouchWorker, reads_touch
+from rotation.deploy.touch import reads_touch
+from rotation.deploy.touch_worker import STALE_REFRESHES, TouchWorker
 from rotation.hardware.hand import HandFault
 from rotation.policy.bundle import PolicyBundle
 
 log = logging.getLogger(__name__)
 
-_ENV = EnvConfig()
-ROTATION_AXIS = np.asarray(_ENV.reward.axis, dtype=np.float64)
-"""The env's commanded rotation axis, world frame ((0, 0, -1): palm up, clockwise seen from above)."""
-FALL_DROP_M = _ENV.fall_drop
-"""The object counts as fallen this far (m) below its start height (the env's rule)."""
-FALL_DISTANCE_M = _ENV.max_distance
-"""... or this far (m) from its start position in any direction (the env's rule)."""
 
 
 @dataclass(frozen=True)
@@ -78,206 +71,11 @@ class LoopConfig:
     """Period (s) of moving Digit 360 and skin samples into the recording."""
     touch_stale_refreshes: float = STALE_REFRESHES
     """A touch-reading policy drops a correction older than this many refresh periods (``touch_every`` control
-    periods; at least rotation.deploy.touch.MIN_STALE_S) and acts as its student alone until a fresh one arrives."""
+    periods; at least rotation.deploy.touch_worker.MIN_STALE_S) and acts as its student alone until a fresh one
+    arrives."""
     max_degraded_fraction: float = 0.5
     """A run in which more than this fraction of the control slots were late, held or skipped did not run the
     policy at its rate: ``rotate deploy`` reports it as a fault (exit status 1), not as done."""
-
-
-@dataclass
-class LoopStats:
-    """What the loop measured; complete up to the moment the loop ended, also after a fault."""
-
-    tick_times: list[float] = field(default_factory=list)
-    """Host monotonic start time (s) of every control step."""
-    late_steps: int = 0
-    skipped_slots: int = 0
-    held_steps: int = 0
-    degraded_steps: int = 0
-    """Steps that were late, held, or both (each counted once)."""
-    rejected_actions: int = 0
-    rotation_rad: float | None = None
-    """Object rotation (rad) about ROTATION_AXIS since the start (emulation), up to a fall."""
-    object_fell: bool | None = None
-    max_temperature_c: float = float("nan")
-
-    def summary(self, period: float) -> dict:
-        """Steps, loop rate (Hz), late/held counts, p50/p99 jitter (ms) = |step period - nominal period|."""
-        t = np.asarray(self.tick_times)
-        periods = np.diff(t)
-        jitter = 1e3 * np.abs(periods - period)
-        out = {
-            "steps": len(t),
-            "loop_hz": float(len(periods) / (t[-1] - t[0])) if len(t) > 1 and t[-1] > t[0] else None,
-            "late_steps": self.late_steps,
-            "skipped_slots": self.skipped_slots,
-            "held_steps": self.held_steps,
-            "rejected_actions": self.rejected_actions,
-            "jitter_p50_ms": float(np.percentile(jitter, 50)) if len(jitter) else None,
-            "jitter_p99_ms": float(np.percentile(jitter, 99)) if len(jitter) else None,
-            "max_temperature_c": None if math.isnan(self.max_temperature_c) else float(self.max_temperature_c),
-            "rotation_rad": self.rotation_rad,
-            "object_fell": self.object_fell,
-        }
-        return out
-
-    def shortfall(self, max_fraction: float) -> str | None:
-        """Why the loop did not hold its rate: more than ``max_fraction`` of its slots (steps run + slots skipped)
-        were late, held or skipped; None when it did."""
-        slots = len(self.tick_times) + self.skipped_slots
-        bad = self.degraded_steps + self.skipped_slots
-        if slots == 0 or bad <= max_fraction * slots:
-            return None
-        return (f"{bad} of {slots} control slots were late, held or skipped (more than {max_fraction:.0%}; late "
-                f"{self.late_steps}, held {self.held_steps}, skipped {self.skipped_slots}): the policy did not run "
-                "as it was trained")
-
-
-class RotationMeter:
-    """Accumulates the object's rotation about ROTATION_AXIS from successive poses (7,); stops at a fall."""
-
-    def __init__(self, pose0: np.ndarray) -> None:
-        self.pos0 = pose0[:3].copy()
-        self.quat = pose0[3:].copy()
-        self.rotation = 0.0
-        self.fell = False
-
-    def update(self, pose: np.ndarray) -> None:
-        if self.fell:
-            return
-        pos, quat = pose[:3], pose[3:]
-        if pos[2] < self.pos0[2] - FALL_DROP_M or np.linalg.norm(pos - self.pos0) > FALL_DISTANCE_M:
-            self.fell = True
-            log.warning("the object fell (%.3f m below / %.3f m from its start); rotation counted up to here: "
-                        "%+.2f rad", self.pos0[2] - pos[2], np.linalg.norm(pos - self.pos0), self.rotation)
-            return
-        self.rotation += float(angular_velocity(self.quat, quat, 1.0) @ ROTATION_AXIS)  # rad over this step
-        self.quat = quat.copy()
-
-
-class TemperatureMonitor:
-    """Polls ``hand.info()`` every ``every_s`` on a daemon thread; ``max_c`` is the hottest joint seen (C)."""
-
-    def __init__(self, hand, every_s: float, initial_c: float = float("nan")) -> None:
-        self.hand = hand
-        self.every_s = every_s
-        self.max_c = initial_c
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="deploy-temperature", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.every_s):
-            try:
-                temps = np.asarray(self.hand.info().temperatures, dtype=np.float64)
-            except HandFault:
-                return  # the control loop sees the fault at its next read
-            except Exception as err:  # a missed poll is not a reason to stop the hand
-                if not self._stop.is_set():
-                    log.warning("temperature poll failed: %s", err)
-                continue
-            if np.any(np.isfinite(temps)):
-                self.max_c = float(np.nanmax(np.r_[temps, self.max_c]))
-
-    def stop(self) -> None:
-        """Ask the thread to stop (does not wait: it may be inside a bus request)."""
-        self._stop.set()
-
-
-class StatusLine:
-    """A one-line live status on ``out``: rewritten in place on a terminal, one line per update otherwise."""
-
-    def __init__(self, out: TextIO | None) -> None:
-        self.out = out
-        self.tty = bool(out is not None and hasattr(out, "isatty") and out.isatty())
-        self.shown = False
-
-    def show(self, text: str) -> None:
-        if self.out is None:
-            return
-        self.out.write(("\r\x1b[2K" + text) if self.tty else text + "\n")
-        self.out.flush()
-        self.shown = True
-
-    def end(self) -> None:
-        if self.out is not None and self.tty and self.shown:
-            self.out.write("\n")
-            self.out.flush()
-
-
-class _Drains:
-    """Several sensor drains (Digit 360, skin) behind one ``drain(append)``."""
-
-    def __init__(self, drains: list) -> None:
-        self.drains = drains
-
-    def drain(self, append) -> None:
-        for d in self.drains:
-            d.drain(append)
-
-
-class DrainThread:
-    """Moves the sensors' samples into the recording every ``every_s`` from its own thread, so that the control
-    loop never waits for it: a drain of four fingertips' camera frames and audio is a few ms on an idle machine but
-    took 250-500 ms on a busy 2-core one (every step of it waits its turn for the interpreter's lock among the
-    sensors' threads), and on the loop's thread it cost the run most of its 20 Hz slots. A failed drain (a
-    SessionError) is kept and raised by :meth:`check`, which the loop calls every step."""
-
-    def __init__(self, drain: _Drains, append, every_s: float) -> None:
-        self.drain, self.append, self.every_s = drain, append, every_s
-        self.error: BaseException | None = None
-        self._drained = False  # the run's samples are all in the recording
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="deploy-drain", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.every_s):
-            try:
-                self.drain.drain(self.append)
-            except BaseException as err:  # noqa: BLE001 -- handed to the loop's thread by check()
-                self.error = err
-                return
-
-    def check(self) -> None:
-        """Raise the drain's error, if one ended it."""
-        if self.error is not None:
-            raise self.error
-
-    def stop(self, final_drain: bool) -> None:
-        """Stop. ``final_drain`` (a run that ended well): wait for a drain in progress, then move what came since.
-        Otherwise (a fault: the motors go off first) nothing is waited for here; :meth:`drain_rest` moves the
-        samples of the run's last moments once the hand is off."""
-        self._stop.set()
-        if final_drain:
-            self._thread.join()
-            self.check()
-            self.drain.drain(self.append)
-            self._drained = True
-
-    def drain_rest(self, timeout_s: float) -> bool:
-        """After a fault, once the motors are off: wait up to ``timeout_s`` for a drain in progress, then move the
-        samples that came since (the moments before a fault are those a lab most wants to look at). False (logged)
-        when they could not be recorded: a drain still busy, or the recording failed."""
-        if self._drained:
-            return True
-        self._stop.set()
-        self._thread.join(timeout=timeout_s)
-        if self._thread.is_alive():
-            log.warning("recording: a drain still busy %.1f s after the run; the sensors' last samples are not in "
-                        "the session", timeout_s)
-            return False
-        if self.error is not None:
-            log.warning("recording: the sensors' last samples are not in the session (a drain failed: %s)",
-                        self.error)
-            return False
-        try:
-            self.drain.drain(self.append)
-        except Exception as err:  # noqa: BLE001 -- the hand is off; the run's outcome is already decided
-            log.error("recording: the sensors' last samples could not be recorded: %s", err)
-            return False
-        self._drained = True
-        return True
 
 
 class ControlLoop:
@@ -325,7 +123,7 @@ class ControlLoop:
         meter = RotationMeter(pose0) if pose0 is not None else None
         drains = ([DigitDrain(self.readers, t0)] if self.readers else []) + (
             [SkinDrain(self.skin, t0)] if self.skin is not None else [])
-        drain = _Drains(drains) if drains else None
+        drain = Drains(drains) if drains else None
         worker = PolicyWorker(self._act)
         touch = self.touch = (TouchWorker(self.bundle, self.readers, self.period, cfg.touch_stale_refreshes)
                               if reads_touch(self.bundle) else None)

@@ -28,7 +28,7 @@ import numpy as np
 
 from envs import constants as C
 from envs.observation import ProprioHistory
-from rotation.policy.bundle import BundleConfig
+from rotation.policy.bundle_config import BundleConfig
 
 log = logging.getLogger(__name__)
 

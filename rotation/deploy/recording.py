@@ -29,9 +29,10 @@ from typing import Any
 import numpy as np
 
 from envs.constants import NUM_JOINTS
-from rotation.data.session import SessionMeta, SessionWriter, StreamSetup
+from rotation.data.session import SessionMeta, StreamSetup
+from rotation.data.session_writer import SessionWriter
 from rotation.deploy.sensors import STREAMS as DIGIT_STREAMS
-from rotation.hardware import digit360_window as dw
+from rotation.hardware.digit360 import window as dw
 
 JOINT_STREAMS = ("joints/position", "joints/target", "joints/torque")
 

@@ -13,7 +13,7 @@ The sensors are recorded: their serial streams (accelerometer 400 Hz, pressure 2
 ``digit360/<finger>/{imu,pressure}``, and a real sensor's camera frames and microphones, when deploy opened them,
 to ``digit360/<finger>/{image,audio}`` (an emulated sensor renders its image and audio only for a window, and
 records none). Their Sparsh-X windows (image, audio, IMU,
-pressure; rotation.hardware.digit360_window) are read by a touch-reading policy (rotation.deploy.touch) through
+pressure; rotation.hardware.digit360.window) are read by a touch-reading policy (rotation.deploy.touch) through
 ``reader.window()`` of each finger's reader; emulated sensors give all four modalities, a real one its serial
 streams (IMU and pressure) and, when the policy reads the image or the audio, its camera and microphones, found on
 the sensor's own USB hub (:func:`find_media`; OpenCV and sounddevice, the ``hardware`` extra).
@@ -21,7 +21,7 @@ A sensor that stops streaming leaves a gap in its streams and a log line; it doe
 
 ``--skin`` names the Xela skin's ``xela_server`` (a ws:// URL; ``sim`` starts the local stand-in server,
 rotation.sim_hardware.xela_emulator, emulated hands only). Its frames (raw counts, our taxel order,
-rotation.hardware.xela) are recorded to ``skin/xela``; the median of the frames received before the hand starts
+rotation.hardware.xela.reader) are recorded to ``skin/xela``; the median of the frames received before the hand starts
 is stored as the session's ``extra["xela_baseline"]`` (the no-contact reading, rotation.data.skin), so start with
 the skin free of contact. A skin that stops streaming leaves a gap and a log line, like a Digit 360.
 """
@@ -95,9 +95,9 @@ def check_digit360(specs: dict[str, str]) -> None:
     real = {finger: value for finger, value in specs.items() if value != "sim"}
     if not real:
         return
-    from rotation.hardware.digit360 import find_digit360_ports
+    from rotation.hardware.digit360 import discovery
 
-    connected = find_digit360_ports()  # (tty, USB serial) of every Digit 360 plugged in now
+    connected = discovery.find_digit360_ports()  # (tty, USB serial) of every Digit 360 plugged in now
     serials = {serial for _, serial in connected}
     missing = []
     for finger, value in real.items():
@@ -121,7 +121,7 @@ plus the camera (``image``) and microphones (``audio``) that :func:`find_media` 
 def digit360_windows(value: str, emulated: bool, devices: Any = None) -> tuple[str, ...]:
     """The windows in ``reader.window()`` of the sensor that :func:`open_digit360` starts for one ``--digit360``
     entry (``value``: 'sim', a serial or a tty path) beside an emulated (``emulated``) or a real hand;
-    ``devices``: that sensor's camera and microphones to open (rotation.hardware.digit360.Digit360Devices)."""
+    ``devices``: that sensor's camera and microphones to open (rotation.hardware.digit360.discovery.Digit360Devices)."""
     if value == "sim" and emulated:
         return SIM_WINDOWS
     extra = () if devices is None else (("image",) if devices.camera else ()) + (("audio",) if devices.audio else ())
@@ -131,20 +131,20 @@ def digit360_windows(value: str, emulated: bool, devices: Any = None) -> tuple[s
 def find_media(specs: dict[str, str], windows: tuple[str, ...], sysfs: str = "/sys") -> dict[str, Any]:
     """{finger: Digit360Devices} for the real sensors in ``specs`` when ``windows`` (what a policy reads) include
     the image or the audio: the camera and microphones on each sensor's USB hub
-    (rotation.hardware.digit360.find_digit360_devices), only those the windows need. A sensor that is not connected
-    (``check_digit360`` says so before the start) or a tty that is not a Digit 360's finds nothing."""
+    (rotation.hardware.digit360.discovery.find_digit360_devices), only those the windows need. A sensor that is not
+    connected (``check_digit360`` says so before the start) or a tty that is not a Digit 360's finds nothing."""
     wanted = {"image", "audio"} & set(windows)
     real = {finger: value for finger, value in specs.items() if value != "sim"}
     if not wanted or not real:
         return {}
-    from rotation.hardware.digit360 import Digit360Devices, find_digit360_devices, find_digit360_ports
+    from rotation.hardware.digit360 import discovery
 
-    ttys = {serial: tty for tty, serial in find_digit360_ports()}  # one scan of the USB serial ports for all
+    ttys = {serial: tty for tty, serial in discovery.find_digit360_ports()}  # one scan of the USB serial ports for all
     out = {}
     for finger, value in real.items():
         port = value if value.startswith("/") else ttys.get(value)
-        found = find_digit360_devices(port, sysfs) if port else Digit360Devices()
-        out[finger] = Digit360Devices(camera=found.camera if "image" in wanted else None,
+        found = discovery.find_digit360_devices(port, sysfs) if port else discovery.Digit360Devices()
+        out[finger] = discovery.Digit360Devices(camera=found.camera if "image" in wanted else None,
                                       audio=found.audio if "audio" in wanted else None)
         log.info("digit360 %s (%s): camera %s, microphones %s", finger, value, out[finger].camera or "-",
                  out[finger].audio or "-")
@@ -181,7 +181,7 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: H
     """
     if not specs:
         return {}
-    from rotation.hardware.digit360 import Digit360, Digit360Config
+    from rotation.hardware.digit360.reader import Digit360, Digit360Config
 
     readers: dict[str, Any] = {}
     epoch = time.monotonic()  # one device clock for the emulated fingertips of the hand: they sample it together
@@ -215,7 +215,7 @@ def parse_skin(spec: str, emulated: bool) -> str:
             raise ValueError("skin: 'sim' (the stand-in xela_server) needs an emulated hand "
                              "(--hand sim-allegro/sim-leap)")
         return spec
-    from rotation.hardware.xela import parse_url
+    from rotation.hardware.xela.reader import parse_url
 
     return parse_url(spec, "skin")
 
@@ -224,7 +224,7 @@ def check_skin(spec: str) -> None:
     """ValueError (naming ``--skin``) unless the xela_server at the URL answers now (before anything starts)."""
     if spec in ("", "sim"):
         return
-    from rotation.hardware.xela import probe_server
+    from rotation.hardware.xela.reader import probe_server
 
     problem = probe_server(spec)
     if problem:
@@ -240,7 +240,7 @@ def open_skin(spec: str, stack: contextlib.ExitStack) -> tuple[Any, Any]:
     None). Waits up to 2 s for ``SKIN_BASELINE_S`` of frames; :class:`SensorError` if none arrives."""
     if not spec:
         return None, None
-    from rotation.hardware.xela import SAMPLE_HZ, XelaConfig, XelaReader
+    from rotation.hardware.xela.reader import SAMPLE_HZ, XelaConfig, XelaReader
 
     url = spec
     if spec == "sim":

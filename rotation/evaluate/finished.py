@@ -14,17 +14,17 @@ earlier version) is refused rather than overwritten.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import tempfile
 from pathlib import Path
 from typing import Any
 
+from envs.grasp_cache import cache_digest
+from envs.metrics import METRICS
+from rotation.bundles import weights_digest
 from rotation.configs import to_jsonable
-from rotation.evaluate.metrics import METRICS
 from rotation.evaluate.report import json_text
-from rotation.policy.bundle import WEIGHTS_FILE, resolve_bundle
 
 PROGRESS_FILE = "progress.json"
 CONDITIONS_DIR = "conditions"
@@ -37,40 +37,13 @@ LATER_FIELDS = {"touch_lag": 0}
 left out of the identity, so an interrupted evaluation recorded before it existed still continues."""
 
 
-def weights_digest(policy: str) -> str:
-    """First 16 hex digits of the SHA-256 of a bundle's weights (a path may hold a retrained policy later); for an
-    adapter bundle, of its weights and its config, which holds the digests of its student and encoder; for an
-    adapter ensemble, of its config and every member's."""
-    path = resolve_bundle(policy)
-    from adapters.bundle import CONFIG_FILE, is_adapter_dir
-    from adapters.bundle import WEIGHTS_FILE as ADAPTER_WEIGHTS
-    from adapters.ensemble import ensemble_digest, is_ensemble_dir
-
-    if is_ensemble_dir(path):
-        return ensemble_digest(path)
-    if is_adapter_dir(path):
-        data = (path / ADAPTER_WEIGHTS).read_bytes() + (path / CONFIG_FILE).read_bytes()
-    else:
-        data = (path / WEIGHTS_FILE).read_bytes()
-    return hashlib.sha256(data).hexdigest()[:16]
-
-
-def grasps_digest(cfg: Any, hand: str = "digit360") -> str:
-    """First 16 hex digits of the SHA-256 of the grasp cache the episodes start from (the shipped one of the object
-    unless cfg.grasp_cache names one): a regenerated cache changes every episode's start."""
-    from envs.grasps import default_cache_path
-
-    path = Path(cfg.grasp_cache) if cfg.grasp_cache else default_cache_path(cfg.object, hand)
-    return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.is_file() else "(none)"
-
-
 def identity(cfg: Any, policies: dict[str, str], hand: str = "digit360") -> dict[str, Any]:
     """What the rows of an evaluation depend on: its config (without RESUMABLE_CHANGES), the policies' weights and
     the grasp cache (of ``hand``, the hand the episodes run on)."""
     config = {k: v for k, v in to_jsonable(cfg).items()
               if k not in RESUMABLE_CHANGES and not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
     return {"config": config, "policy_weights": {name: weights_digest(path) for name, path in policies.items()},
-            "grasps": {"cache": grasps_digest(cfg, hand)}}
+            "grasps": {"cache": cache_digest(cfg.grasp_cache, cfg.object, hand)}}
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:

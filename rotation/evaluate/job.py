@@ -32,13 +32,14 @@ from tqdm import tqdm
 
 from envs.config import EnvConfig, Perturbation, RandomizationConfig
 from envs.validation import check_int, check_optional_file, check_output_dir, check_seed, check_types
+from rotation.bundles import load_bundle
 from rotation.configs import save_config
 from rotation.evaluate import finished
 from rotation.evaluate.report import make_row, write_report
 from rotation.evaluate.rollout import run_episodes
 from rotation.evaluate.suites import SUITES, Condition, get_suite, make_condition
 from rotation.interrupt import SIGNAL_NAMES, Interrupted
-from rotation.policy.bundle import PolicyBundle, load_bundle, shipped_bundles
+from rotation.policy.bundle import PolicyBundle, shipped_bundles
 from rotation.sim_warp.host import BACKEND_HELP, BACKENDS, make_vec
 
 

@@ -1,9 +1,9 @@
 """The evaluation report: results.json (rows + config), results.md (a table) and plots (matplotlib, Agg).
 
 A row is one (policy, condition): the condition's perturbation, the number of episodes and, for every metric in
-:data:`rotation.evaluate.metrics.METRICS`, the mean over episodes and ``<metric>_std``. ``per_episode`` keeps the
+:data:`envs.metrics.METRICS`, the mean over episodes and ``<metric>_std``. ``per_episode`` keeps the
 values of :data:`EPISODE_FIELDS` for each episode, in episode order (episode j was seeded seed + j for every policy),
-so two policies can be compared episode by episode (scripts/pool_evaluations.py's paired rates).
+so two policies can be compared episode by episode (experiments/tools/pool_evaluations.py's paired rates).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from envs.metrics import METRICS, EpisodeMetrics, summarize
 from rotation.configs import to_jsonable
-from rotation.evaluate.metrics import METRICS, EpisodeMetrics, summarize
 from rotation.evaluate.suites import NOMINAL, Condition, axis_level
 
 EPISODE_FIELDS = ("ttf", "rotation_total", "in_hand_time", "vertical_drift")

@@ -12,8 +12,8 @@ from collections.abc import Callable
 import numpy as np
 
 from envs.core import RotateCupVec
+from envs.metrics import EpisodeMetrics, EpisodeTracker
 from envs.validation import check_int
-from rotation.evaluate.metrics import EpisodeMetrics, EpisodeTracker
 from rotation.policy.bundle import PolicyBundle
 
 FrameHook = Callable[[RotateCupVec], None]

@@ -61,9 +61,9 @@ def make_condition(p: Perturbation) -> Condition:
 
 
 def _perturbations_suite() -> list[Condition]:
-    # Sparsh-X reports robustness to reduced friction and added mass without levels (reference/sparsh.md); ours
+    # Sparsh-X reports robustness to reduced friction and added mass without levels (docs/reference/sparsh.md); ours
     # go from mild to a quarter of the friction, up to +0.2 kg (about the top of the training mass range, 0.25 kg,
-    # reference/hora.md), and CoM shifts of one and two times the training range (+-1 cm)
+    # docs/reference/hora.md), and CoM shifts of one and two times the training range (+-1 cm)
     perturbs = [Perturbation()]
     perturbs += [Perturbation(friction_scale=f) for f in (0.75, 0.5, 0.35, 0.25)]
     perturbs += [Perturbation(added_mass=m) for m in (0.05, 0.1, 0.2)]

@@ -2,7 +2,7 @@
 
 Frames and units: joint vectors are (16,) float64 in the Allegro bus order (index 0-3, middle 4-7, ring 8-11,
 thumb 12-15; each finger [abduction, MCP, PIP, DIP]), radians and rad/s, in the Allegro joint frame. The LEAP
-driver converts (LEAP angle = Allegro angle + pi, reference/hardware.md section 2) so callers never see it.
+driver converts (LEAP angle = Allegro angle + pi, docs/reference/hardware.md section 2) so callers never see it.
 
 Joint limits and torque limits are repeated here (not imported from ``envs``, whose package imports MuJoCo);
 ``tests/hardware`` checks they equal ``envs.constants``.
@@ -19,7 +19,7 @@ import numpy as np
 NUM_JOINTS = 16
 FINGERS = ("index", "middle", "ring", "thumb")
 
-# Joint limits (rad), public Allegro V4 description (reference/hora.md "Allegro hand facts"); = envs.constants.
+# Joint limits (rad), public Allegro V4 description (docs/reference/hora.md "Allegro hand facts"); = envs.constants.
 _FINGER_LOWER = (-0.47, -0.196, -0.174, -0.227)
 _FINGER_UPPER = (0.47, 1.61, 1.709, 1.618)
 _THUMB_LOWER = (0.263, -0.105, -0.189, -0.162)
@@ -28,7 +28,7 @@ JOINT_LOWER: tuple[float, ...] = _FINGER_LOWER * 3 + _THUMB_LOWER
 JOINT_UPPER: tuple[float, ...] = _FINGER_UPPER * 3 + _THUMB_UPPER
 
 # Per-joint torque limits of the V4 hand in normalized torque units (= PWM / 1200; N m in simulation),
-# reference/hardware.md section 1 "PWM limits"; = envs.constants.TORQUE_LIMITS.
+# docs/reference/hardware.md section 1 "PWM limits"; = envs.constants.TORQUE_LIMITS.
 TORQUE_LIMITS: tuple[float, ...] = (0.312, 0.562, 0.375, 0.237) * 3 + (0.438, 0.338, 0.225, 0.225)
 
 

@@ -34,16 +34,16 @@ class SafetyConfig:
     """Limits applied to every command; joint vectors (16,) in bus order, Allegro frame."""
 
     lower: tuple[float, ...] = JOINT_LOWER
-    """Lower joint limits (rad); defaults are the Allegro V4 limits (reference/hora.md)."""
+    """Lower joint limits (rad); defaults are the Allegro V4 limits (docs/reference/hora.md)."""
     upper: tuple[float, ...] = JOINT_UPPER
     """Upper joint limits (rad)."""
     torque_limits: tuple[float, ...] | None = None
     """Per-joint |torque| limits in the driver's effort unit (Allegro: normalized, PWM / 1200 on a V4); None uses
-    the hand's hardware limits (V4: reference/hardware.md section 1 PWM limits). Values above the hardware
+    the hand's hardware limits (V4: docs/reference/hardware.md section 1 PWM limits). Values above the hardware
     limits are an error, never silently lowered."""
     max_target_rate: float = 1.0
     """Largest target speed the low-level loop will track (rad/s). Hora's policy moves at most 1/24 rad per 50 ms
-    = 0.83 rad/s (reference/hora.md "action"), so 1.0 leaves headroom and slows any bigger jump."""
+    = 0.83 rad/s (docs/reference/hora.md "action"), so 1.0 leaves headroom and slows any bigger jump."""
     policy_timeout_s: float = 0.25
     """Watchdog: longest gap between two commands (s) before ``on_policy_stall`` applies (5 policy steps at 20 Hz)."""
     on_policy_stall: Literal["hold", "release"] = "hold"

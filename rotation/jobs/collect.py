@@ -34,7 +34,9 @@ from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, FINGERS, contact_frame_f
 from envs.sensors.xela import skin_metadata
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import to_jsonable
-from rotation.data.session import LATENT_DIM, SessionMeta, SessionReader, SessionWriter, StreamSetup
+from rotation.data.session import LATENT_DIM, SessionMeta, StreamSetup
+from rotation.data.session_reader import SessionReader
+from rotation.data.session_writer import SessionWriter
 from rotation.jobs.collect_skin import PlayPolicy, record_skin, run_joystick, skin_streams
 
 SHARD_SIZE = 100
@@ -159,7 +161,9 @@ class _BundlePolicy:
     def __init__(self, name_or_path: str):
         import hashlib
 
-        from rotation.policy.bundle import WEIGHTS_FILE, load_bundle, resolve_bundle
+        from rotation.bundles import load_bundle
+        from rotation.policy.bundle import resolve_bundle
+        from rotation.policy.bundle_config import WEIGHTS_FILE
 
         self.bundle = load_bundle(name_or_path)
         self.digest = hashlib.sha256((resolve_bundle(name_or_path) / WEIGHTS_FILE).read_bytes()).hexdigest()[:16]

@@ -30,7 +30,8 @@ from envs.joystick import JoystickConfig, JoystickPlay
 from envs.sensors.skin_obs import SkinState
 from envs.sensors.xela import SAMPLE_HZ, skin_metadata
 from rotation.configs import to_jsonable
-from rotation.data.session import SessionMeta, SessionWriter, StreamSetup
+from rotation.data.session import SessionMeta, StreamSetup
+from rotation.data.session_writer import SessionWriter
 
 SKIN_STREAMS = ("skin/xela", "skin/taxel_pos")
 """Streams at the skin's fixed 100 Hz."""

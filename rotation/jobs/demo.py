@@ -24,11 +24,12 @@ from pathlib import Path
 from typing import Any
 
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
+from rotation.bundles import load_bundle
 from rotation.evaluate import finished
 from rotation.evaluate import job as evaluate_job
 from rotation.evaluate.suites import get_suite
 from rotation.jobs import view as view_job
-from rotation.policy.bundle import load_bundle, shipped_bundles
+from rotation.policy.bundle import shipped_bundles
 
 
 @dataclass

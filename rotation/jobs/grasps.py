@@ -27,7 +27,8 @@ from typing import Literal
 from tqdm import tqdm
 
 from envs.config import RandomizationConfig
-from envs.grasps import DEFAULT_MAX_TILT, HoldRule, default_cache_path, generate_grasps
+from envs.grasp_cache import default_cache_path
+from envs.grasps import DEFAULT_MAX_TILT, HoldRule, generate_grasps
 from envs.objects import OBJECTS, get_object
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 

@@ -30,7 +30,7 @@ class Config:
 
     def __post_init__(self) -> None:
         from envs.validation import check_types
-        from rotation.hardware.dynamixel_protocol import BAUD_CODES
+        from rotation.hardware.leap.dynamixel_protocol import BAUD_CODES
 
         if self.hand not in HANDS:
             raise ValueError(f"hand: unknown hand {self.hand!r}; choose one of {', '.join(HANDS)}")
@@ -38,7 +38,7 @@ class Config:
         if self.baud not in BAUD_CODES:
             raise ValueError(f"baud: {self.baud} is not a Dynamixel baud rate; choose one of {sorted(BAUD_CODES)}")
         if self.hand == "allegro":
-            from rotation.hardware.can_bus import parse_can_spec
+            from rotation.hardware.allegro.can_bus import parse_can_spec
 
             parse_can_spec(self.can)
 
@@ -59,7 +59,7 @@ def read_info(cfg: Config) -> str:
     """Connect read-only, return the printable report."""
     with contextlib.ExitStack() as stack:
         if cfg.hand in ("allegro", "sim-allegro"):
-            from rotation.hardware.allegro import AllegroConfig, AllegroHand
+            from rotation.hardware.allegro.driver import AllegroConfig, AllegroHand
 
             spec = cfg.can
             if cfg.hand == "sim-allegro":
@@ -68,7 +68,7 @@ def read_info(cfg: Config) -> str:
                 spec = stack.enter_context(AllegroEmulator()).spec
             hand = stack.enter_context(AllegroHand(spec, AllegroConfig(enable_motors=False, feedback_timeout_s=1.0)))
         else:
-            from rotation.hardware.leap import LeapConfig, LeapHand
+            from rotation.hardware.leap.driver import LeapConfig, LeapHand
 
             port = cfg.port
             if cfg.hand == "sim-leap":

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from envs.constants import FINGERS
-from envs.sensors.digit360_render import AUDIO_HZ, IMU_HZ, PRESSURE_HZ
+from envs.sensors.digit360_model import AUDIO_HZ, IMU_HZ, PRESSURE_HZ
 from envs.validation import check_int, check_number, check_output_file, check_types
 
 _MODALITY_COLUMNS = 6
@@ -64,9 +64,9 @@ def run(cfg: Config) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from rotation.data.audio import fbank
     from rotation.data.dataset import TouchWindows
-    from rotation.data.session import SessionReader
-    from rotation.tactile.audio import fbank
+    from rotation.data.session_reader import SessionReader
 
     with SessionReader(cfg.session) as r:
         fingers = r.fingers_with_touch()

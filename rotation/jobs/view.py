@@ -72,7 +72,7 @@ def _load_bundle(cfg: Config):
     """The policy bundle a video acts with, or None ('zero', 'random', or a still that needs no policy)."""
     if cfg.policy in ("zero", "random") or cfg.out.suffix.lower() == ".png":
         return None
-    from rotation.policy.bundle import load_bundle
+    from rotation.bundles import load_bundle
 
     return load_bundle(cfg.policy)
 

@@ -13,7 +13,7 @@ The acting network is ``features = cat(flatten(norm(proprio)), z)`` -> actor MLP
 the env-factor encoder over ``priv`` (teacher, ``latent_source="privileged"``) or from the adaptation module over
 ``proprio_hist`` (student, ``latent_source="adaptation"``).
 
-    bundle = load_bundle("student")            # a bundle shipped in rotation/policies/, or a directory
+    bundle = load_policy_bundle("student")     # a bundle shipped in rotation/policies/, or a directory
     action = bundle.act(obs)                   # {"proprio": (3, 32), "proprio_hist": (30, 32)} -> (16,)
     actions = bundle.act_batch(batched_obs)    # leading N on every group -> (N, 16)
 """
@@ -21,205 +21,34 @@ the env-factor encoder over ``priv`` (teacher, ``latent_source="privileged"``) o
 from __future__ import annotations
 
 import json
-import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
-from gymnasium import spaces
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
 from envs import constants as C
 from rotation.configs import from_jsonable, to_jsonable
-from rotation.policy.bundle_checks import type_problems, value_problems
-from rotation.policy.features import LatentExtractor, PrivilegedExtractor, StudentExtractor
-from rotation.policy.networks import AdaptationConfig, EnvFactorEncoderConfig, mlp
+from rotation.policy.actor import ActorNet, trace_single
+from rotation.policy.bundle_config import (
+    CONFIG_FILE,
+    ENV_VERSION,
+    FORMAT_VERSION,
+    ROLE,
+    WEIGHTS_FILE,
+    BundleConfig,
+    BundleError,
+    LatentSource,
+)
+from rotation.policy.features import PrivilegedExtractor, StudentExtractor
+from rotation.policy.networks import AdaptationConfig
 
-FORMAT_VERSION = 1
-"""Version of the bundle layout written by this code; bump it when config.json or tensor names change meaning."""
-ENV_VERSION = "RotateCup-v0"
-"""The env (observation and action contract) the bundled policies act in."""
-CONFIG_FILE = "config.json"
-WEIGHTS_FILE = "model.safetensors"
 SHIPPED_DIR = Path(__file__).resolve().parent.parent / "policies"
 """Bundles shipped with the package: ``rotation/policies/<name>/``."""
-
-LatentSource = Literal["privileged", "adaptation"]
-LATENT_GROUP: dict[str, str] = {"privileged": "priv", "adaptation": "proprio_hist"}
-"""Observation group the latent is computed from, per latent source."""
-ROLE: dict[str, str] = {"privileged": "teacher", "adaptation": "student"}
-"""What a bundle of each latent source is called in messages."""
-
-
-class BundleError(ValueError):
-    """A bundle that cannot be loaded or used: says what is wrong and what was expected."""
-
-
-@dataclass(frozen=True)
-class BundleConfig:
-    """Everything needed to rebuild a policy and act with it (saved as config.json beside the weights)."""
-
-    latent_source: LatentSource = "privileged"
-    """Where z comes from: 'privileged' (env-factor encoder over `priv`, the teacher) or 'adaptation' (temporal-conv
-    module over `proprio_hist`, the student)."""
-    obs_groups: dict[str, tuple[int, ...]] = field(default_factory=dict)
-    """Observation groups the policy reads and their shapes without the batch dim; derived from the networks when
-    left empty."""
-    encoder: EnvFactorEncoderConfig | None = None
-    """Env-factor encoder sizes (latent_source 'privileged')."""
-    adaptation: AdaptationConfig | None = None
-    """Adaptation module sizes (latent_source 'adaptation')."""
-    proprio_shape: tuple[int, int] = (C.PROPRIO_STEPS, C.PROPRIO_DIM)
-    """Shape of the `proprio` group the actor reads (steps, features)."""
-    actor_hidden: tuple[int, ...] = (512, 256, 128)
-    """Hidden widths of the actor MLP (ELU after each), followed by a linear layer to the action mean."""
-    action_dim: int = C.NUM_JOINTS
-    """Number of actions (one relative joint-target step per joint, Allegro bus order)."""
-    norm_clip: float = 5.0
-    """Clip of the normalized observations (the statistics themselves are tensors in model.safetensors)."""
-    control_hz: float = C.CONTROL_HZ
-    """Rate (Hz) the policy was trained to act at."""
-    action_scale: float = C.ACTION_SCALE
-    """Joint-target change per unit action (rad): target += action_scale * action."""
-    joint_lower: tuple[float, ...] = tuple(C.JOINT_LOWER.tolist())
-    """Joint-target lower limits (rad, bus order) the env clamps to."""
-    joint_upper: tuple[float, ...] = tuple(C.JOINT_UPPER.tolist())
-    """Joint-target upper limits (rad, bus order) the env clamps to."""
-    adapter: str | None = None
-    """Optional reference to a tactile adapter (a path or shipped name) that corrects this policy's latent."""
-    touch_encoder: str | None = None
-    """Optional reference to the frozen touch encoder the adapter reads."""
-    card: dict[str, Any] = field(default_factory=dict)
-    """Free-form metadata: how it was trained, the env config, steps, scores."""
-    format_version: int = FORMAT_VERSION
-    """Bundle layout version (see FORMAT_VERSION)."""
-    env_version: str = ENV_VERSION
-    """Env the policy acts in (see ENV_VERSION)."""
-
-    def __post_init__(self) -> None:
-        # types first: a string where a number belongs must not surface later as a TypeError (or, on a hand, after
-        # the motors are on); then the ranges (rotation.policy.bundle_checks says which and why)
-        problems = type_problems(self)
-        if problems:
-            raise BundleError("; ".join(problems))
-        if self.latent_source not in LATENT_GROUP:
-            raise BundleError(f"latent_source must be one of {sorted(LATENT_GROUP)}, got {self.latent_source!r}")
-        # defaults for the latent network, then the observation groups implied by the networks
-        if self.latent_source == "privileged" and self.encoder is None:
-            object.__setattr__(self, "encoder", EnvFactorEncoderConfig())
-        if self.latent_source == "adaptation" and self.adaptation is None:
-            object.__setattr__(self, "adaptation", AdaptationConfig())
-        problems = value_problems(self)
-        if problems:
-            raise BundleError("; ".join(problems))
-        expected = self.expected_groups()
-        groups = {k: tuple(int(d) for d in v) for k, v in self.obs_groups.items()} or expected
-        if groups != expected:
-            raise BundleError(f"obs_groups {groups} do not match the networks' inputs {expected} "
-                              f"(latent_source {self.latent_source!r})")
-        object.__setattr__(self, "obs_groups", groups)
-
-    @property
-    def latent_dim(self) -> int:
-        net = self.encoder if self.latent_source == "privileged" else self.adaptation
-        assert net is not None
-        return net.latent_dim
-
-    def expected_groups(self) -> dict[str, tuple[int, ...]]:
-        """Observation groups (name -> shape) the networks described here read."""
-        groups: dict[str, tuple[int, ...]] = {"proprio": tuple(self.proprio_shape)}
-        if self.latent_source == "privileged":
-            assert self.encoder is not None
-            groups["priv"] = (self.encoder.in_dim,)
-        else:
-            assert self.adaptation is not None
-            groups["proprio_hist"] = (self.adaptation.steps, self.adaptation.in_dim)
-        return groups
-
-    def observation_space(self) -> spaces.Dict:
-        return spaces.Dict({k: spaces.Box(-np.inf, np.inf, s, np.float32) for k, s in self.obs_groups.items()})
-
-    def zero_observation(self) -> dict[str, np.ndarray]:
-        """An observation of zeros in every group the policy reads (warm-ups and tracing)."""
-        return {k: np.zeros(shape, dtype=np.float32) for k, shape in self.obs_groups.items()}
-
-
-class ActorNet(nn.Module):
-    """The acting path: (B, ...) observation groups -> (B, action_dim) deterministic action in [-1, 1]."""
-
-    def __init__(self, cfg: BundleConfig) -> None:
-        super().__init__()
-        space = cfg.observation_space()
-        self.extractor: LatentExtractor
-        if cfg.latent_source == "privileged":
-            self.extractor = PrivilegedExtractor(space, cfg.encoder, norm_clip=cfg.norm_clip)
-        else:
-            self.extractor = StudentExtractor(space, cfg.adaptation, norm_clip=cfg.norm_clip)
-        # [Linear, ELU] * n: the layout of SB3's mlp_extractor.policy_net, so its weights load by index
-        self.actor = mlp([self.extractor.features_dim, *cfg.actor_hidden], nn.ELU, activate_last=True)
-        self.action_mean = nn.Linear(cfg.actor_hidden[-1], cfg.action_dim)
-
-    def mean(self, obs: dict[str, torch.Tensor], z: torch.Tensor | None = None) -> torch.Tensor:
-        """Unclipped action mean (B, A); a given ``z`` replaces the extractor's latent (DAgger, adapters)."""
-        if z is None:
-            return self.action_mean(self.actor(self.extractor(obs)))  # features (B, 96 + Z)
-        return self.head(self.proprio_features(obs), z)
-
-    def proprio_features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        """(B, S * D) normalized proprioception: the part of the actor's input that is not the latent."""
-        return self.extractor.proprio_norm(obs["proprio"]).flatten(1)
-
-    def head(self, proprio: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Unclipped action mean (B, A) from :meth:`proprio_features` and a latent (B, Z) (differentiable in z: an
-        adapter's action-matching loss)."""
-        return self.action_mean(self.actor(torch.cat([proprio, z], dim=-1)))
-
-    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        return self.mean(obs).clamp(-1.0, 1.0)
-
-
-class CorrectedActor(nn.Module):
-    """``net``'s clipped action with its latent moved by ``correction`` (B, Z): the acting path of a student with a
-    tactile adapter's correction (adapters.bundle.AdaptedPolicy)."""
-
-    def __init__(self, net: ActorNet) -> None:
-        super().__init__()
-        self.net = net
-
-    def forward(self, obs: dict[str, torch.Tensor], correction: torch.Tensor) -> torch.Tensor:
-        return self.net.mean(obs, self.net.extractor.z(obs) + correction).clamp(-1.0, 1.0)
-
-
-WARM_UP_CALLS = 3
-"""Calls of a freshly traced module before it is used (TorchScript optimizes it during the first two)."""
-
-
-def trace_single(module: nn.Module, example: tuple) -> nn.Module:
-    """``module`` traced with TorchScript for inputs shaped like ``example`` (one observation).
-
-    A traced network runs its whole forward in one call that does not hold Python's interpreter lock, where the
-    eager network takes the lock back after each of its few dozen operations. In deploy the policy's thread shares
-    the lock with the hand's and the sensors' threads (and with emulated hardware), and the eager forward waited
-    its turn so often that it missed its 30 ms budget on a busy 2-core machine. Same operations, same results
-    (checked in tests/policy/test_bundle.py). TorchScript profiles and optimizes a traced module in its first calls,
-    which are slow: they are made here, on ``example``."""
-    with torch.no_grad(), warnings.catch_warnings():
-        # torch 2.9+ calls jit.trace deprecated (torch.compile needs a C++ toolchain at run time); input checks in
-        # forward become constants of the trace (TracerWarning): the callers check their inputs before the trace
-        warnings.simplefilter("ignore", DeprecationWarning)
-        warnings.simplefilter("ignore", torch.jit.TracerWarning)
-        try:
-            traced = torch.jit.trace(module.eval(), example, strict=False, check_trace=False)
-        except (AttributeError, RuntimeError) as err:  # a torch without TorchScript: the eager module still works
-            warnings.warn(f"TorchScript tracing failed ({err}); acting with the eager network", stacklevel=2)
-            return module
-        for _ in range(WARM_UP_CALLS):
-            traced(*example)
-    return traced
 
 
 class PolicyBundle:
@@ -469,51 +298,22 @@ def resolve_bundle(name_or_path: str | Path) -> Path:
                       f"shipped bundles: {listing}")
 
 
-def load_bundle(name_or_path: str | Path) -> PolicyBundle:
-    """Load a bundle by shipped name (``teacher``, ``student``, ``adapter``) or directory path. An adapter bundle
-    (adapters.bundle) loads as an ``AdaptedPolicy``: its student with the tactile adapter, which acts like a
-    PolicyBundle and also reads touch; an adapter ensemble (adapters.ensemble) as an ``EnsemblePolicy``, which acts
-    the same way."""
+def load_policy_bundle(name_or_path: str | Path) -> PolicyBundle:
+    """Load a plain (teacher or student) bundle by shipped name or directory path: what training reads. A tactile
+    adapter or an ensemble is refused with what it is; rotation.bundles.load_bundle loads every kind."""
     path = resolve_bundle(name_or_path)
-    from adapters.bundle import is_adapter_dir, load_adapter  # adapters build on this module: imported when used
-    from adapters.ensemble import is_ensemble_dir, load_ensemble
-
-    if is_adapter_dir(path):
-        return load_adapter(path)  # type: ignore[return-value]
-    if is_ensemble_dir(path):
-        return load_ensemble(path)  # type: ignore[return-value]
+    kind = _kind(path)
+    if kind is not None:
+        raise BundleError(f"{path} holds a {kind!r} bundle, not a teacher or student bundle; give the bundle of "
+                          "a plain policy here (an adapter names its student in its config.json)")
     return PolicyBundle.load(path)
 
 
-# ---------------------------------------------------------------------------------------------------------------------
-# ONNX export
-
-
-class _OnnxActor(nn.Module):
-    """Positional wrapper for export: one input per observation group (in config order) -> (action, latent)."""
-
-    def __init__(self, net: ActorNet, keys: list[str]) -> None:
-        super().__init__()
-        self.net, self.keys = net, keys
-
-    def forward(self, *groups: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        obs = dict(zip(self.keys, groups, strict=True))
-        z = self.net.extractor.z(obs)  # (N, Z)
-        return self.net.mean(obs, z).clamp(-1.0, 1.0), z  # (N, A), (N, Z)
-
-
-def export_onnx(bundle: PolicyBundle, path: str | Path, opset: int = 17) -> Path:
-    """Export the acting path to ONNX: named float32 inputs = the observation groups (leading batch dim ``N``),
-    outputs ``action`` (N, 16) in [-1, 1] and ``latent`` (N, Z). Normalization is inside the graph."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    keys = list(bundle.config.obs_groups)
-    wrapper = _OnnxActor(bundle.net.eval(), keys).eval()
-    example = tuple(torch.zeros((1, *bundle.config.obs_groups[k])) for k in keys)
-    dynamic = {k: {0: "N"} for k in [*keys, "action", "latent"]}
-    with warnings.catch_warnings():
-        # the TorchScript exporter: the dynamo one needs onnxscript, which is not a dependency
-        warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(wrapper, example, str(path), input_names=keys, output_names=["action", "latent"],
-                          dynamic_axes=dynamic, opset_version=opset, dynamo=False)
-    return path
+def _kind(path: Path) -> str | None:
+    """The ``kind`` field of a bundle's config.json: present in adapter and ensemble bundles, absent in plain ones."""
+    try:
+        raw = json.loads((path / CONFIG_FILE).read_text())
+    except (OSError, ValueError):
+        return None  # PolicyBundle.load says what is wrong with it
+    kind = raw.get("kind") if isinstance(raw, dict) else None
+    return kind if isinstance(kind, str) else None

@@ -1,8 +1,8 @@
 """What a policy bundle's config must satisfy before anything acts on it (evaluation, the demo, a real hand).
 
 A bundle's config.json is data from disk: a hand-edited or foreign file can hold a number as a string, inverted
-joint limits or a control rate no hand can follow. :class:`rotation.policy.bundle.BundleConfig` runs these checks
-when it is built, so ``load_bundle`` refuses such a bundle with a message naming the field, before a simulation
+joint limits or a control rate no hand can follow. :class:`rotation.policy.bundle_config.BundleConfig` runs these checks
+when it is built, so ``PolicyBundle.load`` refuses such a bundle with a message naming the field, before a simulation
 starts or a motor is switched on. Both functions return problems as text (empty: fine); the bundle module turns
 them into a ``BundleError``.
 

@@ -34,7 +34,8 @@ from rotation.policy.networks import (
 )
 
 ACTOR_CRITIC_ARCH = dict(pi=[512, 256, 128], vf=[512, 256, 128])
-"""SB3 ``net_arch`` of the actor and critic MLPs (reference/hora.md, "Networks"); use with ``activation_fn=nn.ELU``."""
+"""SB3 ``net_arch`` of the actor and critic MLPs (docs/reference/hora.md, "Networks"); use with
+``activation_fn=nn.ELU``."""
 
 
 def policy_kwargs(encoder: EnvFactorEncoderConfig | None = None, norm_clip: float = 5.0) -> dict:

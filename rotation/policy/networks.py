@@ -1,4 +1,4 @@
-"""Networks of the Hora-style teacher and student (reference/hora.md, "Networks").
+"""Networks of the Hora-style teacher and student (docs/reference/hora.md, "Networks").
 
 nanoGPT style: one config dataclass per model, small modules, a shape comment on every reshape. Shapes use
 B = batch, T = history steps, D = per-step proprioception (32), Z = latent size (8).
@@ -121,7 +121,7 @@ class EnvFactorEncoderConfig:
 class EnvFactorEncoder(nn.Module):
     """(B, 9) raw privileged vector -> (B, 8) latent in (-1, 1), MLP with ELU then tanh.
 
-    The privileged vector is fed raw, as Hora does since v0.0.2 (reference/hora.md). Hora's MLP class also puts an
+    The privileged vector is fed raw, as Hora does since v0.0.2 (docs/reference/hora.md). Hora's MLP class also puts an
     ELU after the last layer before the tanh (z in (-0.63, 1)); here the last layer is linear, so z spans (-1, 1),
     the same range the adaptation module's tanh output covers.
     """

@@ -8,7 +8,7 @@ Two transports, one hand:
   process can open ``can.Bus(interface="slcan", channel=emu.path)`` (``emu.spec`` = ``slcan:<pty>``).
 
 One thread runs the hand: it answers frames as they arrive and, every 3 ms of emulated hand time (the hand's
-333 Hz clock, reference/hardware.md section 1), advances the physics by 3 ms with the last SET_TORQUE held
+333 Hz clock, docs/reference/hardware.md section 1), advances the physics by 3 ms with the last SET_TORQUE held
 and streams FINGER_POSE frames (and TEMPERATURE/IMU when their periods are set) per SET_PERIOD. Hand time is
 paced to the wall clock; when the thread is starved by a whole tick, hand time slips instead of catching up
 with a burst of ticks that would all use one stale torque (counted in ``overruns``).
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import can
 import numpy as np
 
-from rotation.hardware import allegro_protocol as ap
+from rotation.hardware.allegro import protocol as ap
 from rotation.sim_hardware.hand_physics import HandPhysics
 from rotation.sim_hardware.pty_link import PtyLink
 from rotation.sim_hardware.worker import EmulatorThread
@@ -35,7 +35,7 @@ from rotation.sim_hardware.worker import EmulatorThread
 log = logging.getLogger(__name__)
 
 TICK_S = 0.003
-"""Hand clock period (s): 333 Hz (reference/hardware.md section 1)."""
+"""Hand clock period (s): 333 Hz (docs/reference/hardware.md section 1)."""
 
 
 @dataclass
@@ -165,7 +165,8 @@ class AllegroEmulator(EmulatorThread):
         self.version = ap.VERSIONS[version]
         self.hand_id = hand_id
         self.serial = serial
-        # versions of the real V4 bus trace (hw 0x0402, fw 0x0406, reference/hardware.md section 1); 0x05xx marks a V5
+        # versions of the real V4 bus trace (hw 0x0402, fw 0x0406, docs/reference/hardware.md section 1);
+        # 0x05xx marks a V5
         self.info = ap.AllegroInfo(hardware=0x0402 if version == "v4" else 0x0500, firmware=0x0406,
                                    right_hand=True, temperature_c=38, status=0)
         self.physics = physics or HandPhysics()

@@ -1,6 +1,6 @@
 """A Digit 360 data channel on a pseudo-terminal: COBS-framed protobuf ``DigitMessage`` frames.
 
-Streams (reference/hardware.md section 4, rates from reference/sparsh.md): a ``system`` message at start and
+Streams (docs/reference/hardware.md section 4, rates from docs/reference/sparsh.md): a ``system`` message at start and
 every second, raw accelerometer IMU frames at 400 Hz (counts, 4096 per g) and pressure frames at 200 Hz (hPa,
 about 1000 at rest, rising with contact force). ``ts`` fields are emulated device time in microseconds.
 
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from cobs import cobs
 
-from rotation.hardware.digit360 import ACC_PER_G, SENSOR, messages
+from rotation.hardware.digit360.reader import ACC_PER_G, SENSOR, messages
 from rotation.sim_hardware.digit360_touch import FingertipTouch
 from rotation.sim_hardware.hand_physics import HandPhysics
 from rotation.sim_hardware.pty_link import PtyLink

@@ -13,7 +13,7 @@ with the fingertip's noise key (``finger_key(seed, finger)``) and background, as
   contact-independent terms (bias, offset, drift, noise: ``imu_terms`` / ``pressure_terms``, the hashing that
   dominates a render's cost) are drawn ``TERMS_AHEAD_S`` ahead in one call;
 - camera and microphones (:meth:`FingertipTouch.media_window`, the reader's ``media`` hook,
-  rotation.hardware.digit360.Digit360Media): the two frames and the 27,000 audio samples of a window are rendered
+  rotation.hardware.digit360.reader.Digit360Media): the two frames and the 27,000 audio samples of a window are rendered
   only when a window is asked for, from the stored track, as the env defers its `tactile` observation (a few ms per
   fingertip; the last frames are kept, so a window at 20 Hz usually renders one new frame, not two). Nothing is
   rendered at 30 fps in the background.
@@ -39,7 +39,8 @@ import numpy as np
 
 from envs.config import EnvConfig
 from envs.sensors.digit360 import FINGERS, NUM_FIELDS
-from envs.sensors.digit360_render import (
+from envs.sensors.digit360_image import render_frames
+from envs.sensors.digit360_model import (
     AUDIO_HZ,
     AUDIO_RING_S,
     AUDIO_SAMPLES,
@@ -51,16 +52,11 @@ from envs.sensors.digit360_render import (
     PRESSURE_HZ,
     ContactTrack,
     Digit360Model,
-    WindowIndex,
     finger_key,
-    imu_terms,
-    pressure_terms,
-    render_audio,
-    render_frames,
-    render_imu,
-    render_pressure,
 )
-from rotation.hardware.digit360_window import WindowNotReady, channel_major
+from envs.sensors.digit360_render import WindowIndex
+from envs.sensors.digit360_signals import imu_terms, pressure_terms, render_audio, render_imu, render_pressure
+from rotation.hardware.digit360.window import WindowNotReady, channel_major
 from rotation.sim_hardware.hand_physics import HandPhysics
 
 ROW_DT = EnvConfig.physics_dt
@@ -173,7 +169,7 @@ class FingertipTouch:
     # ------------------------------------------------------------------------------------------ camera and microphones
     def media_window(self, t_end: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
         """Image and audio of the window ending at the newest frame at or before ``t_end`` (host s; None: now) that
-        the stored rows determine (see rotation.hardware.digit360.Digit360Media): ``image`` (6, 224, 224) uint8
+        the stored rows determine (see rotation.hardware.digit360.reader.Digit360Media): ``image`` (6, 224, 224) uint8
         channel-major [R(t-5), R(t), G(t-5), G(t), B(t-5), B(t)], ``audio`` (2, 27000) int16, the frame's host
         time. WindowNotReady until the track reaches back to the window's first frame and audio sample (and the
         ring-down time before it)."""

@@ -31,7 +31,7 @@ import numpy as np
 
 from envs.config import RandomizationConfig
 from envs.constants import HOME_POSE, JOINT_NAMES, NUM_JOINTS
-from envs.grasps import load_default_cache
+from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
 from envs.scene import OBJECT_JOINT, OBJECT_START, build_model
 from envs.sensors.digit360 import Digit360Readout, add_digit360_sensors

@@ -1,7 +1,7 @@
 """A LEAP hand as a Dynamixel Protocol 2.0 servo bus on a pseudo-terminal, backed by the MuJoCo hand.
 
 The unmodified dynamixel-sdk opens ``emu.path`` like a U2D2 adapter. Each of the 16 emulated XC330-M288
-servos has a control table (:data:`rotation.hardware.dynamixel_protocol.REGISTERS`) and answers PING, READ,
+servos has a control table (:data:`rotation.hardware.leap.dynamixel_protocol.REGISTERS`) and answers PING, READ,
 WRITE, SYNC_READ, FAST_SYNC_READ, SYNC_WRITE and REBOOT with byte-stuffed, CRC-checked packets. Writes to EEPROM
 (addresses < 64) with torque on are refused with an access error, as on the real servo.
 
@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rotation.hardware import dynamixel_protocol as dp
+from rotation.hardware.leap import dynamixel_protocol as dp
 from rotation.sim_hardware.hand_physics import HandPhysics
 from rotation.sim_hardware.pty_link import PtyLink
 from rotation.sim_hardware.worker import EmulatorThread

@@ -2,7 +2,7 @@
 
 ``XelaServerEmulator`` listens on 127.0.0.1 (a free port, ``url``), greets each client with
 ``{"message": "Welcome"}`` and then sends one data message per frame at ``rate_hz`` in the vendor's format
-(rotation.hardware.xela.format_message): the frames come from ``frames(k)`` ((368, 3) raw counts in our taxel
+(rotation.hardware.xela.reader.format_message): the frames come from ``frames(k)`` ((368, 3) raw counts in our taxel
 order, frame k of the connection; default: the rest reading 32768 with a slow press on the index fingertip).
 Tests push raw text (malformed messages) with :meth:`inject`, and ``drop_after`` closes every connection after
 that many messages, so a reader's reconnect can be tested. Used by the Xela reader's tests and by `rotate deploy`
@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from rotation.hardware.xela import NUM_TAXELS, PAD_START, SAMPLE_HZ, XelaLayout, format_message
+from rotation.hardware.xela.reader import NUM_TAXELS, PAD_START, SAMPLE_HZ, XelaLayout, format_message
 from rotation.sim_hardware.worker import EmulatorThread
 
 REST_COUNTS = 32768.0

@@ -26,7 +26,7 @@ from envs import constants as C
 from envs import task
 from envs.config import EnvConfig
 from envs.core import action_space, observation_space, task_model
-from envs.grasps import GraspCache, load_default_cache
+from envs.grasp_cache import GraspCache, load_default_cache
 from envs.scene import OBJECT_BODY
 from envs.validation import check_int, check_seed, check_types
 from rotation.sim_warp.rng import TorchCounterRNG, env_keys

@@ -22,9 +22,9 @@ from typing import Literal
 import torch
 
 from envs.validation import check_types
-from rotation.tactile.sparsh_skin import SparshSkin, SparshSkinConfig, load_skin
-from rotation.tactile.sparshx import SparshX, SparshXConfig
-from rotation.tactile.sparshx_checkpoint import check_checkpoint, shape_str
+from rotation.tactile.models.sparsh_skin import SparshSkin, SparshSkinConfig, load_skin
+from rotation.tactile.models.sparshx import SparshX, SparshXConfig
+from rotation.tactile.models.sparshx_checkpoint import check_checkpoint, shape_str
 
 
 @dataclass(frozen=True)

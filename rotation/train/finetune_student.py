@@ -17,7 +17,7 @@ episodes its latent is moved from phi toward the teacher's z by a weight drawn u
 (rotation.policy.features.LatentMixExtractor; the teacher's env-factor encoder is read from --latent-teacher and
 stays out of the bundle). An actor fine-tuned on phi alone learns to act much the same whatever z says, which caps
 what any latent correction can buy; mixed in, it learns to use z, at the price of trusting phi more when alone
-(measured in docs/results/adapter/tried_latent_mix).
+(measured in experiments/adapter/tried_latent_mix).
 
 Everything else works as in `rotate train-teacher` (the same PPO, checkpoints, curves, TensorBoard, --resume,
 --overwrite, signals); the result in `out/bundle` is a student bundle (latent source 'adaptation') that evaluate,
@@ -30,11 +30,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rotation.policy.bundle import PolicyBundle
-from rotation.train import teacher
+from rotation.train import teacher, teacher_config
 
 
 @dataclass
-class Config(teacher.Config):
+class Config(teacher_config.Config):
     """`rotate finetune-student`: train-teacher's options with the student set and a fine-tuning recipe."""
 
     out: Path = Path("runs/student_rl")
@@ -69,7 +69,7 @@ class Config(teacher.Config):
 def config_from_args(args) -> Config:
     """As train-teacher's: a --resume takes the run's options (the student bundle included) the command line
     leaves out."""
-    return teacher._config_from_args(Config, args)
+    return teacher_config._config_from_args(Config, args)
 
 
 def run(cfg: Config) -> PolicyBundle:

@@ -3,7 +3,7 @@
 The student is the teacher's actor with its latent z estimated by the adaptation module phi from 30 steps of
 proprioception. Only phi (and its history normalization) learns: Adam on MSE(phi(proprio_hist), z_teacher(priv)),
 one gradient step per batched env step, while the student acts with phi's own estimate, so it learns on the states
-its own mistakes lead to (reference/hora.md "Stage 2"). Writes TensorBoard logs, periodic checkpoints with the
+its own mistakes lead to (docs/reference/hora.md "Stage 2"). Writes TensorBoard logs, periodic checkpoints with the
 config beside them, and a student bundle (latent source `adaptation`).
 
     rotate train-student --teacher runs/teacher/bundle --out runs/student --num-envs 64 --total-steps 2000000
@@ -28,26 +28,21 @@ import pickle
 import signal
 import time
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from envs.config import EnvConfig
-from envs.constants import HISTORY_STEPS, PROPRIO_DIM
-from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
-from rotation.configs import check_device, config_resuming_in_out, from_jsonable, save_config, to_jsonable
-from rotation.evaluate.metrics import EpisodeTracker, summarize
+from envs.metrics import EpisodeTracker, summarize
+from rotation.configs import save_config, to_jsonable
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals, end_loop
-from rotation.policy.bundle import PolicyBundle, load_bundle, resolve_bundle
+from rotation.policy.bundle import PolicyBundle, load_policy_bundle, resolve_bundle
 from rotation.policy.bundle_checks import timing_problems
 from rotation.policy.features import StudentExtractor
-from rotation.policy.networks import AdaptationConfig
-from rotation.sim_warp.host import make_vec
-from rotation.train.runs import (
+from rotation.runs import (
     CurveLog,
     DamagedCheckpoint,
     check_run_dir,
@@ -58,80 +53,14 @@ from rotation.train.runs import (
     summary_writer,
     with_fallback,
 )
-
-CHECKPOINT_GLOB = "ckpt_*.pt"
-
-
-@dataclass
-class Config:
-    """Student distillation (`rotate train-student`)."""
-
-    teacher: str = "teacher"
-    """Teacher bundle: a directory or a shipped bundle name (latent source 'privileged')."""
-    out: Path = Path("runs/student")
-    """Run directory: config.json, checkpoints, TensorBoard logs (tb/) and the student bundle (bundle/)."""
-    total_steps: int = 2_000_000
-    """Env transitions to train on (num_envs per iteration, one gradient step per iteration)."""
-    num_envs: int = 64
-    """Simulations stepped together; also the batch size of each gradient step."""
-    lr: float = 3e-4
-    """Adam learning rate for the adaptation module (Hora: 3e-4)."""
-    checkpoint_every: int = 200_000
-    """Env transitions between checkpoints (rounded to whole iterations); each interval starts with fresh resets."""
-    log_every: int = 20
-    """Iterations between TensorBoard points."""
-    seed: int = 0
-    """Seed of the envs (env i of an interval starting at iteration t is seeded seed + t * num_envs + i) and of phi."""
-    resume: bool = False
-    """Continue from the latest checkpoint in `out`; options not given are the run's (its config.json), and given
-    ones must match it but the length and speed ones (total_steps, threads, progress)."""
-    adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
-    """Sizes of the adaptation module phi."""
-    env: EnvConfig = field(default_factory=EnvConfig)
-    """The env the student trains in; use the teacher's training env (object, randomization, grasp cache)."""
-    nthread: int = 0
-    """MuJoCo threads of the batched env (0 = one per CPU core, at most num_envs)."""
-    torch_threads: int = 1
-    """torch CPU threads (the env steps on its own threads)."""
-    device: str = "cpu"
-    """torch device of the networks ('cpu' or 'cuda')."""
-    progress: bool = True
-    """Show a progress bar."""
-    overwrite: bool = False
-    """Delete the outputs of an earlier run in `out` (checkpoints, bundle, curves, config, logs) and start over;
-    without it a folder holding a run is refused unless --resume continues it."""
-    backend: Literal["cpu", "warp"] = "cpu"
-    """Physics backend: 'cpu' (MuJoCo on mujoco.batch threads) or 'warp' (MuJoCo Warp worlds on --device, the
-    [warp] extra; observations, actions, resets and episode statistics stay on the device, one host read per log
-    point). The simulated Digit 360 touch runs on the cpu backend only."""
-
-    def __post_init__(self) -> None:
-        check_types(self)
-        self.out = Path(self.out)
-        if not self.teacher:
-            raise ValueError("teacher: give a teacher bundle directory or a shipped bundle name (--teacher teacher)")
-        check_output_dir("out", self.out)
-        check_int("total_steps", self.total_steps, 1, 10**12)
-        check_int("num_envs", self.num_envs, 1, 65_536)
-        check_number("lr", self.lr, 0.0, 1.0, low_open=True)
-        check_int("checkpoint_every", self.checkpoint_every, 1, 10**12)
-        check_int("log_every", self.log_every, 1, 10**9)
-        check_seed("seed", self.seed)
-        check_int("nthread", self.nthread, 0, 1024, "(0 = one per CPU core)")
-        check_int("torch_threads", self.torch_threads, 1, 1024)
-        check_device("device", self.device)
-        for name, want in (("in_dim", PROPRIO_DIM), ("steps", HISTORY_STEPS)):
-            if getattr(self.adaptation, name) != want:  # phi reads the env's proprio_hist group as it is
-                raise ValueError(f"adaptation.{name} must be {want} (the env's proprio_hist is {HISTORY_STEPS} x "
-                                 f"{PROPRIO_DIM}), got {getattr(self.adaptation, name)}")
-        if self.resume and self.overwrite:
-            raise ValueError("--resume continues the run in --out and --overwrite deletes it: give one of them")
-
-
-RUN_OUTPUTS = ("config.json", "bundle", "curves.jsonl", "tb")
-"""What a run writes into `out` besides its checkpoints (what --overwrite deletes, with them)."""
-RESUMABLE_CHANGES = {"out", "total_steps", "resume", "progress", "nthread", "torch_threads", "device", "overwrite"}
-"""Config fields that may differ between a run and its resumption without breaking exactness of the result."""
+from rotation.sim_warp.host import make_vec
+from rotation.train.student_config import (  # Config and config_from_args: what `rotate train-student` reads here
+    CHECKPOINT_GLOB,
+    RESUMABLE_CHANGES,
+    RUN_OUTPUTS,
+    Config,
+    config_from_args,  # noqa: F401
+)
 
 
 @dataclass
@@ -246,11 +175,6 @@ def _load_checkpoint(path: Path, device: str) -> dict[str, Any]:
     return ckpt
 
 
-def config_from_args(args) -> Config:
-    """The command line's config; with --resume, the options it leaves out are the run's in --out."""
-    return config_resuming_in_out(Config, args)
-
-
 def run(cfg: Config) -> Result:
     """Distill the student; returns the bundle directory and the logged history. Everything is checked before
     anything in `out` is written; Ctrl-C / SIGTERM save a checkpoint and the bundle, then raise Interrupted."""
@@ -263,7 +187,7 @@ def run(cfg: Config) -> Result:
                   resume_hint="pass --resume to continue it")
     torch.set_num_threads(cfg.torch_threads)
     teacher_dir = resolve_bundle(cfg.teacher)
-    teacher = load_bundle(teacher_dir).require("privileged", f"--teacher {cfg.teacher}")
+    teacher = load_policy_bundle(teacher_dir).require("privileged", f"--teacher {cfg.teacher}")
     if cfg.adaptation.latent_dim != teacher.config.latent_dim:
         raise ValueError(f"adaptation.latent_dim {cfg.adaptation.latent_dim} != the teacher's latent size "
                          f"{teacher.config.latent_dim}")
@@ -424,8 +348,3 @@ def _log(writer, point: dict[str, float]) -> None:
     for key, tag in _TB_TAGS.items():
         if key in point:
             writer.add_scalar(tag, point[key], global_step=int(point["env_steps"]))
-
-
-def load_config(path: str | Path) -> Config:
-    """The Config a run saved (``<out>/config.json``)."""
-    return from_jsonable(Config, json.loads(Path(path).read_text()))

@@ -3,13 +3,13 @@
 
 The learner is rsl_rl's PPO (`rsl-rl-lib`, the [warp] extra): its rollout storage, GAE, clipped surrogate,
 clipped value loss and adaptive-KL learning rate, on tensors that never leave the GPU. The networks are this
-project's: the actor is rotation.policy.bundle.ActorNet (normalized proprio + EnvFactorEncoder(priv) -> 512-256-128
+project's: the actor is rotation.policy.actor.ActorNet (normalized proprio + EnvFactorEncoder(priv) -> 512-256-128
 ELU -> action mean) with a state-independent log std, as in the CPU teacher; the critic is the same extractor and
 MLP with a value head. So the run ends in the same policy bundle (`bundle/`), which `rotate evaluate` and deploy
 load exactly like one trained by stable-baselines3, with the same TensorBoard tags (`episode/*`, `train/*`) and
 `curves.jsonl` rows. docs/warp.md says why rsl_rl and what differs from the CPU learner.
 
-    rotate train-teacher --backend warp --out runs/teacher_gpu          # the GPU recipe (GPU_RECIPE) by default
+    rotate train-teacher --backend warp --out runs/teacher_gpu          # teacher_config.GPU_RECIPE by default
     rotate train-teacher --backend warp --device cpu --num-envs 8 ...   # Warp's CPU device (tests, slow)
     rotate train-teacher --backend warp --out runs/teacher_gpu --resume runs/teacher_gpu/checkpoints/last.pt
     rotate train-teacher --backend warp --out runs/teacher_gpu2 --init-from runs/teacher/bundle   # warm start
@@ -31,16 +31,14 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import nn
 from tqdm import tqdm
 
 from envs.config import EnvConfig
-from rotation.evaluate.metrics import UPRIGHT_TILT
+from envs.metrics import UPRIGHT_TILT
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
-from rotation.policy.bundle import ActorNet, BundleConfig, PolicyBundle, load_bundle
-from rotation.policy.features import PrivilegedExtractor
-from rotation.policy.networks import EnvFactorEncoderConfig, mlp
-from rotation.train.runs import (
+from rotation.policy.actor import ActorNet
+from rotation.policy.bundle import PolicyBundle, load_policy_bundle
+from rotation.runs import (
     GRASPS_KEY,
     CurveLog,
     DamagedCheckpoint,
@@ -49,137 +47,8 @@ from rotation.train.runs import (
     save_atomically,
     summary_writer,
 )
-
-GPU_RECIPE: dict[str, Any] = {
-    "num_envs": 8192,  # Hora: 16,384 worlds; MuJoCo Playground's LEAP rotation: 8,192
-    "n_steps": 8,  # Hora's horizon
-    "n_epochs": 5,  # Hora
-    "learning_rate": 5e-3,  # Hora's start; the adaptive-KL rule moves it
-    "total_steps": 200_000_000,
-    "checkpoint_every": 10_000_000,
-    "device": "cuda",
-}
-"""Defaults of `rotate train-teacher --backend warp` (reference/hora.md, "Training"); options given on the command
-line win. The minibatch size defaults to a quarter of the rollout (Hora: 4 minibatches of 32,768)."""
-
-TEACHER_GROUPS = ("proprio", "priv")
-"""Observation groups the teacher reads (the same as rotation.train.teacher.TEACHER_GROUPS)."""
-
-
-def apply_gpu_recipe(cfg, given: set[str]):
-    """``cfg`` with GPU_RECIPE for every field not in ``given`` (the options named on the command line)."""
-    changes = {k: v for k, v in GPU_RECIPE.items() if k not in given}
-    num_envs = changes.get("num_envs", cfg.num_envs)
-    n_steps = changes.get("n_steps", cfg.n_steps)
-    if "batch_size" not in given:
-        changes["batch_size"] = max(2, num_envs * n_steps // 4)
-    return dataclasses.replace(cfg, **changes)
-
-
-# --------------------------------------------------------------------------------------------------------------------
-# rsl_rl models around this project's networks
-
-
-def _orthogonal_init(module: nn.Module, gain: float) -> None:
-    """stable-baselines3's initialization, so both learners start alike: orthogonal weights, zero biases."""
-    for m in module.modules():
-        if isinstance(m, nn.Linear):
-            nn.init.orthogonal_(m.weight, gain=gain)
-            nn.init.zeros_(m.bias)
-
-
-class _Feedforward:
-    """The part of rsl_rl's actor / critic interface that only recurrent models use: no hidden state."""
-
-    is_recurrent = False
-
-    def reset(self, dones=None, hidden_state=None) -> None:
-        pass
-
-    def get_hidden_state(self):
-        return None
-
-    def detach_hidden_state(self, dones=None) -> None:
-        pass
-
-
-class TeacherActor(_Feedforward, nn.Module):
-    """rsl_rl actor interface over an ActorNet: a diagonal Gaussian with mean ActorNet.mean(obs) and a learned,
-    state-independent log std (SB3's DiagGaussianDistribution)."""
-
-    def __init__(self, net: ActorNet, log_std_init: float) -> None:
-        super().__init__()
-        self.net = net
-        self.log_std = nn.Parameter(torch.full((net.action_mean.out_features,), float(log_std_init)))
-        self._mean: torch.Tensor | None = None
-        self.learn_normalization = True  # off while a fresh critic warms up (the actor stays as it was)
-        for m in net.modules():  # the statistics move in update_normalization, once per rollout
-            if hasattr(m, "frozen"):
-                m.frozen = True
-
-    def forward(self, obs, masks=None, hidden_state=None, stochastic_output: bool = False) -> torch.Tensor:
-        mean = self.net.mean({k: obs[k] for k in TEACHER_GROUPS})  # (B, A), unclipped
-        self._mean = mean
-        if stochastic_output:
-            return mean + self.log_std.exp() * torch.randn_like(mean)
-        return mean
-
-    def _dist(self) -> torch.distributions.Normal:
-        assert self._mean is not None, "call forward first"
-        return torch.distributions.Normal(self._mean, self.log_std.exp().expand_as(self._mean))
-
-    def get_output_log_prob(self, actions: torch.Tensor) -> torch.Tensor:
-        return self._dist().log_prob(actions).sum(-1)
-
-    @property
-    def output_entropy(self) -> torch.Tensor:
-        return self._dist().entropy().sum(-1)
-
-    @property
-    def output_distribution_params(self) -> tuple[torch.Tensor, torch.Tensor]:
-        d = self._dist()
-        return d.mean, d.stddev
-
-    def get_kl_divergence(self, old, new) -> torch.Tensor:
-        p = torch.distributions.Normal(*old)
-        q = torch.distributions.Normal(*new)
-        return torch.distributions.kl_divergence(p, q).sum(-1)
-
-    def update_normalization(self, obs) -> None:
-        if self.learn_normalization:
-            self.net.extractor.proprio_norm.update(obs["proprio"])
-
-
-class TeacherCritic(_Feedforward, nn.Module):
-    """rsl_rl critic interface: the teacher's extractor (its own copy) -> the actor's MLP sizes -> a value (B, 1)."""
-
-    def __init__(self, space, hidden: tuple[int, ...]) -> None:
-        super().__init__()
-        self.extractor = PrivilegedExtractor(space, EnvFactorEncoderConfig())
-        self.extractor.proprio_norm.frozen = True
-        self.mlp = mlp([self.extractor.features_dim, *hidden], nn.ELU, activate_last=True)
-        self.value = nn.Linear(hidden[-1], 1)
-
-    def forward(self, obs, masks=None, hidden_state=None) -> torch.Tensor:
-        return self.value(self.mlp(self.extractor({k: obs[k] for k in TEACHER_GROUPS})))  # (B, 1)
-
-    def update_normalization(self, obs) -> None:
-        self.extractor.proprio_norm.update(obs["proprio"])
-
-
-def build_models(cfg, env_cfg: EnvConfig) -> tuple[BundleConfig, TeacherActor, TeacherCritic]:
-    """The bundle config and fresh actor / critic, initialized like stable-baselines3's (gains sqrt(2), 0.01, 1)."""
-    config = BundleConfig(latent_source="privileged", actor_hidden=tuple(cfg.net_arch),
-                          control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale)
-    net = ActorNet(config)
-    _orthogonal_init(net, math.sqrt(2))
-    _orthogonal_init(net.action_mean, 0.01)
-    actor = TeacherActor(net, cfg.log_std_init)
-    critic = TeacherCritic(config.observation_space(), tuple(cfg.net_arch))
-    _orthogonal_init(critic, math.sqrt(2))
-    _orthogonal_init(critic.value, 1.0)
-    return config, actor, critic
-
+from rotation.train.teacher_config import TEACHER_GROUPS
+from rotation.train.warp_models import build_models
 
 # --------------------------------------------------------------------------------------------------------------------
 # episode statistics on the device
@@ -343,9 +212,9 @@ class WarpPPO:
 def train(cfg) -> PolicyBundle:
     """Train the teacher on the Warp backend (cfg: rotation.train.teacher.Config with backend 'warp')."""
     from rotation.configs import save_config
+    from rotation.runs import check_run_dir, clear_outputs
     from rotation.sim_warp.core import RotateCupWarp, WarpConfig
-    from rotation.train.runs import check_run_dir, clear_outputs
-    from rotation.train.teacher import RESUMABLE_CHANGES, RUN_OUTPUTS
+    from rotation.train.teacher_config import RESUMABLE_CHANGES, RUN_OUTPUTS
 
     _require_rsl_rl()
     out = cfg.out
@@ -367,7 +236,7 @@ def train(cfg) -> PolicyBundle:
             check_resume_record(json.loads(saved.read_text()), record, str(saved), RESUMABLE_CHANGES)
         state = load_checkpoint(cfg.resume)
     if cfg.init_from is not None:
-        init = load_bundle(cfg.init_from).require("privileged", f"--init-from {cfg.init_from}")
+        init = load_policy_bundle(cfg.init_from).require("privileged", f"--init-from {cfg.init_from}")
     steps = int(state["steps"]) if state is not None else 0
     torch.manual_seed(cfg.seed + steps)
     env_cfg = cfg.env_config()
@@ -501,4 +370,4 @@ def _save_checkpoint(out: Path, alg, steps: int) -> Path:
     return path
 
 
-__all__ = ["GPU_RECIPE", "TeacherActor", "TeacherCritic", "WarpPPO", "apply_gpu_recipe", "build_models", "train"]
+__all__ = ["WarpPPO", "train"]

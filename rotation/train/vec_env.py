@@ -20,7 +20,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from envs.config import EnvConfig
 from envs.core import RotateCupVec
-from rotation.evaluate.metrics import UPRIGHT_TILT
+from envs.metrics import UPRIGHT_TILT
 from rotation.policy.features import LATENT_MIX_GROUP
 
 

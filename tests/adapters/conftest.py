@@ -6,7 +6,7 @@ import pytest
 
 from envs.config import EnvConfig
 from envs.core import RotateCupVec
-from rotation.policy.bundle import load_bundle
+from rotation.bundles import load_bundle
 
 
 @pytest.fixture(scope="module")

@@ -10,15 +10,17 @@ import numpy as np
 import pytest
 import torch
 
-from adapters import finetune
 from adapters.bundle import TouchUnavailable, build_adapted, load_adapter
+from adapters.finetune import core
+from adapters.finetune import job as finetune
 from adapters.model import AdapterNetConfig, TouchAdapter
 from envs.config import EnvConfig
 from envs.constants import PRIV_FIELDS
 from envs.core import RotateCupVec
+from rotation.bundles import load_bundle
 from rotation.evaluate import job
 from rotation.evaluate.rollout import run_episodes
-from rotation.policy.bundle import BundleError, load_bundle
+from rotation.policy.bundle_config import BundleError
 
 ENCODER = "sparshx-tinier-sim"
 
@@ -87,7 +89,7 @@ def test_the_action_matching_term_is_the_frozen_actors_error_and_trains_only_the
     groups = {k: obs[k] for k in policy.config.obs_groups}
     with torch.no_grad():
         z_teacher = teacher.net.extractor.z(teacher._tensors({k: obs[k] for k in teacher.config.obs_groups}, True))
-    buf = finetune.TokenBuffer(4, policy.adapter.cfg.samples, policy.adapter.interface.counts,
+    buf = core.TokenBuffer(4, policy.adapter.cfg.samples, policy.adapter.interface.counts,
                                policy.adapter.interface.width, policy.adapter.cfg.latent_dim, policy.proprio_dim)
     buf.add(policy.tokens(_windows(policy, obs)), policy.student_latent(groups), z_teacher,
             policy.proprio_features(groups))
@@ -96,21 +98,21 @@ def test_the_action_matching_term_is_the_frozen_actors_error_and_trains_only_the
     # the head on the student's own latent is the student's action mean
     assert torch.allclose(head(batch.proprio, batch.z_student).clamp(-1, 1),
                           torch.as_tensor(policy.student.act_batch(groups)), atol=1e-6)
-    student_err = finetune.errors_to_teacher(head, batch.proprio, batch.z_student, batch.z_student,
+    student_err = core.errors_to_teacher(head, batch.proprio, batch.z_student, batch.z_student,
                                              batch.z_teacher)["action_mse"]
     assert student_err > 0
     latent = float(((batch.z_student - batch.z_teacher) ** 2).mean())
     optim = torch.optim.SGD(policy.adapter.parameters(), lr=0.0)  # lr 0: the returned loss at the zero adapter
-    assert finetune.adam_step(policy.adapter, optim, batch, head, 0.0) == pytest.approx(latent, rel=1e-6)
-    assert finetune.adam_step(policy.adapter, optim, batch, head, 10.0) == pytest.approx(latent + 10 * student_err,
+    assert core.adam_step(policy.adapter, optim, batch, head, 0.0) == pytest.approx(latent, rel=1e-6)
+    assert core.adam_step(policy.adapter, optim, batch, head, 10.0) == pytest.approx(latent + 10 * student_err,
                                                                                         rel=1e-5)
     assert all(p.grad is None for p in policy.student.net.parameters())
     optim = torch.optim.Adam(policy.adapter.parameters(), lr=1e-3)
     for _ in range(150):
-        finetune.adam_step(policy.adapter, optim, batch, head, 10.0)
+        core.adam_step(policy.adapter, optim, batch, head, 10.0)
     with torch.no_grad():
         z = batch.z_student + policy.adapter(batch.tokens, batch.z_student)
-    errors = finetune.errors_to_teacher(head, batch.proprio, z, batch.z_student, batch.z_teacher)
+    errors = core.errors_to_teacher(head, batch.proprio, z, batch.z_student, batch.z_teacher)
     assert errors["action_mse"] < 0.1 * student_err and errors["student_action_mse"] == pytest.approx(student_err)
     assert all(p.grad is None for p in policy.student.net.parameters())
 
@@ -223,24 +225,24 @@ def test_init_from_carries_an_adapter_to_another_student(tiny_run, tmp_path):
     data = bytearray(weights.read_bytes())
     data[-1] ^= 1  # another student
     weights.write_bytes(bytes(data))
-    job = finetune.Job.start_from(_tiny_cfg(tmp_path / "carried", student=str(student),
+    job = core.Job.start_from(_tiny_cfg(tmp_path / "carried", student=str(student),
                                             init_from=str(result.bundle_dir)))
     trained = load_adapter(result.bundle_dir).adapter.state_dict()
     for name, value in job.policy.adapter.state_dict().items():
         assert torch.equal(value, trained[name]), name
     with pytest.raises(ValueError, match="init_from: .*modalities"):
-        finetune.Job.start_from(_tiny_cfg(tmp_path / "other", modalities="imu", init_from=str(result.bundle_dir)))
+        core.Job.start_from(_tiny_cfg(tmp_path / "other", modalities="imu", init_from=str(result.bundle_dir)))
     with pytest.raises(ValueError, match="init_from: .*not an adapter bundle"):
-        finetune.Job.start_from(_tiny_cfg(tmp_path / "none", init_from=str(tmp_path)))
+        core.Job.start_from(_tiny_cfg(tmp_path / "none", init_from=str(tmp_path)))
 
 
 def test_anchor_holds_light_cups_at_its_correction_and_heavy_ones_at_the_teachers_z(tiny_run, env_obs, tmp_path):
     """--anchor: a frozen copy of another adapter whose correction is the target on cups lighter than anchor_mass;
     the teacher's z stays the target on heavier ones, and everywhere without an anchor."""
-    from adapters.finetune_sim import anchored_target
+    from adapters.finetune.sim import anchored_target
 
     out, result = tiny_run
-    job = finetune.Job.start_from(_tiny_cfg(tmp_path / "anchored", anchor=str(result.bundle_dir), anchor_mass=0.2))
+    job = core.Job.start_from(_tiny_cfg(tmp_path / "anchored", anchor=str(result.bundle_dir), anchor_mass=0.2))
     trained = load_adapter(result.bundle_dir).adapter.state_dict()
     for name, value in job.anchor.state_dict().items():
         assert torch.equal(value, trained[name]), name
@@ -264,7 +266,7 @@ def test_anchor_holds_light_cups_at_its_correction_and_heavy_ones_at_the_teacher
     job.anchor = None
     assert torch.equal(anchored_target(job, priv, tokens, z_student, z_teacher), z_teacher)
     with pytest.raises(ValueError, match="anchor: .*modalities"):
-        finetune.Job.start_from(_tiny_cfg(tmp_path / "other", modalities="imu", anchor=str(result.bundle_dir)))
+        core.Job.start_from(_tiny_cfg(tmp_path / "other", modalities="imu", anchor=str(result.bundle_dir)))
     with pytest.raises(ValueError, match="leave --anchor out with --sessions"):
         _tiny_cfg(tmp_path / "s", sessions=(tmp_path,), modalities="imu", anchor=str(result.bundle_dir))
 

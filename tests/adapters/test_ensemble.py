@@ -11,11 +11,12 @@ import pytest
 import torch
 
 from adapters.bundle import TouchUnavailable, build_adapted
-from adapters.ensemble import CorrectionGate, EnsemblePolicy, load_ensemble, shares_unimodal
+from adapters.ensemble import EnsemblePolicy, load_ensemble, shares_unimodal
+from adapters.ensemble_config import CorrectionGate
+from rotation.bundles import load_bundle, weights_digest
 from rotation.cli import main
 from rotation.evaluate import job
-from rotation.evaluate.finished import weights_digest
-from rotation.policy.bundle import BundleError, load_bundle
+from rotation.policy.bundle_config import BundleError
 
 ENCODER = "sparshx-tinier-sim"
 
@@ -300,7 +301,7 @@ def test_evaluate_with_an_ensemble(ensemble_dir, tmp_path):
 
 
 def test_latent_errors_of_an_ensemble(ensemble_dir, load_script, tmp_path):
-    """scripts/adapter_latent_errors.py reads an ensemble as it reads one adapter: its latent is the shared
+    """experiments/tools/adapter_latent_errors.py reads an ensemble as it reads one adapter: its latent is the shared
     student's plus the weighted correction."""
     out = tmp_path / "errors"
     args = ["--adapter", str(ensemble_dir), "--condition", "mass_+0.2kg", "--num-envs", "2", "--steps", "6",

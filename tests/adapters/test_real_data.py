@@ -14,24 +14,20 @@ import pytest
 import torch
 from deploy_checks import load_fault
 
-from adapters import finetune
 from adapters.bundle import load_adapter
-from adapters.real_data import (
-    check_session,
-    check_sessions,
-    priv_vectors,
-    proprio_observations,
-    session_samples,
-    start_positions,
-)
+from adapters.finetune import job as finetune
+from adapters.real_data import priv_vectors, proprio_observations, session_samples, start_positions
+from adapters.session_checks import check_session, check_sessions
 from envs import constants as C
+from rotation.bundles import load_bundle
 from rotation.data.properties import parse_properties
-from rotation.data.session import SessionError, SessionMeta, SessionReader, SessionWriter, StreamSetup
+from rotation.data.session import SessionError, SessionMeta, StreamSetup
+from rotation.data.session_reader import SessionReader
+from rotation.data.session_writer import SessionWriter
 from rotation.deploy import job as deploy_job
 from rotation.deploy import loop as deploy_loop
 from rotation.deploy.policy import PolicyState
-from rotation.hardware import digit360_window as dw
-from rotation.policy.bundle import load_bundle
+from rotation.hardware.digit360 import window as dw
 
 FINGERS = C.FINGERS
 PROPERTIES = ("mass=0.1,friction=0.9,com=0,0,0.005,scale=0.78", "mass=0.2,friction=0.5,com=0,0.002,0,scale=0.8")

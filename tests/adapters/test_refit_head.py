@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from adapters import finetune
 from adapters.bundle import load_adapter
-from adapters.refit_head import ridge, ridge_by_episode_cv
+from adapters.finetune import job as finetune
+from adapters.finetune.refit import ridge, ridge_by_episode_cv
 from envs.config import EnvConfig
 
 
@@ -92,7 +92,7 @@ def test_refit_options_are_checked(tmp_path):
 def test_a_stopped_refit_saves_what_it_has_and_says_so(trained, tmp_path, monkeypatch, stop_at, refit):
     """Ctrl-C mid-rollout: the layer is refit on the samples so far (or kept, with too few episodes for the folds),
     the bundle is saved and the stop is reported as an interruption with no --resume to offer."""
-    from adapters import refit_head
+    from adapters.finetune import refit as refit_head
     from rotation.interrupt import Interrupted
 
     step = refit_head.EpisodeTracker.step

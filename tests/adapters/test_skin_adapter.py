@@ -9,14 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from adapters import finetune
-from adapters.bundle import SKIN_SAMPLE, build_adapted, load_adapter
+from adapters.bundle import build_adapted, load_adapter
+from adapters.bundle_config import SKIN_SAMPLE
+from adapters.finetune import job as finetune
 from envs.config import EnvConfig
 from envs.core import RotateCupVec
+from rotation.bundles import load_bundle
 from rotation.deploy.touch import touch_sensors
 from rotation.evaluate import job
-from rotation.policy.bundle import load_bundle
-from rotation.tactile.sparsh_skin import SparshSkin, SparshSkinConfig, save_skin
+from rotation.tactile.models.sparsh_skin import SparshSkin, SparshSkinConfig, save_skin
 
 
 @pytest.fixture(scope="module")

@@ -6,12 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from adapters import finetune
 from adapters.bundle import build_adapted, load_adapter
-from adapters.finetune_sim import tracking_norm
+from adapters.finetune import core
+from adapters.finetune import job as finetune
+from adapters.finetune.sim import tracking_norm
 from adapters.model import TRACKING_DIM, tracking_features
 from envs.constants import JOINT_LOWER, JOINT_UPPER, scale_joints
-from rotation.policy.bundle import load_bundle
+from rotation.bundles import load_bundle
 
 ENCODER = "sparshx-tinier-sim"
 
@@ -73,7 +74,7 @@ def test_init_from_an_adapter_without_tracking_starts_with_its_corrections(env_o
     for p in plain.adapter.parameters():
         torch.nn.init.normal_(p, std=0.1)
     plain.save(tmp_path / "plain")
-    job = finetune.Job.start_from(_tiny_cfg(tmp_path / "run", init_from=str(tmp_path / "plain")))
+    job = core.Job.start_from(_tiny_cfg(tmp_path / "run", init_from=str(tmp_path / "plain")))
     assert job.tracking_norm_needed
     groups = {k: obs[k] for k in plain.config.obs_groups}
     want = plain.correction(_windows(plain, obs), groups)
@@ -83,7 +84,7 @@ def test_init_from_an_adapter_without_tracking_starts_with_its_corrections(env_o
     padded.adapter.set_tracking_norm(torch.randn(TRACKING_DIM), torch.rand(TRACKING_DIM) + 0.1)
     np.testing.assert_allclose(padded.correction(_windows(padded, obs), groups), want, atol=1e-6)
     with pytest.raises(ValueError, match="init_from"):  # another network is still refused
-        finetune.Job.start_from(_tiny_cfg(tmp_path / "other", hidden=(32,), init_from=str(tmp_path / "plain")))
+        core.Job.start_from(_tiny_cfg(tmp_path / "other", hidden=(32,), init_from=str(tmp_path / "plain")))
 
 
 @pytest.fixture(scope="module")

@@ -13,15 +13,9 @@ import h5py
 import numpy as np
 import pytest
 
-from rotation.data.session import (
-    FORMAT_VERSION,
-    STREAMS,
-    SessionError,
-    SessionMeta,
-    SessionReader,
-    SessionWriter,
-    StreamSetup,
-)
+from rotation.data.session import FORMAT_VERSION, STREAMS, SessionError, SessionMeta, StreamSetup
+from rotation.data.session_reader import SessionReader
+from rotation.data.session_writer import SessionWriter
 
 META = SessionMeta(source="sim", object="cylinder", control_hz=20.0, seed=7, properties={"mass": 0.1})
 
@@ -106,7 +100,8 @@ def test_every_stream_of_the_registry_can_be_written(tmp_path):
 _KILLED_WRITER = textwrap.dedent("""
     import sys
     import numpy as np
-    from rotation.data.session import SessionMeta, SessionWriter, StreamSetup
+    from rotation.data.session import SessionMeta, StreamSetup
+    from rotation.data.session_writer import SessionWriter
 
     meta = SessionMeta(source="real", object="cup", control_hz=100.0)
     w = SessionWriter(sys.argv[1], meta, [StreamSetup("joints/position", rate_hz=100.0)], flush_interval_s=0.02)

@@ -9,7 +9,9 @@ import torch
 from envs.constants import FINGERS
 from envs.sensors.digit360 import FIELD, NUM_FIELDS
 from rotation.data.dataset import TouchWindows, split_sessions
-from rotation.data.session import SessionError, SessionMeta, SessionReader, SessionWriter, StreamSetup
+from rotation.data.session import SessionError, SessionMeta, StreamSetup
+from rotation.data.session_reader import SessionReader
+from rotation.data.session_writer import SessionWriter
 
 DT = 0.01
 

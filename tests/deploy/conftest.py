@@ -11,7 +11,8 @@ import pytest
 
 from rotation.deploy import job
 from rotation.deploy import loop as loop_module
-from rotation.policy.bundle import BundleConfig, PolicyBundle, shipped_bundles
+from rotation.policy.bundle import PolicyBundle, shipped_bundles
+from rotation.policy.bundle_config import BundleConfig
 
 STUDENT_SHIPPED = "student" in shipped_bundles()
 """The trained student ships in rotation/policies/student (the rotation test needs it)."""

@@ -22,13 +22,15 @@ from deploy_checks import again_if_loaded, load_fault
 from deploy_checks import assert_done_or_load_fault as check_done_or_load_fault
 
 from adapters.bundle import TouchUnavailable, build_adapted
+from rotation import bundles
 from rotation.cli import main
-from rotation.deploy.job import Config, run
+from rotation.deploy.config import Config
+from rotation.deploy.job import run
 from rotation.deploy.sensors import SIM_WINDOWS
-from rotation.deploy.touch import TouchWorker, adapter_inputs, touch_sensors, wait_for_touch
-from rotation.hardware.digit360 import SensorStale
-from rotation.hardware.digit360_window import WindowNotReady
-from rotation.policy import bundle as bundle_module
+from rotation.deploy.touch import adapter_inputs, touch_sensors, wait_for_touch
+from rotation.deploy.touch_worker import TouchWorker
+from rotation.hardware.digit360.reader import SensorStale
+from rotation.hardware.digit360.window import WindowNotReady
 
 ENCODER = "sparshx-tinier-sim"
 FINGERS = ("index", "middle", "ring", "thumb")
@@ -154,7 +156,7 @@ def test_non_finite_embeddings_and_worker_errors_fall_back(adapter_dir, caplog, 
     """Refreshes 2, 5 and 8 give NaN, raise TouchUnavailable, raise a bug-level error: each falls
     back with one warning naming it (the bug with its traceback), and the adapter acts again after each."""
     caplog.set_level(logging.INFO, logger="rotation")
-    real_load = bundle_module.load_bundle
+    real_load = bundles.load_bundle
 
     def load(name):
         policy = real_load(name)
@@ -171,7 +173,7 @@ def test_non_finite_embeddings_and_worker_errors_fall_back(adapter_dir, caplog, 
         policy.correction = correction
         return policy
 
-    monkeypatch.setattr(bundle_module, "load_bundle", load)
+    monkeypatch.setattr(bundles, "load_bundle", load)
     summary = again_if_loaded(lambda: run(Config(hand="sim-allegro", policy=adapter_dir, duration=3.0)), caplog)
     assert_done_or_load_fault(summary)
     messages = [r.getMessage() for r in touch_warnings(caplog)]

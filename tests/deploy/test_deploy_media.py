@@ -26,9 +26,10 @@ from adapters.bundle import build_adapted
 from rotation.cli import main
 from rotation.deploy.sensors import check_media_extras, digit360_windows, find_media, open_digit360
 from rotation.deploy.touch import touch_sensors
-from rotation.hardware import digit360
-from rotation.hardware.digit360 import Digit360Devices, SensorStale, find_digit360_devices
-from rotation.hardware.digit360_window import IMAGE_GAP, PRESSURE_RATE, SERIES_LEN, WindowNotReady
+from rotation.hardware.digit360 import discovery
+from rotation.hardware.digit360.discovery import Digit360Devices, find_digit360_devices
+from rotation.hardware.digit360.reader import SensorStale
+from rotation.hardware.digit360.window import IMAGE_GAP, PRESSURE_RATE, SERIES_LEN, WindowNotReady
 from rotation.sim_hardware.digit360_emulator import Digit360Emulator
 
 ENCODER = "sparshx-tinier-sim"
@@ -86,7 +87,7 @@ def test_a_sensors_camera_and_microphones_are_the_ones_on_its_hub(tmp_path):
 def test_find_media_takes_only_what_the_policy_reads(tmp_path, monkeypatch):
     sysfs = str(fake_sysfs(tmp_path / "sys"))
     connected = [("/dev/ttyACM0", "D360-A")]  # (tty, USB serial), as the real function lists them
-    monkeypatch.setattr(digit360, "find_digit360_ports",
+    monkeypatch.setattr(discovery, "find_digit360_ports",
                         lambda serial=None: [p for p in connected if serial in (None, p[1])])
     specs = {"index": "D360-A", "thumb": "/dev/ttyACM1", "ring": "D360-GONE", "middle": "sim"}
     assert find_media(specs, ("imu", "pressure"), sysfs) == {}  # serial streams only: nothing to find
@@ -273,7 +274,7 @@ def test_deploy_opens_each_named_sensors_microphones_for_an_audio_adapter(audio_
             emus = {f: stack.enter_context(Digit360Emulator()) for f in FINGERS}
             cards.clear()
             cards.update({emu.path: f"(hw:{i + 1},0)" for i, emu in enumerate(emus.values())})
-            monkeypatch.setattr(digit360, "find_digit360_devices",
+            monkeypatch.setattr(discovery, "find_digit360_devices",
                                 lambda port, sysfs="/sys": Digit360Devices(None, cards[port]))
             code = main(["deploy", "--hand", "sim-allegro", "--policy", audio_adapter, "--duration", "2.5",
                          "--digit360", ",".join(f"{f}={emu.path}" for f, emu in emus.items())])
@@ -313,7 +314,7 @@ def whole_sensors(stack: contextlib.ExitStack, monkeypatch) -> tuple[dict, dict,
     devices = {emu.path: Digit360Devices(f"/dev/video{2 * i + 2}", f"(hw:{i + 1},0)")
                for i, emu in enumerate(emus.values())}
     monkeypatch.setitem(sys.modules, "cv2", Cameras(tuple(d.camera for d in devices.values())).module)
-    monkeypatch.setattr(digit360, "find_digit360_devices", lambda port, sysfs="/sys": devices[port])
+    monkeypatch.setattr(discovery, "find_digit360_devices", lambda port, sysfs="/sys": devices[port])
     return emus, devices, ",".join(f"{f}={emu.path}" for f, emu in emus.items())
 
 
@@ -338,7 +339,7 @@ def test_deploy_records_the_real_sensors_camera_frames_and_microphones(tmp_path,
     the serial streams (written from the writer's own thread), every frame and sample in order, and the session
     gives recorded Sparsh-X windows (rotation.data.dataset) as any real session does."""
     from rotation.data.dataset import TouchWindows
-    from rotation.data.session import SessionReader
+    from rotation.data.session_reader import SessionReader
 
     adapter = build_adapted(policy, ENCODER, ("img", "mic"), touch_every=4).save(tmp_path / "image_audio")
     runs = iter(("run.h5", "run_again.h5"))  # a new session each time: none is overwritten
@@ -386,7 +387,7 @@ def test_record_media_records_the_cameras_and_microphones_for_any_policy(tmp_pat
     """--record-media: the student (which reads no touch) records every sensor's frames and audio too, what
     fine-tuning an image or audio adapter on a lab's sessions needs; refused without a recording, with emulated
     sensors, or when a sensor's camera or microphones are not found."""
-    from rotation.data.session import SessionReader
+    from rotation.data.session_reader import SessionReader
 
     with contextlib.ExitStack() as stack:
         emus, devices, spec = whole_sensors(stack, monkeypatch)
@@ -421,10 +422,11 @@ def test_an_image_and_audio_adapter_fine_tunes_on_sessions_recorded_with_their_m
     made as a deployed reader makes them (the newest frame at or before the step and the one 5 before it, the
     27,000 audio samples up to that frame), and `rotate finetune-adapter --sessions` trains an image + audio
     adapter on it."""
-    from adapters import finetune
-    from adapters.real_data import check_session, session_samples
-    from rotation.data.session import SessionReader
-    from rotation.policy.bundle import load_bundle
+    from adapters.finetune import job as finetune
+    from adapters.real_data import session_samples
+    from adapters.session_checks import check_session
+    from rotation.bundles import load_bundle
+    from rotation.data.session_reader import SessionReader
 
     windows = ("image", "audio", "imu", "pressure")
     student = load_bundle(policy)

@@ -22,9 +22,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rotation import bundles
 from rotation.cli import main
+from rotation.deploy import config as deploy_config
 from rotation.deploy import job
-from rotation.deploy.job import Config, run
+from rotation.deploy.config import Config
+from rotation.deploy.job import run
 from rotation.policy import bundle as bundle_module
 from rotation.policy.bundle import resolve_bundle
 
@@ -70,7 +73,7 @@ def test_bad_bundles_are_refused_before_the_hand_is_opened(tmp_path, capsys, pol
 def test_lost_can_bus_is_not_reported_as_motors_off(policy, monkeypatch, hand_hook, capsys):
     """The real-hand path (an emulator on a virtual bus deploy does not know about): the bus dies mid-run, the
     driver's SYSTEM_OFF goes nowhere without a send error, and the hand never answers that it is off."""
-    from rotation.hardware import allegro
+    from rotation.hardware.allegro import driver as allegro
     from rotation.sim_hardware.allegro_emulator import AllegroEmulator
 
     monkeypatch.setattr(allegro, "AllegroConfig", functools.partial(allegro.AllegroConfig, feedback_timeout_s=0.3,
@@ -88,8 +91,8 @@ def test_lost_can_bus_is_not_reported_as_motors_off(policy, monkeypatch, hand_ho
 
 def test_leap_servo_refusing_torque_off_is_not_reported_as_motors_off(policy, monkeypatch, capsys):
     """A servo answers the torque-off write with an error (and keeps its torque): real-LEAP path, not confirmed."""
-    from rotation.hardware import dynamixel_protocol as dp
-    from rotation.hardware import leap
+    from rotation.hardware.leap import driver as leap
+    from rotation.hardware.leap import dynamixel_protocol as dp
     from rotation.sim_hardware.hand_physics import HandPhysics
     from rotation.sim_hardware.leap_emulator import LeapEmulator
 
@@ -161,7 +164,7 @@ def test_missing_touch_sensor_is_refused_before_the_motors_are_on(policy, no_han
 def test_recording_that_fails_after_the_start_is_a_recording_fault(policy, monkeypatch, hand_hook):
     """If the file cannot be created after all (the disk changed since the check), the fault names the recording,
     not the hand's connection, and the motors are confirmed off."""
-    monkeypatch.setattr(job, "_check_record_path", lambda path, overwrite: None)
+    monkeypatch.setattr(deploy_config, "check_record_path", lambda path, overwrite: None)
     summary = run(Config(hand="sim-allegro", policy=policy, duration=1.0, record="/proc/rotate-test.h5"))
     assert summary["fault"].startswith("recording failed: could not create /proc/rotate-test.h5")
     assert summary["exit_code"] == 1 and summary["motors_off"] is True
@@ -196,8 +199,8 @@ class MostlySlowPolicy:
 
 
 def test_run_with_most_steps_held_is_not_reported_as_done(policy, monkeypatch, hand_hook):
-    real_load = bundle_module.load_bundle
-    monkeypatch.setattr(bundle_module, "load_bundle", lambda name: MostlySlowPolicy(real_load(name)))
+    real_load = bundles.load_bundle
+    monkeypatch.setattr(bundles, "load_bundle", lambda name: MostlySlowPolicy(real_load(name)))
     summary = run(Config(hand="sim-allegro", policy=policy, duration=2.0))
     assert summary["exit_code"] == 1 and summary["fault"].startswith("the loop could not hold 20 Hz")
     assert "control slots were late, held or skipped" in summary["fault"]
@@ -205,7 +208,7 @@ def test_run_with_most_steps_held_is_not_reported_as_done(policy, monkeypatch, h
 
 
 def test_shortfall_counts_each_slot_once():
-    from rotation.deploy.loop import LoopStats
+    from rotation.deploy.monitors import LoopStats
 
     stats = LoopStats(tick_times=list(np.arange(10.0)), late_steps=3, held_steps=3, degraded_steps=4)
     assert stats.shortfall(0.5) is None  # 4 of 10

@@ -17,10 +17,11 @@ import numpy as np
 import pytest
 from deploy_checks import again_if_loaded, assert_done_or_load_fault
 
+from rotation import bundles
 from rotation.cli import main
-from rotation.data.session import SessionReader
-from rotation.deploy.job import Config, run
-from rotation.policy import bundle as bundle_module
+from rotation.data.session_reader import SessionReader
+from rotation.deploy.config import Config
+from rotation.deploy.job import run
 from rotation.policy.bundle import shipped_bundles
 
 STUDENT_SHIPPED = "student" in shipped_bundles()
@@ -102,7 +103,7 @@ def test_real_allegro_path_against_an_emulator_on_a_virtual_bus(tmp_path, policy
     no object pose, motors off as the hand itself answered (HAND_INFO); the emulator on that bus saw SYSTEM_OFF."""
     import functools
 
-    from rotation.hardware import allegro
+    from rotation.hardware.allegro import driver as allegro
     from rotation.sim_hardware.allegro_emulator import AllegroEmulator
 
     # the shared test machine: a longer feedback timeout than the real hand's 100 ms (as in tests/sim_hardware)
@@ -187,8 +188,8 @@ class NaNPolicy:
 
 
 def test_nan_actions_are_held_then_end_the_run(policy, monkeypatch, hand_hook, caplog):
-    real_load = bundle_module.load_bundle
-    monkeypatch.setattr(bundle_module, "load_bundle", lambda name: NaNPolicy(real_load(name)))
+    real_load = bundles.load_bundle
+    monkeypatch.setattr(bundles, "load_bundle", lambda name: NaNPolicy(real_load(name)))
     summary = run(Config(hand="sim-allegro", policy=policy, duration=10.0, hold_limit_s=0.5))
     assert summary["exit_code"] == 1 and summary["fault"].startswith("policy fault: no usable action")
     # every rejected action was held (a loaded machine may add holds for late actions, so >=)
@@ -211,8 +212,8 @@ class StallingPolicy:
 
 
 def test_stalled_policy_steps_hold_the_last_target(tmp_path, policy, monkeypatch, hand_hook):
-    real_load = bundle_module.load_bundle
-    monkeypatch.setattr(bundle_module, "load_bundle", lambda name: StallingPolicy(real_load(name)))
+    real_load = bundles.load_bundle
+    monkeypatch.setattr(bundles, "load_bundle", lambda name: StallingPolicy(real_load(name)))
     record = tmp_path / "stall.h5"
     summary = run(Config(hand="sim-allegro", policy=policy, duration=2.0, record=str(record)))
     assert summary["exit_code"] == 0 and summary["fault"] is None and summary["motors_off"]
@@ -234,7 +235,7 @@ def test_shipped_student_rotates_the_emulated_cup(hand_hook):
 
 
 def test_a_failed_recording_drain_ends_the_run_with_the_motors_off(tmp_path, policy, hand_hook, monkeypatch):
-    """The sensors' samples reach the recording from the drain's own thread (rotation.deploy.loop.DrainThread); a
+    """The sensors' samples reach the recording from the drain's own thread (rotation.deploy.drain.DrainThread); a
     drain that fails there still ends the run at the loop's next step, as a recording fault, motors off."""
     from rotation.data.session import SessionError
     from rotation.deploy import sensors

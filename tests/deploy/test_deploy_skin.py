@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from deploy_checks import assert_done_or_load_fault
 
-from rotation.data.session import SessionReader
-from rotation.deploy.job import Config, run
+from rotation.data.session_reader import SessionReader
+from rotation.deploy.config import Config
+from rotation.deploy.job import run
 from rotation.sim_hardware.xela_emulator import XelaServerEmulator
 
 

@@ -9,16 +9,18 @@ import time
 import numpy as np
 import pytest
 
+from envs.sensors import digit360_model as M
 from envs.sensors import digit360_render as R
+from envs.sensors import digit360_signals as S
 from envs.sensors.digit360 import FIELD, FINGERS
 from rotation.deploy.sensors import open_digit360
-from rotation.hardware.digit360 import SensorStale
-from rotation.hardware.digit360_window import WindowNotReady
+from rotation.hardware.digit360.reader import SensorStale
+from rotation.hardware.digit360.window import WindowNotReady
 from rotation.sim_hardware.hand_physics import HandPhysics
 
 SHAPES = {"image": ((6, 224, 224), np.uint8), "audio": ((2, 27000), np.int16), "imu": ((224, 3), np.float32),
           "pressure": ((224, 1), np.float32)}
-"""The reader's Sparsh-X window (rotation.hardware.digit360_window)."""
+"""The reader's Sparsh-X window (rotation.hardware.digit360.window)."""
 
 
 def first_window(reader, timeout_s: float = 5.0) -> dict:
@@ -45,13 +47,13 @@ def test_sim_fingertips_sense_the_emulated_hand(pressed_and_free_grasp):
                 assert np.all(np.isfinite(w[modality]))
             touch = readers[finger].media
             fi = FINGERS.index(finger)
-            frame = int(round((w["t_end"] - touch.t0) * R.IMAGE_HZ))  # the window ends at this frame of the sensor
-            assert w["t_end"] == pytest.approx(touch.t0 + frame / R.IMAGE_HZ)
+            frame = int(round((w["t_end"] - touch.t0) * M.IMAGE_HZ))  # the window ends at this frame of the sensor
+            assert w["t_end"] == pytest.approx(touch.t0 + frame / M.IMAGE_HZ)
             # pressure: the no-contact level of this sensor (rest, offset, drift) plus the env's gain x the normal
             # force of the contacts on the dome
-            level, _ = R.pressure_terms(R.WindowIndex(frame).pressure, touch.key)
+            level, _ = S.pressure_terms(R.WindowIndex(frame).pressure, touch.key)
             rise[finger] = float(w["pressure"].mean() - level.mean())
-            gain = R.DEFAULT_MODEL.pressure_per_newton
+            gain = M.DEFAULT_MODEL.pressure_per_newton
             normal = fields[fi, FIELD["c0_fn"]] + fields[fi, FIELD["c1_fn"]]
             assert rise[finger] == pytest.approx(gain * normal, abs=0.05), finger
             assert np.linalg.norm(w["imu"].mean(axis=0)) == pytest.approx(1.0, abs=0.05)  # a held hand: gravity

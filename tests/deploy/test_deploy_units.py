@@ -10,12 +10,13 @@ import pytest
 
 from envs import EnvConfig, RandomizationConfig, RotateCupVec
 from envs import constants as C
-from envs.grasps import load_default_cache
+from envs.grasp_cache import load_default_cache
 from rotation.cli import main
-from rotation.deploy.job import Config, run
+from rotation.deploy.config import Config
+from rotation.deploy.job import run
 from rotation.deploy.policy import PolicyFault, PolicyState, PolicyWorker, action_problem, check_deployable
 from rotation.deploy.sensors import parse_digit360
-from rotation.policy.bundle import BundleConfig
+from rotation.policy.bundle_config import BundleConfig
 from rotation.sim_hardware.hand_physics import HandPhysics
 
 
@@ -146,7 +147,7 @@ def test_the_drain_thread_drains_off_the_loop_and_hands_over_its_error():
     """DrainThread moves the sensors' samples into the recording on its own thread every ``every_s``, drains once
     more when a run that ended well stops it, and keeps a failed drain's error for the loop's next check()."""
     from rotation.data.session import SessionError
-    from rotation.deploy.loop import DrainThread
+    from rotation.deploy.drain import DrainThread
 
     calls, appended = [], []
 
@@ -192,7 +193,7 @@ def test_after_a_fault_drain_rest_moves_the_last_samples_once_the_motors_are_off
     """DrainThread.drain_rest (called once the hand is off): one more drain after a fault's stop; a no-op after a
     run that ended well; False, logged, when the drain is still busy or had failed (nothing is waited for forever)."""
     from rotation.data.session import SessionError
-    from rotation.deploy.loop import DrainThread
+    from rotation.deploy.drain import DrainThread
 
     class Drain:
         def __init__(self, block: threading.Event | None = None, fail: bool = False):

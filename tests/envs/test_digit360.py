@@ -12,7 +12,10 @@ from envs import EnvConfig, RotateCupVec
 from envs.grasps import CANONICAL_POSE
 from envs.objects import get_object
 from envs.scene import build_model, hand_xml_path
+from envs.sensors import digit360_image as I
+from envs.sensors import digit360_model as M
 from envs.sensors import digit360_render as R
+from envs.sensors import digit360_signals as S
 from envs.sensors.digit360 import (
     DOME_RADIUS,
     FIELD,
@@ -140,7 +143,7 @@ def test_env_tactile_group_follows_the_contract():
         tac["pinky"]
 
 
-def _track(seconds=2.0, press_at=0.5, impact_at=1.2) -> R.ContactTrack:
+def _track(seconds=2.0, press_at=0.5, impact_at=1.2) -> M.ContactTrack:
     times = np.arange(int(seconds / 0.01)) * 0.01
     rows = np.zeros((len(times), NUM_FIELDS), np.float32)
     rows[:, FIELD["acc_z"]] = 9.81
@@ -150,15 +153,15 @@ def _track(seconds=2.0, press_at=0.5, impact_at=1.2) -> R.ContactTrack:
     rows[on, FIELD["c0_fn"]] = fn[on]
     rows[on, FIELD["c0_z"]] = DOME_RADIUS
     rows[on, FIELD["force_n"]] = fn[on]
-    return R.ContactTrack(times, rows, 0.01)
+    return M.ContactTrack(times, rows, 0.01)
 
 
 def test_window_grids_and_rates():
     w = R.WindowIndex(45)  # t = 1.5 s
     assert w.time == 1.5 and list(w.frames) == [40, 45]
-    assert w.imu[-1] / R.IMU_HZ <= w.time and len(w.imu) == 224 and np.all(np.diff(w.imu) == 1)
-    assert w.pressure[-1] / R.PRESSURE_HZ <= w.time and len(w.pressure) == 224
-    assert w.audio_first + R.AUDIO_SAMPLES - 1 == 72000  # the sample at exactly 1.5 s is the last one
+    assert w.imu[-1] / M.IMU_HZ <= w.time and len(w.imu) == 224 and np.all(np.diff(w.imu) == 1)
+    assert w.pressure[-1] / M.PRESSURE_HZ <= w.time and len(w.pressure) == 224
+    assert w.audio_first + M.AUDIO_SAMPLES - 1 == 72000  # the sample at exactly 1.5 s is the last one
     assert w.start_time == pytest.approx(1.5 - 223 / 200)
     raw = R.render_window(_track(), 45, key=3)
     assert raw["image"].shape == (2, 224, 224, 3) and raw["image"].dtype == np.uint8
@@ -167,7 +170,7 @@ def test_window_grids_and_rates():
 
 def test_rendered_streams_are_causal_and_deterministic():
     track = _track()
-    cut = R.ContactTrack(track.times[track.times <= 1.5], track.rows[track.times <= 1.5], 0.01)
+    cut = M.ContactTrack(track.times[track.times <= 1.5], track.rows[track.times <= 1.5], 0.01)
     a, b, c = R.render_window(track, 45, key=3), R.render_window(cut, 45, key=3), R.render_window(track, 45, key=3)
     other = R.render_window(track, 45, key=4)
     for k in a:
@@ -175,25 +178,25 @@ def test_rendered_streams_are_causal_and_deterministic():
         assert np.array_equal(a[k], c[k])
     assert not np.array_equal(a["audio"], other["audio"]) and not np.array_equal(a["imu"], other["imu"])
     # overlapping audio windows agree sample for sample on their overlap
-    x = R.render_audio(track, 30000, 27000, key=3)
-    y = R.render_audio(track, 40000, 27000, key=3)
+    x = S.render_audio(track, 30000, 27000, key=3)
+    y = S.render_audio(track, 40000, 27000, key=3)
     assert np.array_equal(x[:, 10000:], y[:, :17000])
 
 
 def test_streams_respond_to_contact():
     track = _track()
-    rest = R.render_pressure(track, np.arange(0, 90), key=3)  # 0 .. 0.45 s: no contact
-    pressed = R.render_pressure(track, np.arange(200, 220), key=3)  # 1.0 .. 1.1 s: 1 N
+    rest = S.render_pressure(track, np.arange(0, 90), key=3)  # 0 .. 0.45 s: no contact
+    pressed = S.render_pressure(track, np.arange(200, 220), key=3)  # 1.0 .. 1.1 s: 1 N
     assert 985 < rest.mean() < 1030 and rest.std() < 0.1
-    assert pressed.mean() - rest.mean() == pytest.approx(R.DEFAULT_MODEL.pressure_per_newton, abs=0.2)
-    frames = R.render_frames(track, np.array([9, 36]), key=3)  # 0.3 s (no contact), 1.2 s (2 N)
+    assert pressed.mean() - rest.mean() == pytest.approx(M.DEFAULT_MODEL.pressure_per_newton, abs=0.2)
+    frames = I.render_frames(track, np.array([9, 36]), key=3)  # 0.3 s (no contact), 1.2 s (2 N)
     assert np.abs(frames[1].astype(int) - frames[0].astype(int)).max() > 20
     mean = frames[0].reshape(-1, 3).mean(axis=0) / 255  # the background's mean color is the released image mean
-    assert np.allclose(mean, R.DEFAULT_MODEL.background_mean, atol=0.01)
-    audio = R.render_audio(track, int(1.1 * 48000), 9600, key=3)  # 1.1 .. 1.3 s: the impact at 1.2 s rings
+    assert np.allclose(mean, M.DEFAULT_MODEL.background_mean, atol=0.01)
+    audio = S.render_audio(track, int(1.1 * 48000), 9600, key=3)  # 1.1 .. 1.3 s: the impact at 1.2 s rings
     before, after = audio[:, :4800], audio[:, 4800:5800]
     assert np.abs(after).max() > 10 * np.abs(before).std()
-    imu = R.render_imu(track, np.arange(100), key=3)
+    imu = S.render_imu(track, np.arange(100), key=3)
     assert np.allclose(imu[:, 2], 1.0, atol=0.05) and np.allclose(imu * 4096, np.round(imu * 4096))  # 1/4096 g
 
 

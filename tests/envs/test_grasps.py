@@ -11,7 +11,8 @@ import pytest
 from envs import EnvConfig, RotateCupVec
 from envs import constants as C
 from envs.config import RandomizationConfig
-from envs.grasps import CANONICAL_POSE, GRASP_DIM, GraspCache, HoldRule, generate_grasps, hold_check, load_default_cache
+from envs.grasp_cache import GRASP_DIM, GraspCache, load_default_cache
+from envs.grasps import CANONICAL_POSE, HoldRule, generate_grasps, hold_check
 from envs.objects import get_object
 from envs.scene import OBJECT_BODY, OBJECT_START, build_model
 
@@ -205,7 +206,7 @@ def test_unknown_object_in_the_file(tmp_path):
 
 
 def test_shipped_caches_are_valid():
-    from envs.grasps import default_cache_path
+    from envs.grasp_cache import default_cache_path
 
     for name in ("cup", "cup_small", "cup_large", "cylinder"):
         assert GraspCache.load(default_cache_path(name)).source.endswith(f"grasps_{name}.npz")

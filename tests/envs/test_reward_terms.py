@@ -8,7 +8,7 @@ import pytest
 
 from envs import task
 from envs.config import EnvConfig, RewardConfig
-from rotation.train.teacher import Config as TeacherConfig
+from rotation.train.teacher_config import Config as TeacherConfig
 
 
 def _rotate_terms(cfg: EnvConfig, spins: list[float]) -> np.ndarray:

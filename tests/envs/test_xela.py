@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from envs import EnvConfig, RotateCupVec
-from envs.grasps import load_default_cache
+from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
 from envs.scene import build_model, hand_spec, hand_xml_path
 from envs.sensors import xela as X
@@ -40,7 +40,7 @@ def test_pad_sizes_and_taxel_grid():
     for p in FLAT:
         pos = lay.pos[X.PAD_SLICES[p.name]]
         length, width = p.size
-        assert p.size == ((0.026, 0.024) if p.kind == "phalanx" else (0.052, 0.032))  # reference/hardware.md 5
+        assert p.size == ((0.026, 0.024) if p.kind == "phalanx" else (0.052, 0.032))  # docs/reference/hardware.md 5
         assert np.all(np.abs(pos[:, 0]) < length / 2) and np.all(np.abs(pos[:, 1]) < width / 2)
         assert np.allclose(pos[:, 2], 0.0)
         pitch = np.diff(np.unique(pos[:, 0]))

@@ -14,11 +14,12 @@ import torch
 
 from envs.config import Perturbation
 from envs.grasps import generate_grasps
+from envs.metrics import METRICS
 from rotation.evaluate import job
-from rotation.evaluate.metrics import METRICS
 from rotation.evaluate.report import EPISODE_FIELDS
 from rotation.evaluate.suites import get_suite, make_condition
-from rotation.policy.bundle import BundleConfig, PolicyBundle
+from rotation.policy.bundle import PolicyBundle
+from rotation.policy.bundle_config import BundleConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 

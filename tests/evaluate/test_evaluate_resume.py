@@ -10,9 +10,11 @@ import signal
 import pytest
 import torch
 
+from envs.grasp_cache import cache_digest
 from rotation.cli import main
 from rotation.evaluate import finished, job
-from rotation.policy.bundle import BundleConfig, PolicyBundle
+from rotation.policy.bundle import PolicyBundle
+from rotation.policy.bundle_config import BundleConfig
 
 CONDITIONS = ("nominal", "friction_0.5")
 
@@ -116,17 +118,18 @@ def test_other_settings_are_refused_with_the_differences(bundles, tmp_path, monk
 
 def test_a_regenerated_grasp_cache_is_another_evaluation(bundles, tmp_path, monkeypatch):
     """Episodes start from the grasp cache: one regenerated at the same path must not continue the old rows."""
-    from envs.grasps import GraspCache, load_default_cache
+    from envs.grasp_cache import GraspCache, load_default_cache
 
     shipped = load_default_cache("cup")
     cache = tmp_path / "grasps_cup.npz"
     shipped.save(cache)
     out = tmp_path / "eval"
     Calls(monkeypatch, stop_at=3, stop=ctrl_c)
+    cfg = make_cfg(bundles, out, grasp_cache=str(cache))
     with pytest.raises(KeyboardInterrupt):
-        job.run(make_cfg(bundles, out, grasp_cache=str(cache)))
-    assert json.loads((out / "progress.json").read_text())["grasps"]["cache"] == finished.grasps_digest(
-        make_cfg(bundles, out, grasp_cache=str(cache)))
+        job.run(cfg)
+    assert json.loads((out / "progress.json").read_text())["grasps"]["cache"] == cache_digest(cfg.grasp_cache,
+                                                                                               cfg.object)
     GraspCache("cup", shipped.scales, shipped.grasps[:, ::-1], seed=1).save(cache)
     with pytest.raises(ValueError, match=r"other settings \(the grasp cache: '[0-9a-f]{16}' -> '[0-9a-f]{16}'\)"):
         job.run(make_cfg(bundles, out, grasp_cache=str(cache), resume=True))

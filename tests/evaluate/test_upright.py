@@ -10,7 +10,7 @@ import pytest
 from envs.config import EnvConfig, RandomizationConfig
 from envs.core import RotateCupVec
 from envs.geometry import tilt_angle
-from rotation.evaluate.metrics import EpisodeTracker, summarize
+from envs.metrics import EpisodeTracker, summarize
 
 
 def _quat(axis: tuple[float, float, float], angle: float) -> np.ndarray:

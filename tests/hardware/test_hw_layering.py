@@ -11,8 +11,9 @@ from rotation.hardware import hand
 
 
 def test_no_torch_no_mujoco_in_hardware():
-    code = ("import sys, rotation.hardware.allegro, rotation.hardware.leap, rotation.hardware.digit360, "
-            "rotation.hardware.safety, rotation.hardware.can_bus; "
+    code = ("import sys, rotation.hardware.allegro.driver, rotation.hardware.leap.driver, "
+            "rotation.hardware.digit360.reader, "
+            "rotation.hardware.safety, rotation.hardware.allegro.can_bus; "
             "bad = [m for m in ('torch', 'mujoco', 'envs') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stdout + out.stderr

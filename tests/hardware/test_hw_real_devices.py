@@ -1,4 +1,4 @@
-"""Real-device checks, deselected by default: run with ``pytest -m hardware``.
+"""Real-device checks, deselected by default: run with ``make test-hardware`` (``pytest -m hardware``).
 
 Devices come from environment variables (defaults in brackets): ALLEGRO_CAN [socketcan:can0],
 LEAP_PORT [/dev/ttyUSB0], DIGIT360_SERIAL (USB serial number of one sensor, plugged in whole: its camera and
@@ -12,9 +12,9 @@ import os
 import numpy as np
 import pytest
 
-from rotation.hardware.allegro import AllegroConfig, AllegroHand
-from rotation.hardware.digit360 import Digit360, Digit360Config
-from rotation.hardware.leap import LeapConfig, LeapHand
+from rotation.hardware.allegro.driver import AllegroConfig, AllegroHand
+from rotation.hardware.digit360.reader import Digit360, Digit360Config
+from rotation.hardware.leap.driver import LeapConfig, LeapHand
 
 pytestmark = pytest.mark.hardware
 
@@ -50,7 +50,7 @@ def test_digit360_camera_and_microphones_on_its_hub():
     assert serial_number, "set DIGIT360_SERIAL to the USB serial number of the sensor under test"
     import time
 
-    from rotation.hardware.digit360 import find_digit360_devices, find_digit360_ports
+    from rotation.hardware.digit360.discovery import find_digit360_devices, find_digit360_ports
 
     (tty, _), = find_digit360_ports(serial_number)
     devices = find_digit360_devices(tty)

@@ -9,9 +9,10 @@ import pytest
 import torch
 
 from rotation.cli import main
-from rotation.data.session import SessionReader
+from rotation.data.session_reader import SessionReader
 from rotation.jobs import collect
-from rotation.policy.bundle import BundleConfig, PolicyBundle
+from rotation.policy.bundle import PolicyBundle
+from rotation.policy.bundle_config import BundleConfig
 
 
 def cfg_for(out, **kw) -> collect.Config:

@@ -10,7 +10,8 @@ import pytest
 
 from envs.sensors.xela import NUM_PADS, NUM_TAXELS, PAD_NAMES, REST, TAXEL_TYPE
 from rotation.cli import main
-from rotation.data.session import STREAMS, SessionReader
+from rotation.data.session import STREAMS
+from rotation.data.session_reader import SessionReader
 from rotation.jobs import collect
 
 SKIN = {"skin/xela": (NUM_TAXELS, 3), "skin/taxel_pos": (NUM_TAXELS, 3), "labels/skin_force": (NUM_PADS, 3)}

@@ -8,10 +8,10 @@ import pytest
 from envs import EnvConfig, RotateCupVec
 from envs.sensors import kaldi
 from rotation.cli import main
+from rotation.data.audio import fbank
 from rotation.data.dataset import TouchWindows, find_sessions
-from rotation.data.session import SessionReader
+from rotation.data.session_reader import SessionReader
 from rotation.jobs import collect
-from rotation.tactile.audio import fbank
 
 STEPS = 36  # 1.8 s: long enough for full windows (1.12 s of history) at the end of each episode
 
@@ -107,7 +107,8 @@ def test_cli_collect_and_inspect(tmp_path, collected):
 
 
 def test_collect_with_a_teacher_bundle_records_z(tmp_path):
-    from rotation.policy.bundle import BundleConfig, PolicyBundle
+    from rotation.policy.bundle import PolicyBundle
+    from rotation.policy.bundle_config import BundleConfig
 
     path = PolicyBundle(BundleConfig(card={"note": "untrained"})).save(tmp_path / "teacher")
     out = tmp_path / "z"

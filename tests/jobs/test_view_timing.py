@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from rotation.jobs import view
-from rotation.policy.bundle import BundleConfig, PolicyBundle
+from rotation.policy.bundle import PolicyBundle
+from rotation.policy.bundle_config import BundleConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 

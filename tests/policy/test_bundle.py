@@ -10,8 +10,11 @@ import torch
 from gymnasium import spaces
 from safetensors.torch import load_file, save_file
 
+from rotation.bundles import load_bundle
 from rotation.policy import bundle as B
-from rotation.policy.bundle import BundleConfig, BundleError, PolicyBundle, export_onnx, load_bundle
+from rotation.policy.bundle import PolicyBundle
+from rotation.policy.bundle_config import BundleConfig, BundleError
+from rotation.policy.export import export_onnx
 from rotation.policy.features import policy_kwargs
 from rotation.policy.networks import EnvFactorEncoderConfig
 

@@ -12,7 +12,7 @@ from rotation.configs import add_dataclass_arguments, dataclass_from_args
 
 
 def test_bench_warp_tiny(load_script, capsys):
-    pytest.importorskip("mujoco_warp", reason="the warp backend needs the [warp] extra")
+    pytest.importorskip("mujoco_warp", reason="the warp backend needs the [warp] extra: pip install -e '.[warp]'")
     bench = load_script("bench_warp")
     cfg = bench.Config(worlds=(2, 3), device="cpu", steps=2, warmup=1, train_worlds=2, train_iterations=1,
                        n_steps=2, n_epochs=1, cpu_envs=4, cpu_steps=2, nthread=1)

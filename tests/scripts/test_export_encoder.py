@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from rotation.tactile.encoders import ENCODERS, load_encoder, shipped_encoders
-from rotation.tactile.sparshx import SparshX, SparshXConfig
+from rotation.tactile.models.encoders import ENCODERS, load_encoder, shipped_encoders
+from rotation.tactile.models.sparshx import SparshX, SparshXConfig
 
 
 def test_export_halves_the_weights_and_keeps_the_tokens(load_script, tmp_path):

@@ -8,7 +8,7 @@ import shutil
 
 import pytest
 
-from envs.grasps import default_cache_path
+from envs.grasp_cache import default_cache_path
 from rotation import cli
 from rotation.configs import save_config
 from rotation.evaluate import job as evaluate_job

@@ -11,8 +11,8 @@ import can
 import numpy as np
 import pytest
 
-from rotation.hardware import allegro_protocol as ap
-from rotation.hardware.allegro import AllegroConfig, AllegroHand
+from rotation.hardware.allegro import protocol as ap
+from rotation.hardware.allegro.driver import AllegroConfig, AllegroHand
 from rotation.hardware.hand import Hand, HandFault, HandNotResponding
 from rotation.hardware.safety import SafetyConfig
 from rotation.sim_hardware.allegro_emulator import AllegroEmulator

@@ -10,8 +10,8 @@ import pytest
 import serial
 from cobs import cobs
 
-from rotation.hardware.digit360 import ACC_PER_G, SENSOR, Digit360, Digit360Config, SensorStale, messages
-from rotation.hardware.digit360_window import WindowNotReady
+from rotation.hardware.digit360.reader import ACC_PER_G, SENSOR, Digit360, Digit360Config, SensorStale, messages
+from rotation.hardware.digit360.window import WindowNotReady
 from rotation.sim_hardware.digit360_emulator import HPA_PER_N, REST_HPA, Digit360Emulator
 
 

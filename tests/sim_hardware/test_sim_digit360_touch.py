@@ -6,12 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from envs.sensors import digit360_model as M
 from envs.sensors import digit360_render as R
 from envs.sensors import kaldi
 from envs.sensors.digit360 import DOME_RADIUS, FIELD, FINGERS, NUM_FIELDS
 from envs.sensors.tactile_obs import TactileObs
-from rotation.hardware.digit360 import Digit360, Digit360Config
-from rotation.hardware.digit360_window import WindowNotReady
+from rotation.hardware.digit360.reader import Digit360, Digit360Config
+from rotation.hardware.digit360.window import WindowNotReady
 from rotation.sim_hardware.digit360_emulator import Digit360Emulator
 from rotation.sim_hardware.digit360_touch import FingertipTouch, audio_counts
 from rotation.sim_hardware.hand_physics import HandPhysics
@@ -64,14 +65,14 @@ def test_emulated_fingertip_streams_equal_the_env_windows():
     pressure = np.array([p for _, p in serial if p is not None])  # samples 1..318 at 200 Hz
     track = touch.track()
     np.testing.assert_array_equal(track.rows, rows[-len(track.rows):])  # one scripted row per 10 ms of device time
-    assert track.times[-1] == pytest.approx(1.59) and len(track.rows) > R.HISTORY_S / 0.01  # the newest 1.2 s
+    assert track.times[-1] == pytest.approx(1.59) and len(track.rows) > M.HISTORY_S / 0.01  # the newest 1.2 s
     with pytest.raises(WindowNotReady, match="history"):
         touch.media_window(T0 + 0.3)  # the audio window reaches back before the sensor started
 
     # the env's `tactile` observation over the same contact track, at frame 45 (1.5 s)
     fi = FINGERS.index(FINGER)
     keys = np.zeros((1, len(FINGERS)), np.uint64)
-    keys[0, fi] = R.finger_key(SEED, fi)
+    keys[0, fi] = M.finger_key(SEED, fi)
     env_rows = np.zeros((1, len(FINGERS), len(track.rows), NUM_FIELDS), np.float32)
     env_rows[0, fi] = track.rows
     env = TactileObs(track.times[None], env_rows, keys, np.array([1.5 + 0.005]), 0.01).window(0, FINGER)

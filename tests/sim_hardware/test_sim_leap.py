@@ -9,9 +9,9 @@ import dynamixel_sdk as sdk
 import numpy as np
 import pytest
 
-from rotation.hardware import dynamixel_protocol as dp
 from rotation.hardware.hand import Hand, HandFault
-from rotation.hardware.leap import LeapConfig, LeapHand
+from rotation.hardware.leap import dynamixel_protocol as dp
+from rotation.hardware.leap.driver import LeapConfig, LeapHand
 from rotation.hardware.safety import SafetyConfig
 
 # generous retries and timeouts: the emulator shares the CPU (and the GIL) with the busy-polling SDK and with

@@ -2,30 +2,20 @@
 
 Warp compiles its kernels on first use (about 40 s cold on a 2-core machine; Warp keeps them in its kernel cache
 for later runs) and keeps the compiled modules for the rest of the process, so the tests share one env where
-they can. Tests marked `gpu` need CUDA and are skipped without it.
+they can. Tests marked `gpu` need CUDA and are skipped without it (tests/conftest.py; `make test-gpu`).
 """
 
 from __future__ import annotations
 
 import pytest
-import torch
 
-pytest.importorskip("mujoco_warp", reason="the warp backend needs the [warp] extra")
+pytest.importorskip("mujoco_warp", reason="the warp backend needs the [warp] extra: pip install -e '.[warp]'")
 
 from envs.config import EnvConfig  # noqa: E402
 from rotation.sim_warp.core import RotateCupWarp, WarpConfig  # noqa: E402
 
 NUM_WORLDS = 3
 SEED = 7
-
-
-def pytest_collection_modifyitems(config, items):
-    if torch.cuda.is_available():
-        return
-    skip = pytest.mark.skip(reason="needs a CUDA GPU")
-    for item in items:
-        if "gpu" in item.keywords:
-            item.add_marker(skip)
 
 
 @pytest.fixture(scope="session")

@@ -10,9 +10,10 @@ import pytest
 import torch
 
 from rotation import cli
-from rotation.policy.bundle import load_bundle, resolve_bundle
+from rotation.bundles import load_bundle
+from rotation.policy.bundle import resolve_bundle
 from rotation.train import teacher
-from rotation.train.teacher_warp import GPU_RECIPE
+from rotation.train.teacher_config import GPU_RECIPE
 
 
 def test_the_command_line_starts_from_the_gpu_recipe():

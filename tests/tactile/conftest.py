@@ -15,6 +15,12 @@ CACHE_STRIDE = 3
 
 
 @pytest.fixture(scope="session")
+def cache_stride() -> int:
+    """The window stride ``touch_cache`` was built with: tests that read it again pass the same stride."""
+    return CACHE_STRIDE
+
+
+@pytest.fixture(scope="session")
 def touch_sessions(tmp_path_factory) -> Path:
     """4 sessions of 2.3 s (a gentle random policy that keeps the cup): about 36 window ends per fingertip."""
     out = tmp_path_factory.mktemp("touch_sessions")

@@ -17,9 +17,10 @@ from rotation.cli import main
 from rotation.data.dataset import find_sessions
 from rotation.data.skin import SkinWindows, shared_reader
 from rotation.jobs import collect
-from rotation.tactile import pretrain, probe
-from rotation.tactile.encoders import load_encoder
-from rotation.tactile.pretrain_state import load_checkpoint, read_checkpoint
+from rotation.tactile.models.encoders import load_encoder
+from rotation.tactile.pretrain import job as pretrain
+from rotation.tactile.pretrain.state import load_checkpoint, read_checkpoint
+from rotation.tactile.probes import job as probe
 from rotation.tactile.ssl import param_groups, step_rng
 
 STRIDE = 5
@@ -157,7 +158,7 @@ def test_skin_pretraining_bad_input(tmp_path, cup_sessions, capsys):
 
 @pytest.fixture(scope="module")
 def skin_checkpoint(tmp_path_factory):
-    from rotation.tactile.sparsh_skin import SparshSkin, SparshSkinConfig, save_skin
+    from rotation.tactile.models.sparsh_skin import SparshSkin, SparshSkinConfig, save_skin
 
     torch.manual_seed(0)
     return save_skin(SparshSkin(SparshSkinConfig(size="tinier")), tmp_path_factory.mktemp("skin_enc") / "e.safetensors")

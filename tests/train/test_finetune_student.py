@@ -8,8 +8,9 @@ import torch
 
 from envs import EnvConfig
 from envs.core import RotateCupVec
+from rotation.bundles import load_bundle
 from rotation.cli import main
-from rotation.policy.bundle import load_bundle, resolve_bundle
+from rotation.policy.bundle import resolve_bundle
 from rotation.policy.features import (
     LATENT_MIX_GROUP,
     LatentMixExtractor,
@@ -17,8 +18,8 @@ from rotation.policy.features import (
     StudentExtractor,
     StudentPPOPolicy,
 )
-from rotation.train import finetune_student, teacher
-from rotation.train.teacher import AdaptiveKLPPO
+from rotation.train import finetune_student, ppo, teacher, teacher_config, vec_env
+from rotation.train.ppo import AdaptiveKLPPO
 
 
 def _cfg(tmp_path, **kw) -> finetune_student.Config:
@@ -47,9 +48,9 @@ def test_phi_stays_frozen_and_the_actor_learns(tmp_path):
 
 def test_the_policy_is_asymmetric_and_starts_as_the_student(tmp_path):
     cfg = _cfg(tmp_path)
-    env = teacher.RotateCupSB3VecEnv(cfg.env_config(), cfg.num_envs, seed=0, obs_groups=teacher.obs_groups(cfg))
+    env = vec_env.RotateCupSB3VecEnv(cfg.env_config(), cfg.num_envs, seed=0, obs_groups=teacher_config.obs_groups(cfg))
     try:
-        model = teacher.build_model(cfg, env)
+        model = ppo.build_model(cfg, env)
     finally:
         env.close()
     policy = model.policy
@@ -64,7 +65,7 @@ def test_the_policy_is_asymmetric_and_starts_as_the_student(tmp_path):
     student = load_bundle("student")
     policy.set_training_mode(False)
     with torch.no_grad():
-        mean = policy.get_distribution({k: torch.as_tensor(obs[k]) for k in teacher.STUDENT_RL_GROUPS}).mode()
+        mean = policy.get_distribution({k: torch.as_tensor(obs[k]) for k in teacher_config.STUDENT_RL_GROUPS}).mode()
     np.testing.assert_array_equal(mean.clamp(-1, 1).numpy(), student.act_batch(obs))
 
 
@@ -83,9 +84,9 @@ def test_resume_continues_a_student_run(tmp_path):
     last = cfg.out / "checkpoints" / "last.zip"
     resumed = finetune_student.run(_cfg(tmp_path, total_steps=1024, resume=last))
     assert resumed.config.card["steps"] == 1024
-    model = teacher.load_checkpoint(last)
+    model = ppo.load_checkpoint(last)
     assert isinstance(model.policy, StudentPPOPolicy) and model.num_timesteps == 1024
-    assert teacher.bundle_from_checkpoint(last).config.card["role"] == "student"
+    assert ppo.bundle_from_checkpoint(last).config.card["role"] == "student"
 
 
 def test_bad_students_are_refused(tmp_path):
@@ -97,9 +98,9 @@ def test_bad_students_are_refused(tmp_path):
         teacher.Config(out=tmp_path / "x", student="student", init_from=resolve_bundle("teacher"))
     with pytest.raises(ValueError, match="net_arch"):
         cfg = _cfg(tmp_path, net_arch=(64, 64))
-        env = teacher.RotateCupSB3VecEnv(cfg.env_config(), 2, obs_groups=teacher.obs_groups(cfg))
+        env = vec_env.RotateCupSB3VecEnv(cfg.env_config(), 2, obs_groups=teacher_config.obs_groups(cfg))
         try:
-            teacher.build_model(cfg, env)
+            ppo.build_model(cfg, env)
         finally:
             env.close()
 
@@ -122,10 +123,10 @@ def test_a_finetuned_checkpoint_loads_as_ppo(tmp_path):
 
 
 def _mix_model(cfg):
-    env = teacher.RotateCupSB3VecEnv(cfg.env_config(), cfg.num_envs, seed=0, obs_groups=teacher.obs_groups(cfg),
+    env = vec_env.RotateCupSB3VecEnv(cfg.env_config(), cfg.num_envs, seed=0, obs_groups=teacher_config.obs_groups(cfg),
                                      latent_mix=cfg.latent_mix)
     try:
-        return teacher.build_model(cfg, env), env.observation_space
+        return ppo.build_model(cfg, env), env.observation_space
     finally:
         env.close()
 
@@ -141,7 +142,7 @@ def test_latent_mix_blends_phi_and_the_teachers_z(tmp_path):
     core.close()
     phi = load_bundle("student").latent(obs)
     z_teacher = load_bundle("teacher").latent(obs)
-    tensors = {k: torch.as_tensor(obs[k]) for k in teacher.STUDENT_RL_GROUPS}
+    tensors = {k: torch.as_tensor(obs[k]) for k in teacher_config.STUDENT_RL_GROUPS}
     w = torch.tensor([[0.0], [1.0], [0.25]])
     with torch.no_grad():
         z = extractor.z(tensors | {LATENT_MIX_GROUP: w}).numpy()
@@ -167,7 +168,7 @@ def test_latent_mix_run_gives_a_plain_student_bundle(tmp_path):
 
 def test_latent_mix_weights_are_drawn_per_episode():
     cfg = EnvConfig(episode_steps=3)
-    env = teacher.RotateCupSB3VecEnv(cfg, num_envs=64, seed=3, nthread=1, latent_mix=0.5)
+    env = vec_env.RotateCupSB3VecEnv(cfg, num_envs=64, seed=3, nthread=1, latent_mix=0.5)
     try:
         first = env.reset()[LATENT_MIX_GROUP][:, 0]
         zero = np.zeros((64, 16), np.float32)
@@ -184,7 +185,7 @@ def test_latent_mix_weights_are_drawn_per_episode():
         assert not np.array_equal(first, second)
     finally:
         env.close()
-    plain = teacher.RotateCupSB3VecEnv(cfg, num_envs=2, seed=3, nthread=1)
+    plain = vec_env.RotateCupSB3VecEnv(cfg, num_envs=2, seed=3, nthread=1)
     try:
         assert LATENT_MIX_GROUP not in plain.observation_space.spaces
     finally:

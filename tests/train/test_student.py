@@ -10,7 +10,9 @@ import torch
 
 from envs.config import EnvConfig
 from envs.grasps import generate_grasps
-from rotation.policy.bundle import BundleConfig, PolicyBundle, load_bundle
+from rotation.bundles import load_bundle
+from rotation.policy.bundle import PolicyBundle
+from rotation.policy.bundle_config import BundleConfig
 from rotation.train import student
 
 

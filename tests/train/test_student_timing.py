@@ -7,7 +7,9 @@ import pytest
 import torch
 
 from envs.config import EnvConfig
-from rotation.policy.bundle import BundleConfig, PolicyBundle, load_bundle
+from rotation.bundles import load_bundle
+from rotation.policy.bundle import PolicyBundle
+from rotation.policy.bundle_config import BundleConfig
 from rotation.train import student
 
 

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from envs.core import RotateCupVec
+from rotation.bundles import load_bundle
 from rotation.interrupt import Interrupted
-from rotation.policy.bundle import load_bundle
-from rotation.train import teacher
-from rotation.train.teacher import AdaptiveKLPPO, KLSchedule
+from rotation.train import ppo, teacher, teacher_config, vec_env
+from rotation.train.ppo import AdaptiveKLPPO, KLSchedule
 
 
 def _cfg(tmp_path, **kw) -> teacher.Config:
@@ -30,7 +30,7 @@ def _mean_return(model, cfg: teacher.Config, seed: int, n: int = 256) -> tuple[f
     alive, total = np.ones(n, dtype=bool), np.zeros(n)
     torch.manual_seed(seed)
     for _ in range(cfg.episode_steps):
-        actions, _ = model.predict({k: obs[k] for k in teacher.TEACHER_GROUPS}, deterministic=False)
+        actions, _ = model.predict({k: obs[k] for k in teacher_config.TEACHER_GROUPS}, deterministic=False)
         obs, reward, terminated, _, _ = env.step(actions)
         total += np.where(alive, reward, 0.0)
         alive &= ~terminated
@@ -61,9 +61,9 @@ def test_tiny_teacher_learns_to_keep_the_object(tmp_path):
     gains = []
     for seed in LEARNING_SEEDS:
         cfg = _cfg(tmp_path / f"seed{seed}", total_steps=24_576, checkpoint_every=100_000, seed=seed)
-        env = teacher.RotateCupSB3VecEnv(cfg.env_config(), cfg.num_envs, seed=cfg.seed,
-                                         reward_scale=cfg.reward_scale, obs_groups=teacher.TEACHER_GROUPS)
-        before, dropped_before = _mean_return(teacher.build_model(cfg, env), cfg, seed=123)
+        env = vec_env.RotateCupSB3VecEnv(cfg.env_config(), cfg.num_envs, seed=cfg.seed,
+                                         reward_scale=cfg.reward_scale, obs_groups=teacher_config.TEACHER_GROUPS)
+        before, dropped_before = _mean_return(ppo.build_model(cfg, env), cfg, seed=123)
         env.close()
         teacher.run(cfg)
         trained = AdaptiveKLPPO.load(cfg.out / "checkpoints" / "last.zip", device="cpu")
@@ -231,7 +231,7 @@ def test_resume_refuses_a_regenerated_grasp_cache_at_the_same_path(tmp_path):
     resume from a file regenerated in place (every episode would start elsewhere) is refused, not silently mixed."""
     import shutil
 
-    from envs.grasps import default_cache_path
+    from envs.grasp_cache import default_cache_path
 
     cache = tmp_path / "grasps_cup.npz"
     shutil.copy(default_cache_path("cup"), cache)
@@ -256,7 +256,7 @@ def test_resume_refuses_a_regenerated_grasp_cache_at_the_same_path(tmp_path):
 
 def test_curves_are_on_disk_with_each_checkpoint(tmp_path, monkeypatch):
     """A crash (here an exception after the second checkpoint, as a SIGKILL would) keeps the curve rows so far."""
-    original = teacher.Checkpoints.save
+    original = ppo.Checkpoints.save
 
     def save_then_crash(self):
         path = original(self)
@@ -264,7 +264,7 @@ def test_curves_are_on_disk_with_each_checkpoint(tmp_path, monkeypatch):
             raise RuntimeError("killed")
         return path
 
-    monkeypatch.setattr(teacher.Checkpoints, "save", save_then_crash)
+    monkeypatch.setattr(ppo.Checkpoints, "save", save_then_crash)
     cfg = _cfg(tmp_path, total_steps=4096, checkpoint_every=1024)
     with pytest.raises(RuntimeError, match="killed"):
         teacher.run(cfg)
@@ -304,8 +304,8 @@ def test_checkpoints_of_other_programs_are_clear_errors(tmp_path):
                                          r"\(ValueError: Observation spaces do not match"):
         teacher.run(_cfg(tmp_path, resume=tmp_path / "pendulum.zip"))
     # the teacher's observation space, but SB3's plain policy instead of the privileged one
-    env = teacher.RotateCupSB3VecEnv(_cfg(tmp_path).env_config(), 2, seed=0,
-                                     obs_groups=getattr(teacher, "TEACHER_GROUPS", None))
+    env = vec_env.RotateCupSB3VecEnv(_cfg(tmp_path).env_config(), 2, seed=0,
+                                     obs_groups=teacher_config.TEACHER_GROUPS)
     PPO("MultiInputPolicy", env, n_steps=64, batch_size=64).save(tmp_path / "plain.zip")
     env.close()
     with pytest.raises(ValueError, match=r"plain\.zip holds a MultiInputActorCriticPolicy with a "
@@ -323,14 +323,14 @@ def test_signal_stops_saves_and_exits_with_its_status(tmp_path, monkeypatch, cap
 
     from rotation import cli
 
-    original = teacher.EpisodeStats._on_rollout_end
+    original = ppo.EpisodeStats._on_rollout_end
 
     def signal_after_first_update(self):
         original(self)
         if self.num_timesteps == 1024:
             os.kill(os.getpid(), signum)
 
-    monkeypatch.setattr(teacher.EpisodeStats, "_on_rollout_end", signal_after_first_update)
+    monkeypatch.setattr(ppo.EpisodeStats, "_on_rollout_end", signal_after_first_update)
     out = tmp_path / "run"
     status = cli.main(["train-teacher", "--out", str(out), "--num-envs", "32", "--n-steps", "32", "--batch-size",
                        "256", "--n-epochs", "1", "--total-steps", "8192", "--episode-steps", "50", "--no-progress"])

@@ -1,7 +1,7 @@
 """DINO self-distillation over token sets: the projection head and the loss with one center per set, and the
 additions of DINOv2 that Sparsh-skin uses: the iBOT masked-token loss and the KoLeo regularizer.
 
-Sparsh-X (reference/sparshx_state_dict.md "Pretraining details of the original"): one projection head shared by
+Sparsh-X (docs/reference/sparshx_state_dict.md "Pretraining details of the original"): one projection head shared by
 the token sets (Linear D->h, GELU, h->h, GELU, h->bottleneck, L2-normalize, weight-normed Linear bottleneck->K
 without bias whose norm is fixed to 1), applied to each set's register token; per set a cross-entropy between the
 teacher's centered, sharpened softmax on the global view and the student's softmax on every view (same-view pair

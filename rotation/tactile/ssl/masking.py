@@ -1,5 +1,5 @@
-"""Block masks over token sets: the views of DINO-style self-distillation (reference/sparsh.md "Sparsh-X
-self-supervised pretraining", reference/sparshx_state_dict.md "Pretraining details").
+"""Block masks over token sets: the views of DINO-style self-distillation (docs/reference/sparsh.md "Sparsh-X
+self-supervised pretraining", docs/reference/sparshx_state_dict.md "Pretraining details").
 
 A view keeps the patch tokens inside one block and drops the others (the encoder gathers the kept tokens, so a
 view is cheaper than the full input). Per token set and step:
@@ -19,7 +19,7 @@ view is cheaper than the full input). Per token set and step:
 Indices are row-major over the grid (the order in which the encoder flattens its patches), sorted, in [0, h w).
 Everything is a pure function of the numpy generator passed in, so a step's masks are reproducible from a seed.
 
-:func:`sample_multi_views` draws DINOv2-style views instead (Sparsh-skin, reference/sparsh.md): several global
+:func:`sample_multi_views` draws DINOv2-style views instead (Sparsh-skin, docs/reference/sparsh.md): several global
 blocks (40-100 %) and local blocks (10-40 %) placed independently, one size per kind, step and set, and inside each
 global view an iBOT mask (a contiguous run of 10-50 % of its tokens, on half of the samples) that the student sees
 as the mask token. Over Sparsh-skin's 1-D taxel order a block is a run of consecutive taxels, each token all 10
@@ -40,7 +40,8 @@ from envs.validation import check_int, check_types
 
 @dataclass(frozen=True)
 class MaskConfig:
-    """How the views of one step are drawn (defaults: Sparsh v1's scale ranges, reference/sparshx_state_dict.md)."""
+    """How the views of one step are drawn (defaults: Sparsh v1's scale ranges,
+    docs/reference/sparshx_state_dict.md)."""
 
     global_scale: tuple[float, float] = (0.48, 1.0)
     """Range of the global block's size, as a fraction of the token set."""
@@ -167,7 +168,7 @@ def step_rng(seed: int, step: int, rank: int = 0) -> np.random.Generator:
 # ------------------------------------------------------------------------ DINOv2-style views (Sparsh-skin)
 @dataclass(frozen=True)
 class ViewMaskConfig:
-    """DINOv2-style views of a step (defaults: Sparsh-skin, reference/sparsh.md): ``num_global`` global and
+    """DINOv2-style views of a step (defaults: Sparsh-skin, docs/reference/sparsh.md): ``num_global`` global and
     ``num_local`` local blocks placed independently (no avoidance), and iBOT masks inside the global views. Errors
     name the fields ``skin.<field>``: the config is `rotate pretrain`'s ``skin`` group."""
 
@@ -182,8 +183,8 @@ class ViewMaskConfig:
     min_keep: int = 4
     """Fewest tokens a view keeps."""
     mask_ratio: tuple[float, float] = (0.1, 0.5)
-    """Range of the fraction of a student's global-view tokens replaced by the mask token (iBOT; reference/
-    sparsh.md: 10-50 %)."""
+    """Range of the fraction of a student's global-view tokens replaced by the mask token (iBOT;
+    docs/reference/sparsh.md: 10-50 %)."""
     mask_probability: float = 0.5
     """Probability that a sample's global view gets an iBOT mask at all (DINOv2: half of them)."""
 

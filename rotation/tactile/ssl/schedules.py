@@ -2,7 +2,7 @@
 
 Every schedule is a pure function of the step (and the run's length), never a stateful scheduler object, so a
 run resumed from a checkpoint continues exactly where it stopped (the counter-example: schedules that restart on
-resume, reference/STYLE.md).
+resume, as in some public pretraining code).
 """
 
 from __future__ import annotations

@@ -1,0 +1,394 @@
+"""Digit 360 fingertip sensor: serial data stream (COBS-framed protobuf), audio and camera, as Sparsh-X windows.
+
+Usage::
+
+    with Digit360(Digit360Config(serial_number="D360-XXXX", camera=0, audio_device="Digit 360")) as d:
+        sample = d.window()   # dict: image (6,224,224) uint8, audio (2,27000) int16, imu (224,3) g,
+                              # pressure (224,1) hPa, t_end (s, host monotonic)
+
+Interfaces (docs/reference/hardware.md section 4): the data tty is a USB CDC device (vendor 0x2833, product 0x4001),
+found by its USB serial number with pyserial's ``list_ports``; each device -> host message is a protobuf
+``DigitMessage`` (schema: ``digit360.proto`` beside this file, loaded at run time) COBS-encoded and terminated
+by 0x00. Audio (48 kHz, 2 microphones, int16) comes through ``sounddevice`` and the camera (UVC) through OpenCV;
+both are imported only when enabled (extra ``[hardware]``).
+
+Emulated sensors have no camera or microphone device: ``Digit360(cfg, media=...)`` takes a :class:`Digit360Media`
+instead, which renders the two frames and the audio of a window when :meth:`Digit360.window` asks for them (the
+emulated fingertips of rotation.sim_hardware render them from their contact history with the env's sensor model;
+rendering every frame at 30 fps would cost more than the control loop can spare). Configs stay plain data: the
+media object is a constructor argument, not a config field, and with it OpenCV and sounddevice are never imported.
+
+Timestamps are host ``time.monotonic()`` seconds. Serial samples carry the device's microsecond clock; it is
+mapped to host time by the smallest observed (receive time - device time) offset (USB delivers in bursts, the
+minimum is the least-delayed sample), allowed to drift by 100 ppm and re-anchored when a sample would map more
+than 50 ms before its arrival.
+
+Faults: an undecodable frame is logged and dropped; a disconnect is logged, the port is reopened every
+``reconnect_s``; :meth:`window` raises :class:`SensorStale` when the newest serial sample is older than
+``stale_timeout_s``, which the deploy watchdog treats as a sensor stall.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import serial
+from cobs import cobs
+
+from rotation.hardware.digit360 import discovery
+from rotation.hardware.digit360 import window as dw
+from rotation.hardware.digit360.proto_schema import enum_values, load_proto
+
+log = logging.getLogger("rotation.hardware.digit360")  # the device's logger (messages name the device)
+
+PROTO = str(Path(__file__).with_name("digit360.proto"))
+IMAGE_BUFFER_FRAMES = 45
+"""Camera frames a reader keeps (1.5 s at 30 fps): a window needs the newest and the one 5 before it, and a deploy
+recording drains the frames every 0.25 s, so a late drain still finds every frame since the last one."""
+ACC_PER_G = 4096.0
+"""Raw accelerometer counts per g (docs/reference/sparsh.md: linear acceleration / 4096)."""
+
+
+def messages() -> dict[str, type]:
+    """The Digit 360 protobuf classes, built from ``digit360.proto``."""
+    return load_proto(PROTO)
+
+
+SENSOR = enum_values(PROTO, "SensorType")
+
+
+class SensorStale(RuntimeError):
+    """The sensor's newest sample is older than the timeout (disconnected or stalled)."""
+
+
+@dataclass(frozen=True)
+class Digit360Config:
+    """One fingertip sensor."""
+
+    serial_number: str | None = None
+    """USB serial number of the sensor (the setup names fingers by it); None with ``port`` set."""
+    port: str | None = None
+    """Data tty to open directly (skips discovery, e.g. an emulator's pty)."""
+    camera: int | str | None = None
+    """OpenCV capture index or device path; None disables the image stream."""
+    audio_device: int | str | None = None
+    """sounddevice input device (index or name substring); None disables audio."""
+    device_clock_hz: float = 1e6
+    """Tick rate of the device's ``ts`` fields (microseconds)."""
+    stale_timeout_s: float = 0.1
+    """Newest serial sample older than this (s) -> SensorStale from window()."""
+    media_stale_timeout_s: float = 0.5
+    """Newest camera frame or audio block older than this (s) -> SensorStale from window() (a frozen camera or a
+    silent audio stream never passes its last frames off as the present)."""
+    reconnect_s: float = 0.5
+    """Retry period (s) for reopening the data tty after a disconnect."""
+    read_every_s: float = 0.005
+    """Pause (s) after each read of the data tty, so that one read takes the frames of a few ms at once: waking for
+    every 400 Hz frame of four sensors kept the interpreter's lock so busy that the policy's thread missed its
+    budget on a slower 2-core machine. The samples keep their device time stamps; 0 reads every frame at once."""
+    buffer_s: float = 3.0
+    """History kept per stream (s); must exceed the longest window (pressure, 1.12 s)."""
+
+    def __post_init__(self) -> None:
+        if self.serial_number is None and self.port is None:
+            raise ValueError("Digit360Config: set serial_number (USB discovery) or port")
+        if not self.buffer_s > 1.2:
+            raise ValueError(f"Digit360Config.buffer_s must exceed the 1.12 s pressure window, got {self.buffer_s}")
+        if not (self.stale_timeout_s > 0 and self.media_stale_timeout_s > 0 and self.reconnect_s > 0
+                and self.device_clock_hz > 0):
+            raise ValueError("Digit360Config: stale_timeout_s, media_stale_timeout_s, reconnect_s and device_clock_hz "
+                             "must be > 0")
+        if not 0 <= self.read_every_s < self.stale_timeout_s:
+            raise ValueError(f"Digit360Config: read_every_s must be in [0, stale_timeout_s), got {self.read_every_s}")
+
+
+class Digit360Media(Protocol):
+    """Camera and microphones rendered on request instead of read from devices (an emulated sensor's)."""
+
+    def media_window(self, t_end: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+        """Image and audio of the window ending at the newest frame at or before ``t_end`` (host
+        ``time.monotonic()`` s; None: now): ``image`` (6, 224, 224) uint8 channel-major
+        [R(t-5), R(t), G(t-5), G(t), B(t-5), B(t)], ``audio`` (2, 27000) int16 up to that frame, and the frame's
+        host time. Raises :class:`digit360_window.WindowNotReady` while there is not enough history."""
+        ...
+
+
+class _ClockMap:
+    """Device clock (ticks, uint32, wraps) -> host seconds by the minimum-offset rule (see module docstring)."""
+
+    max_latency_s = 0.05
+    """A sample mapped more than this before its arrival means the mapping is wrong (device clock paused or
+    reset), not that USB was that slow: re-anchor on it."""
+
+    def __init__(self, hz: float) -> None:
+        self.hz = hz
+        self.offset: float | None = None
+        self.t_last = 0.0
+        self.ts_last = 0
+
+    def __call__(self, ts: int, t_recv: float) -> float:
+        if self.offset is not None and ts < self.ts_last and self.ts_last - ts > 2**31:
+            self.offset += 2**32 / self.hz  # counter wrapped
+        elif self.offset is not None and ts < self.ts_last:
+            self.offset = None  # device restarted
+        off = t_recv - ts / self.hz
+        if self.offset is None or off - self.offset > self.max_latency_s:
+            self.offset = off  # first sample, or the device clock jumped back relative to ours: re-anchor
+        else:
+            self.offset = min(self.offset + 1e-4 * max(t_recv - self.t_last, 0.0), off)
+        self.t_last, self.ts_last = t_recv, ts
+        return min(ts / self.hz + self.offset, t_recv)
+
+
+class _SampleClock:
+    """Host times (``time.monotonic()`` s) of a sample stream delivered in blocks (audio): consecutive samples are
+    1 / rate apart, anchored to the host clock at the first block. A block's arrival time jitters by milliseconds,
+    so timing each block from its own arrival would overlap the previous block's times (a recording then drops the
+    overlap); the anchor moves only when the arrival differs from the count by more than ``reanchor_s`` (lost
+    samples, or drift between the sound card's clock and the host's), and never back past the previous sample."""
+
+    def __init__(self, rate: float, reanchor_s: float = 0.02) -> None:
+        self.rate, self.reanchor_s = float(rate), float(reanchor_s)
+        self._next: float | None = None  # time of the next sample by the count
+
+    def __call__(self, frames: int, t_arrival: float) -> np.ndarray:
+        """Times (frames,) of a block whose last sample arrived at ``t_arrival``."""
+        measured = t_arrival - (frames - 1) / self.rate
+        first = measured if self._next is None else self._next
+        if self._next is not None and abs(measured - self._next) > self.reanchor_s:
+            first = max(measured, self._next - 1.0 / self.rate + 1e-6)
+        t = first + np.arange(frames) / self.rate
+        self._next = float(t[-1]) + 1.0 / self.rate if frames else self._next
+        return t
+
+
+class Digit360:
+    """Reader threads filling ring buffers; :meth:`window` assembles a Sparsh-X sample.
+
+    ``media``: an emulated sensor's camera and microphones (:class:`Digit360Media`), used instead of the devices
+    named by ``cfg.camera`` / ``cfg.audio_device`` (which must then be None).
+    """
+
+    def __init__(self, cfg: Digit360Config, name: str = "digit360", media: Digit360Media | None = None) -> None:
+        if media is not None and (cfg.camera is not None or cfg.audio_device is not None):
+            raise ValueError(f"{name}: an emulated sensor's image and audio come from `media`; leave "
+                             "Digit360Config.camera and audio_device unset")
+        self.cfg = cfg
+        self.name = name
+        self.media = media
+        n = int(cfg.buffer_s * 1.5 * dw.IMU_RATE)
+        self.imu = dw.RingBuffer(n, (3,))
+        self.pressure = dw.RingBuffer(int(cfg.buffer_s * 1.5 * dw.PRESSURE_RATE), (1,))
+        self.audio = dw.RingBuffer(int(cfg.buffer_s * dw.AUDIO_RATE), (2,), np.int16) if cfg.audio_device is not None \
+            else None
+        self.image = dw.RingBuffer(IMAGE_BUFFER_FRAMES, (dw.IMAGE_SIZE, dw.IMAGE_SIZE, 3), np.uint8) \
+            if cfg.camera is not None else None
+        self.version = ""
+        self.counters = {"frames": 0, "bad_frames": 0, "disconnects": 0}
+        self._msg = messages()["DigitMessage"]
+        self._clock = _ClockMap(cfg.device_clock_hz)
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._serial: serial.Serial | None = None
+        self._audio_stream = None
+        self.connected = threading.Event()
+
+    def __enter__(self) -> Digit360:
+        self._open_serial()  # fail loudly at start if the sensor is not there
+        try:
+            self._start(self._serial_loop, "serial")
+            if self.cfg.camera is not None:
+                self._start(self._camera_loop, "camera")
+            if self.cfg.audio_device is not None:
+                self._open_audio()
+        except BaseException:
+            self.close()  # no reader thread outlives a sensor that did not open
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=2.0)
+        self._threads.clear()
+        if self._audio_stream is not None:
+            self._audio_stream.stop()
+            self._audio_stream.close()
+            self._audio_stream = None
+        if self._serial is not None:
+            self._serial.close()
+            self._serial = None
+
+    def window(self, t_end: float | None = None, now: float | None = None,
+               serial_only: bool = False) -> dict[str, np.ndarray | float]:
+        """One Sparsh-X sample (see :mod:`digit360_window`); SensorStale if the serial stream stopped.
+
+        With ``media`` the sample has all four modalities and every window ends at the media's frame (the newest at
+        or before ``t_end``); WindowNotReady until each stream has enough history. ``serial_only``: only the IMU and
+        pressure windows (a reader of those alone skips rendering an emulated sensor's image and audio).
+        """
+        now = time.monotonic() if now is None else now
+        age = now - max(self.imu.newest_time(), self.pressure.newest_time())
+        if age > self.cfg.stale_timeout_s:
+            raise SensorStale(f"{self.name}: newest IMU/pressure sample is {age:.3f} s old "
+                              f"(> {self.cfg.stale_timeout_s} s); connected={self.connected.is_set()}")
+        if serial_only:
+            return dw.sparshx_window(None, None, self.imu, self.pressure, t_end)
+        if self.media is None:
+            for what, buf in (("camera frame", self.image), ("audio block", self.audio)):
+                if buf is None:
+                    continue
+                if not len(buf):
+                    raise dw.WindowNotReady(f"{self.name}: no {what} yet")
+                media_age = now - buf.newest_time()
+                if media_age > self.cfg.media_stale_timeout_s:
+                    raise SensorStale(f"{self.name}: newest {what} is {media_age:.3f} s old "
+                                      f"(> {self.cfg.media_stale_timeout_s} s)")
+            return dw.sparshx_window(self.image, self.audio, self.imu, self.pressure, t_end)
+        image, audio, t_frame = self.media.media_window(t_end)
+        serial = dw.sparshx_window(None, None, self.imu, self.pressure, t_frame)
+        return {"image": image, "t_end": serial["t_end"], "audio": audio, "imu": serial["imu"],
+                "pressure": serial["pressure"]}
+
+    # ------------------------------------------------------------------ serial
+    def _start(self, fn, what: str) -> None:
+        t = threading.Thread(target=fn, name=f"{self.name}-{what}", daemon=True)
+        t.start()
+        self._threads.append(t)
+
+    def _open_serial(self) -> None:
+        port = self.cfg.port
+        if port is None:
+            found = discovery.find_digit360_ports(self.cfg.serial_number)
+            if not found:
+                raise serial.SerialException(f"{self.name}: no Digit 360 data tty with USB serial "
+                                             f"{self.cfg.serial_number!r} (vendor 0x2833, product 0x4001)")
+            port = found[0][0]
+        self._serial = serial.Serial(port, timeout=0.05)  # CDC: no baud rate needed
+        self.connected.set()
+
+    def _serial_loop(self) -> None:
+        buf = bytearray()
+        while not self._stop.is_set():
+            if self._serial is None:
+                try:
+                    self._open_serial()
+                    log.warning("%s: data tty reopened", self.name)
+                    buf.clear()
+                except (serial.SerialException, OSError) as err:
+                    log.debug("%s: reopen failed: %s", self.name, err)
+                    self._stop.wait(self.cfg.reconnect_s)
+                continue
+            try:
+                chunk = self._serial.read(max(1, self._serial.in_waiting))
+            except (serial.SerialException, OSError, TypeError) as err:
+                self.counters["disconnects"] += 1
+                log.error("%s: data tty lost (%s); retrying every %.1f s", self.name, err, self.cfg.reconnect_s)
+                self.connected.clear()
+                try:
+                    self._serial.close()
+                finally:
+                    self._serial = None
+                continue
+            t_recv = time.monotonic()
+            buf.extend(chunk)
+            start = 0  # frames are cut from the front once per read, not one by one (a late read holds hundreds)
+            while (end := buf.find(b"\x00", start)) >= 0:
+                frame, start = bytes(buf[start:end]), end + 1
+                if frame:
+                    try:
+                        self._on_frame(frame, t_recv)
+                    except Exception:  # a reader thread must not die silently
+                        log.exception("%s: error handling a frame", self.name)
+            del buf[:start]
+            if len(buf) > 1 << 16:  # no frame delimiter for 64 KiB: not our stream; resynchronize
+                log.error("%s: %d bytes without a frame delimiter dropped", self.name, len(buf))
+                buf.clear()
+            if self.cfg.read_every_s > 0:
+                self._stop.wait(self.cfg.read_every_s)
+
+    def _on_frame(self, frame: bytes, t_recv: float) -> None:
+        try:
+            msg = self._msg.FromString(cobs.decode(frame))
+        except Exception as err:  # cobs.DecodeError or protobuf DecodeError
+            self.counters["bad_frames"] += 1
+            n = self.counters["bad_frames"]
+            if n == 1 or n % 100 == 0:
+                log.warning("%s: dropped an undecodable frame (%d so far): %s", self.name, n, err)
+            return
+        self.counters["frames"] += 1
+        kind = msg.WhichOneof("payload")
+        if kind == "pressure":
+            self.pressure.append(self._clock(msg.pressure.ts, t_recv), msg.pressure.pressure)
+        elif kind == "imu" and msg.imu.WhichOneof("data") == "raw" and msg.imu.raw.sensor == SENSOR["ACC"]:
+            r = msg.imu.raw
+            self.imu.append(self._clock(msg.imu.ts, t_recv), (r.x / ACC_PER_G, r.y / ACC_PER_G, r.z / ACC_PER_G))
+        elif kind == "system":
+            self.version = msg.system.version
+
+    # ------------------------------------------------------------------ audio / camera (optional extras)
+    def _open_audio(self) -> None:
+        try:
+            import sounddevice as sd
+        except ImportError as err:
+            raise ImportError("audio needs the 'hardware' extra: pip install 'tactile-rotation[hardware]'") from err
+
+        clock = _SampleClock(dw.AUDIO_RATE)
+
+        def callback(indata, frames, time_info, status) -> None:
+            if status:
+                log.warning("%s: audio %s", self.name, status)
+            self.audio.extend(clock(frames, time.monotonic()), indata)  # type: ignore[union-attr]
+
+        try:
+            stream = sd.InputStream(samplerate=dw.AUDIO_RATE, channels=2, dtype="int16",
+                                    device=self.cfg.audio_device, callback=callback)
+            stream.start()
+        except Exception as err:  # PortAudioError, or ValueError for a device name that matches no input device
+            raise OSError(f"{self.name}: microphones {self.cfg.audio_device!r} did not open: {err}") from err
+        self._audio_stream = stream
+
+    def _camera_loop(self) -> None:
+        try:
+            import cv2
+        except ImportError:
+            log.error("%s: camera needs the 'hardware' extra (opencv-python-headless)", self.name)
+            return
+        cap = cv2.VideoCapture(self.cfg.camera)
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, 1280)  # the vendor encoder node requests 1280x720
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, 720)
+        failing = False  # one error line per failure streak, one info line when frames come back
+        try:
+            while not self._stop.is_set():
+                ok, frame = cap.read() if cap.isOpened() else (False, None)
+                t = time.monotonic()
+                if not ok:
+                    if not failing:
+                        log.error("%s: camera %s gives no frame (%s); retrying every %.1f s", self.name,
+                                  self.cfg.camera, "read failed" if cap.isOpened() else "did not open",
+                                  self.cfg.reconnect_s)
+                    failing = True
+                    self._stop.wait(self.cfg.reconnect_s)
+                    if not cap.isOpened():
+                        cap.open(self.cfg.camera)
+                    continue
+                if failing:
+                    log.info("%s: camera frames are back", self.name)
+                    failing = False
+                h, w = frame.shape[:2]
+                s = min(h, w)  # centre square crop of the fisheye image, then 224 x 224
+                crop = frame[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s]
+                rgb = cv2.cvtColor(cv2.resize(crop, (dw.IMAGE_SIZE, dw.IMAGE_SIZE), interpolation=cv2.INTER_AREA),
+                                   cv2.COLOR_BGR2RGB)
+                self.image.append(t, rgb)  # type: ignore[union-attr]
+        finally:
+            cap.release()

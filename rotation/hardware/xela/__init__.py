@@ -1,0 +1,1 @@
+"""Xela uSkin: the reader of the vendor's xela_server stream."""

@@ -1,0 +1,1 @@
+"""`rotate pretrain`: self-distillation of a touch encoder (config, objectives, saved state, logs, the job)."""

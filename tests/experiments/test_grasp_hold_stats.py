@@ -1,0 +1,36 @@
+"""experiments/tools/grasp_hold_stats.py: the hold check of every grasp of a cache, its pass rate and the histogram."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from envs.grasps import HoldRule, generate_grasps, hold_check
+
+
+@pytest.fixture(scope="module")
+def stats(load_script):
+    return load_script("grasp_hold_stats")
+
+
+def test_pass_rate_of_a_cache_generated_without_the_rule(stats, tmp_path):
+    cache = generate_grasps("cup", (0.78,), per_scale=16, batch_size=16, seed=0, nthread=1)
+    cache.save(tmp_path / "g.npz")
+    out = tmp_path / "hold"
+    assert stats.main(["--caches", f"plain={tmp_path / 'g.npz'}", "--out", str(out)]) == 0
+    result = json.loads((out / "hold_stats.json").read_text())
+    expected = (hold_check(cache, HoldRule()) < HoldRule().max_tilt).mean()
+    assert 0.0 < expected < 1.0  # this sample has grasps that fail
+    assert result["caches"]["plain"]["pass"] == pytest.approx(expected, abs=1e-4)
+    assert result["caches"]["plain"]["grasps"] == 16 and result["caches"]["plain"]["cache_hold_rule"] == []
+    assert result["rule"] == list(HoldRule().as_array())
+    assert (out / "hold_tilt.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bad_input_is_one_line(stats, tmp_path, capsys):
+    assert stats.main(["--caches", f"x={tmp_path / 'nope.npz'}", "--out", str(tmp_path / "o")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert stats.main(["--caches", "=cup", "--out", str(tmp_path / "o")]) == 2
+    assert stats.main(["--seconds", "0", "--out", str(tmp_path / "o")]) == 2
+    assert not (tmp_path / "o").exists()
