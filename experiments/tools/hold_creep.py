@@ -1,0 +1,133 @@
+"""How far does a held cup creep under each contact setting? The shipped grasps held still, as the env resets into
+them, for a few seconds: the object's sink (mm) and tilt, per setting of MuJoCo's contact model.
+
+A cup held by silicone fingertips does not slide down a still hand; in simulation it does when the friction cone
+or the constraint softness lets contacts slip a little every step (issue "The simulation is the real hand": 10.9 mm
+in 5 s with the env's pyramidal cones and impratio 3). Each setting compiles the env's model with its options
+(cone, impratio, noslip iterations, physics step) and replays every grasp of the nominal-scale bucket with the
+nominal friction and mass, no pushes, zero action.
+
+    python experiments/tools/hold_creep.py --out runs/hold_creep                # every setting in SETTINGS
+    python experiments/tools/hold_creep.py --settings today elliptic_10 --seconds 5 --out runs/hold_creep
+
+Writes OUT/hold_creep.json and prints a table; the last line printed is the same JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import mujoco.batch
+import numpy as np
+
+from envs import constants as C
+from envs.config import EnvConfig, RandomizationConfig
+from envs.core import EpisodeStarts, task_model
+from envs.geometry import tilt_angle
+from envs.grasp_cache import load_default_cache
+from envs.validation import check_number, check_output_dir
+from rotation.configs import script_main
+
+SETTINGS: dict[str, dict] = {
+    "today": {"cone": "pyramidal", "impratio": 3.0},
+    "pyramidal_10": {"cone": "pyramidal", "impratio": 10.0},
+    "elliptic_3": {"cone": "elliptic", "impratio": 3.0},
+    "elliptic_10": {"cone": "elliptic", "impratio": 10.0},
+    "today_noslip": {"cone": "pyramidal", "impratio": 3.0, "noslip_iterations": 10},
+    "elliptic_10_noslip": {"cone": "elliptic", "impratio": 10.0, "noslip_iterations": 10},
+    "today_5ms": {"cone": "pyramidal", "impratio": 3.0, "physics_dt": 0.005},
+    "elliptic_10_5ms": {"cone": "elliptic", "impratio": 10.0, "physics_dt": 0.005},
+    "elliptic_10_noslip_5ms": {"cone": "elliptic", "impratio": 10.0, "noslip_iterations": 10, "physics_dt": 0.005},
+    "today_5ms_stiff": {"cone": "pyramidal", "impratio": 3.0, "physics_dt": 0.005, "timeconst": 0.01},
+    "elliptic_10_5ms_stiff": {"cone": "elliptic", "impratio": 10.0, "physics_dt": 0.005, "timeconst": 0.01},
+}
+"""Contact settings compared: MuJoCo's friction cone, the ratio of frictional to normal constraint impedance, the
+noslip post-solver's iterations (0 = off), the physics step (s) and the contacts' time constant (s; the model's is
+0.02, the stiffest MuJoCo honours at a 10 ms step: it needs at least two steps)."""
+
+
+@dataclass
+class Config:
+    out: Path = Path("runs/hold_creep")
+    """Report directory."""
+    settings: tuple[str, ...] = tuple(SETTINGS)
+    """Settings to compare (names of SETTINGS)."""
+    seconds: float = 5.0
+    """How long each grasp is held still (s)."""
+    object: str = "cup"
+    """Object whose shipped grasp cache is replayed (its nominal-scale bucket)."""
+
+    def __post_init__(self) -> None:
+        unknown = [s for s in self.settings if s not in SETTINGS]
+        if unknown or not self.settings:
+            raise ValueError(f"settings: unknown {unknown or 'none given'}; choose from {', '.join(SETTINGS)}")
+        check_number("seconds", self.seconds, 0.1, 60.0, unit="s")
+
+
+def _edit(setting: dict):
+    def edit(spec: mujoco.MjSpec) -> None:
+        spec.option.cone = (mujoco.mjtCone.mjCONE_ELLIPTIC if setting["cone"] == "elliptic"
+                            else mujoco.mjtCone.mjCONE_PYRAMIDAL)
+        spec.option.impratio = setting["impratio"]
+        spec.option.noslip_iterations = setting.get("noslip_iterations", 0)
+        if "timeconst" in setting:
+            for geom in spec.geoms:
+                geom.solref = [setting["timeconst"], 1.0]
+
+    return edit
+
+
+def hold(setting: dict, object_name: str, seconds: float) -> dict[str, float]:
+    """Replay the nominal bucket's grasps under ``setting``: the sink (mm) and tilt (deg) after ``seconds``."""
+    cfg = EnvConfig(object=object_name, physics_dt=setting.get("physics_dt", 0.01))
+    model, obj, max_scale = task_model(cfg, edit=_edit(setting))
+    cache = load_default_cache(object_name)
+    bucket = len(cache.scales) // 2
+    rows = np.asarray(cache.grasps[bucket], dtype=np.float64)
+    n = len(rows)
+    batch = mujoco.batch.Batch(model, n, 0, persistent=True)
+    starts = EpisodeStarts(batch, model, obj, max_scale)
+    rc = RandomizationConfig()
+    params = {"friction": np.full(n, float(np.mean(rc.friction))), "mass": np.full(n, float(np.mean(rc.mass))),
+              "com": np.zeros((n, 3)), "kp": np.full((n, C.NUM_JOINTS), cfg.kp),
+              "kd": np.full((n, C.NUM_JOINTS), cfg.kd), "scale": np.full(n, float(cache.scales[bucket]))}
+    ids = np.arange(n)
+    starts.start(ids, params, rows[:, : C.NUM_JOINTS], rows[:, C.NUM_JOINTS :])
+    o = starts.obj_qpos
+    z0 = starts.qpos[:, o + 2].copy()
+    t0 = time.perf_counter()
+    for _ in range(max(1, round(seconds * cfg.control_hz))):
+        batch.step(nstep=cfg.substeps)
+    wall = time.perf_counter() - t0
+    pose = starts.qpos[:, o : o + 7]
+    sink = 1000 * (z0 - pose[:, 2])
+    tilt = np.degrees(tilt_angle(pose[:, 3:]))
+    return {"grasps": n, "sink_mm_median": float(np.median(sink)), "sink_mm_p90": float(np.percentile(sink, 90)),
+            "sink_mm_max": float(np.max(sink)), "tilt_deg_median": float(np.median(tilt)),
+            "dropped": int(np.sum(sink > 20)), "wall_s_per_sim_s": wall / seconds / n}
+
+
+def run(cfg: Config) -> dict:
+    check_output_dir("out", cfg.out)
+    out = Path(cfg.out)
+    rows = {}
+    print(f"{'setting':22s} {'sink med':>9s} {'p90':>7s} {'max':>7s} {'tilt':>6s} {'drops':>6s}  (mm, deg; "
+          f"{cfg.seconds:g} s held)")
+    for name in cfg.settings:
+        r = hold(SETTINGS[name], cfg.object, cfg.seconds)
+        rows[name] = {**SETTINGS[name], **r}
+        print(f"{name:22s} {r['sink_mm_median']:9.2f} {r['sink_mm_p90']:7.2f} {r['sink_mm_max']:7.2f} "
+              f"{r['tilt_deg_median']:6.1f} {r['dropped']:6d}")
+    report = {"object": cfg.object, "seconds": cfg.seconds, "settings": rows}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "hold_creep.json").write_text(json.dumps(report, indent=2))
+    print(json.dumps(report))
+    return report
+
+
+if __name__ == "__main__":
+    raise SystemExit(script_main(Config, run, __doc__))
