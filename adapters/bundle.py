@@ -57,7 +57,7 @@ from adapters.model import AdapterNetConfig, TouchAdapter, tracking_features
 from rotation.configs import to_jsonable
 from rotation.policy.actor import CorrectedActor, trace_single
 from rotation.policy.bundle import PolicyBundle, load_policy_bundle
-from rotation.policy.bundle_config import BundleConfig, BundleError
+from rotation.policy.bundle_config import BundleConfig, BundleError, BundleRefused
 from rotation.tactile.models.encoders import ENCODERS, kind_of, load_encoder
 
 
@@ -307,10 +307,10 @@ def load_adapter(name_or_path: str | Path, device: str = "cpu") -> AdaptedPolicy
         try:
             got = file_digest(weights(ref))
         except BundleError as err:
-            raise BundleError(f"adapter {path}: its {what} {ref!r} cannot be found ({err})") from None
+            raise BundleRefused(f"adapter {path}: its {what} {ref!r} cannot be found ({err})") from None
         if got != want:
-            raise BundleError(f"adapter {path} was trained for the {what} {ref!r} with weights sha256 {want}, but "
-                              f"{ref!r} now has {got}: retrain the adapter for this {what}")
+            raise BundleRefused(f"adapter {path} was trained for the {what} {ref!r} with weights sha256 {want}, but "
+                                f"{ref!r} now has {got}: retrain the adapter for this {what}")
     student = load_policy_bundle(cfg.student)
     encoder = frozen_encoder(cfg.encoder, cfg.modalities, device)
     adapter = TouchAdapter(cfg.net)

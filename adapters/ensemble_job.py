@@ -45,6 +45,7 @@ from adapters.ensemble_config import (
     check_gate_width,
     config_path,
 )
+from envs.errors import RequestRefused
 from envs.validation import check_int, check_output_dir, check_types
 from rotation.configs import to_jsonable
 
@@ -110,7 +111,7 @@ class Config:
 def run(cfg: Config) -> Path:
     """Write the ensemble bundle in ``cfg.out`` and load it once (every member checked); returns its directory."""
     if (cfg.out / CONFIG_FILE).exists():
-        raise ValueError(f"{cfg.out} already holds a bundle; choose another --out (nothing is overwritten)")
+        raise RequestRefused(f"{cfg.out} already holds a bundle; choose another --out (nothing is overwritten)")
     dirs = [read_adapter(ref)[0] for ref in cfg.members]  # adapter bundles (an ensemble is not a member)
     weights = cfg.weights or tuple(1.0 / len(dirs) for _ in dirs)
     if cfg.copy:

@@ -14,6 +14,7 @@ from typing import Literal
 import numpy as np
 
 from envs.config import RandomizationConfig
+from envs.errors import RequestRefused
 from rotation.data.dataset import find_sessions
 from rotation.data.properties import check_properties
 from rotation.data.session import SessionError
@@ -55,7 +56,7 @@ def session_files(sources: Iterable[str | Path]) -> list[Path]:
     for source in sources:
         found = find_sessions(source)
         if not found:
-            raise ValueError(f"sessions: no .h5 session files under {source}")
+            raise RequestRefused(f"sessions: no .h5 session files under {source}")
         files.update(p.resolve() for p in found)
     if not files:
         raise ValueError("sessions: give at least one session file or directory")

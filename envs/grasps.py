@@ -18,6 +18,7 @@ import numpy as np
 from envs import constants as C
 from envs.config import EnvConfig, RandomizationConfig
 from envs.core import EpisodeStarts, task_model
+from envs.errors import RequestRefused
 from envs.geometry import tilt_angle
 from envs.grasp_cache import GRASP_DIM, GraspCache
 from envs.objects import ObjectSpec, get_object
@@ -216,7 +217,7 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
             if progress is not None:
                 progress(scale, len(accepted), per_scale)
         if len(accepted) < per_scale:
-            raise RuntimeError(
+            raise RequestRefused(
                 f"only {len(accepted)} of {per_scale} grasps accepted for {object_name} at scale {scale} after "
                 f"{max_rounds} rounds of {batch_size}; the canonical pose may not fit this object"
                 + (" or the hold check may be too strict for it" if hold is not None else "")

@@ -4,6 +4,11 @@ Each subcommand lives in a module that exposes a config dataclass ``Config`` (on
 becomes the option's help) and ``run(cfg)``; modules with options that do not fit a dataclass field also define
 ``add_arguments(parser)`` and ``config_from_args(args)``. The module docstring is the subcommand's description.
 Modules are imported only when their subcommand runs, so ``rotate --help`` stays fast.
+
+Exit statuses: 0 done; 2 a bad option (one line naming it); 1 a request that cannot be done as asked or a job that
+failed (envs.errors: one line saying what, why and what to try), or a file-system or device fault; 130 / 143 after
+Ctrl-C / SIGTERM. ``--debug`` anywhere on the command line (or ROTATE_DEBUG=1) shows the traceback of any of these
+instead, for bug reports; an exception of any other kind is a bug and always shows its traceback.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ import os
 import sys
 from collections.abc import Sequence
 
+from envs.errors import JobFailed, RequestRefused
 from rotation.configs import add_dataclass_arguments, dataclass_from_args
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -49,6 +55,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="rotate",
         description="Tactile in-hand rotation: simulate, train, evaluate and deploy on an Allegro or LEAP hand.",
+        epilog="Exit status: 0 done, 1 the request cannot be done or the job failed, 2 a bad option, 130 / 143 "
+               "Ctrl-C / SIGTERM. Add --debug (or set ROTATE_DEBUG=1) to see the traceback behind an error line.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -67,8 +75,14 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(err: BaseException) -> str:
+    return " ".join(str(err).split())
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv or os.environ.get("ROTATE_DEBUG", "") not in ("", "0")
+    argv = [a for a in argv if a != "--debug"]
     # headless rendering unless the user chose a backend (must be set before mujoco creates a GL context)
     os.environ.setdefault("MUJOCO_GL", "egl")
     command = next((a for a in argv if not a.startswith("-")), None)
@@ -93,13 +107,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         code = getattr(err, "exit_code", 130)
         print(f"rotate {args.command}: {err or 'interrupted'} (exit status {code})", file=sys.stderr)
         return code
+    except (RequestRefused, JobFailed) as err:
+        # the job's own refusal (well formed but impossible) or failure: one line, status 1
+        if debug:
+            raise
+        kind = "refused" if isinstance(err, RequestRefused) else "failed"
+        print(f"rotate {args.command}: {kind}: {_one_line(err)}", file=sys.stderr)
+        return 1
     except ValueError as err:
         # bad input: one clear line instead of a traceback
-        print(f"rotate {args.command}: error: {err}", file=sys.stderr)
+        if debug:
+            raise
+        print(f"rotate {args.command}: error: {_one_line(err)}", file=sys.stderr)
         return 2
     except OSError as err:
         # a fault of the file system or a device (disk full, permission, a vanished path): one line, status 1
-        print(f"rotate {args.command}: error: {err}", file=sys.stderr)
+        if debug:
+            raise
+        print(f"rotate {args.command}: error: {_one_line(err)}", file=sys.stderr)
         return 1
     # a job that ends itself cleanly on a fault or a signal (deploy) reports its exit status in its result
     if isinstance(result, dict) and isinstance(result.get("exit_code"), int):

@@ -22,10 +22,12 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+from envs.errors import RequestRefused
+
 T = TypeVar("T")
 
 
-class DamagedCheckpoint(ValueError):
+class DamagedCheckpoint(RequestRefused):
     """A checkpoint file that exists but cannot be read back (truncated, corrupted); earlier ones may be intact."""
 
 

@@ -20,6 +20,7 @@ import torch
 from adapters.bundle import build_adapted
 from adapters.bundle_config import file_digest, read_adapter, student_weights
 from adapters.finetune.config import CHECKPOINT_GLOB, RESUMABLE_CHANGES, RUN_OUTPUTS, Config
+from envs.errors import RequestRefused
 from rotation.configs import save_config, to_jsonable
 from rotation.interrupt import SIGNAL_NAMES, Interrupted
 from rotation.policy.bundle import load_policy_bundle
@@ -167,7 +168,7 @@ class Job:
         out = self.out
         path = _latest(out)
         if path is None or not (out / "config.json").is_file():
-            raise ValueError(f"--resume: no checkpoint ({CHECKPOINT_GLOB}) and config.json in {out}")
+            raise RequestRefused(f"--resume: no checkpoint ({CHECKPOINT_GLOB}) and config.json in {out}")
         diffs = config_differences(json.loads((out / "config.json").read_text()), to_jsonable(self.cfg),
                                    RESUMABLE_CHANGES)
         refuse_differences(diffs, str(out / "config.json"), RESUMABLE_CHANGES)

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from adapters.bundle import TouchUnavailable
+from envs.errors import JobFailed
 from envs.metrics import EpisodeTracker, summarize
 
 
@@ -47,5 +48,5 @@ def refresh_inputs(policy: Any, teacher: Any, obs: dict[str, Any], groups: dict[
     try:
         tokens = policy.tokens(policy.env_windows(obs))
     except TouchUnavailable as err:  # cannot happen in simulation unless the renderer breaks
-        raise RuntimeError(f"simulated touch unusable: {err}") from None
+        raise JobFailed(f"simulated touch unusable: {err}") from None
     return z_teacher, policy.student_latent(groups), policy.proprio_features(groups), tokens, policy.tracking(groups)

@@ -29,6 +29,7 @@ from adapters.bundle import TouchUnavailable
 from adapters.finetune.core import Job, Result, TokenBuffer, adam_step, errors_to_teacher, log_point
 from adapters.real_data import session_samples
 from adapters.session_checks import SessionInfo, check_sessions, session_files
+from envs.errors import RequestRefused
 from rotation.data.dataset import split_sessions
 from rotation.data.session import SessionError
 from rotation.interrupt import StopSignals, end_loop
@@ -50,8 +51,8 @@ def train_on_sessions(job: Job) -> Result:
     train = encode_sessions(job, [infos[p] for p in train_files], "training")
     val = encode_sessions(job, [infos[p] for p in val_files], "validation") if val_files else None
     if train.size == 0:
-        raise ValueError(f"sessions: no usable samples in the training sessions {[str(p) for p in train_files]} (each "
-                         "needs more than the 1.1 s of touch history the windows span)")
+        raise RequestRefused(f"sessions: no usable samples in the training sessions {[str(p) for p in train_files]} "
+                             "(each needs more than the 1.1 s of touch history the windows span)")
     if job.tracking_norm_needed:  # the joint tracking's normalization, from the training samples
         track = train.track[:train.size]
         adapter.set_tracking_norm(track.mean(0), track.std(0) if train.size > 1 else torch.ones(track.shape[1]))

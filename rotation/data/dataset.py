@@ -33,6 +33,7 @@ import torch
 from torch.utils.data import Dataset
 
 from envs.constants import FINGERS
+from envs.errors import RequestRefused
 from envs.rng import splitmix64
 from envs.sensors.digit360_image import pack_image
 from envs.sensors.digit360_model import (
@@ -111,7 +112,7 @@ def find_sessions(root: str | Path) -> list[Path]:
     if root.is_file():
         return [root]
     if not root.is_dir():
-        raise ValueError(f"no session file or directory at {root}")
+        raise RequestRefused(f"no session file or directory at {root}")
     return sorted(root.rglob("*.h5"))
 
 
@@ -139,7 +140,7 @@ class TouchWindows(Dataset):
                  model: Digit360Model = DEFAULT_MODEL):
         self.paths = [Path(p) for p in paths]
         if not self.paths:
-            raise ValueError("TouchWindows: no session files given")
+            raise RequestRefused("TouchWindows: no session files given")
         unknown = [f for f in fingers if f not in FINGERS]
         if unknown:
             raise ValueError(f"TouchWindows: unknown finger(s) {unknown}; fingers: {', '.join(FINGERS)}")

@@ -79,6 +79,7 @@ from typing import Any, Literal
 import numpy as np
 
 from envs.constants import FINGERS, NUM_JOINTS, PRIV_DIM
+from envs.errors import RequestRefused
 from envs.sensors.digit360 import NUM_FIELDS
 
 log = logging.getLogger(__name__)
@@ -95,7 +96,7 @@ RATE_TOLERANCE = 0.1
 """A stream's median timestamp step may differ from 1 / rate_hz by this fraction (jittery USB clocks)."""
 
 
-class SessionError(ValueError):
+class SessionError(RequestRefused):
     """A session file that cannot be written or read as asked; the message names the file and the stream."""
 
 

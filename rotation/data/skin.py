@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from envs.errors import RequestRefused
 from envs.sensors.xela import NUM_TAXELS, REST, SAMPLE_HZ, VALID_RANGE, WINDOW, XelaSkin
 from rotation.data.session import SessionError
 from rotation.data.session_reader import SessionReader
@@ -113,7 +114,7 @@ class SkinWindows(Dataset):
                  sequence: int | None = None, baseline_s: float = 0.5):
         self.paths = [Path(p) for p in paths]
         if not self.paths:
-            raise ValueError("SkinWindows: no session files given")
+            raise RequestRefused("SkinWindows: no session files given")
         if not isinstance(stride, int) or stride < 1:
             raise ValueError(f"SkinWindows: stride must be an integer >= 1, got {stride!r}")
         if sequence is not None and (not isinstance(sequence, int) or sequence < 1):

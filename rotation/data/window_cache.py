@@ -45,6 +45,7 @@ from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from envs.constants import FINGERS
+from envs.errors import RequestRefused
 from envs.validation import check_int, check_output_dir, check_types
 from rotation.configs import to_jsonable
 from rotation.data.audio import fbank
@@ -213,7 +214,7 @@ def build_cache(sessions: Sequence[str | Path], out: str | Path, fingers: Sequen
     root = Path(out)
     paths = sorted({p.resolve() for s in sessions for p in find_sessions(s)})
     if not paths:
-        raise ValueError(f"no session files (*.h5) in {', '.join(map(str, sessions))}")
+        raise RequestRefused(f"no session files (*.h5) in {', '.join(map(str, sessions))}")
     manifest = _check_manifest(root, fingers, stride, audio_dtype)
     todo = [p for p in paths if not _shard_complete(root, p)]
     root.mkdir(parents=True, exist_ok=True)

@@ -20,6 +20,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from envs.errors import RequestRefused
 from envs.grasp_cache import cache_digest
 from envs.metrics import METRICS
 from rotation.bundles import weights_digest
@@ -77,10 +78,10 @@ def check_out(out: Path, ident: dict[str, Any], resume: bool) -> bool:
                              f"or the same settings to continue it (only {sorted(RESUMABLE_CHANGES)} may differ)")
         return True
     if (out / "results.json").exists():
-        raise ValueError(f"{out} holds the report of an earlier evaluation (results.json) that cannot be continued; "
-                         "use another --out so it is not overwritten")
+        raise RequestRefused(f"{out} holds the report of an earlier evaluation (results.json) that cannot be "
+                             "continued; use another --out so it is not overwritten")
     if resume:
-        raise ValueError(f"--resume: {out} holds no evaluation to continue ({PROGRESS_FILE} is missing)")
+        raise RequestRefused(f"--resume: {out} holds no evaluation to continue ({PROGRESS_FILE} is missing)")
     return False
 
 

@@ -31,6 +31,7 @@ import torch
 from tqdm import tqdm
 
 from envs.config import EnvConfig, Perturbation, RandomizationConfig
+from envs.errors import RequestRefused
 from envs.validation import check_int, check_optional_file, check_output_dir, check_seed, check_types
 from rotation.bundles import load_bundle
 from rotation.configs import save_config
@@ -228,7 +229,7 @@ def load_policies(cfg: Config) -> dict[str, PolicyBundle]:
     """Load every bundle up front (a bad name fails before any simulation) and check they share a control rate."""
     policies = policy_paths(cfg)
     if not policies:
-        raise ValueError("no policies given (--policy NAME=PATH) and no bundles are shipped with the package")
+        raise RequestRefused("no policies given (--policy NAME=PATH) and no bundles are shipped with the package")
     bundles = {name: load_bundle(path) for name, path in policies.items()}
     touch = [name for name, b in bundles.items() if reads_touch(b)]
     if touch and cfg.backend != "cpu":

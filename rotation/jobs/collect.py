@@ -30,6 +30,7 @@ from tqdm import tqdm
 from envs import constants as C
 from envs.config import EnvConfig, Perturbation
 from envs.core import RotateCupVec
+from envs.errors import RequestRefused
 from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, FINGERS, contact_frame_force
 from envs.sensors.xela import skin_metadata
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
@@ -282,8 +283,8 @@ def _check_manifest(cfg: Config, settings: dict[str, Any]) -> None:
         if not isinstance(old, dict):
             raise TypeError(f"'settings' is a {type(old).__name__}")
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as err:
-        raise ValueError(f"{path} is not a readable collect manifest ({type(err).__name__}: {err}); use another "
-                         "--out, or remove the file if the sessions beside it are yours to replace") from None
+        raise RequestRefused(f"{path} is not a readable collect manifest ({type(err).__name__}: {err}); use another "
+                             "--out, or remove the file if the sessions beside it are yours to replace") from None
     old = {**_SKIN_SETTINGS, **old}
     diff = {k: (old.get(k), v) for k, v in settings.items()
             if old.get(k) != v and (k not in _LATER_SETTINGS or k in old)}
@@ -294,8 +295,8 @@ def _check_manifest(cfg: Config, settings: dict[str, Any]) -> None:
         print(f"collect: {path} belongs to a run that recorded no session; replacing its settings")
         return
     changes = ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in diff.items())
-    raise ValueError(f"{cfg.out} holds a collection with other settings ({changes}); use another --out or "
-                     "the same settings to resume")
+    raise RequestRefused(f"{cfg.out} holds a collection with other settings ({changes}); use another --out or "
+                         "the same settings to resume")
 
 
 def _write_manifest(cfg: Config, settings: dict[str, Any]) -> None:

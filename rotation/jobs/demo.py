@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from envs.errors import RequestRefused
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.bundles import load_bundle
 from rotation.evaluate import finished
@@ -72,8 +73,12 @@ def run(cfg: Config) -> dict[str, Any]:
     """Run the demo; returns ``{"report": path, "exit_code": status}``: the status is the deploy dry run's (0 when
     it completed or was skipped, non-zero when it faulted or was stopped), so `rotate demo` fails with it."""
     start = time.time()
-    cfg.out.mkdir(parents=True, exist_ok=True)
+    missing = [name for name in ("teacher", "student") if name not in shipped_bundles()]
+    if missing:
+        raise RequestRefused(f"the demo runs the shipped teacher and student, and this installation ships no "
+                             f"{' and no '.join(missing)} bundle (rotation/policies/); reinstall the package")
     bundles = {name: load_bundle(name) for name in ("teacher", "student")}
+    cfg.out.mkdir(parents=True, exist_ok=True)
     for name, bundle in bundles.items():
         card = bundle.config.card  # teacher cards: steps/object; student cards: env_steps and their env config
         steps = card.get("steps", card.get("env_steps", "?"))

@@ -101,18 +101,18 @@ def run(cfg: Config) -> list[Path]:
     written = []
     for name in cfg.objects:
         start = time.time()
-        bar = tqdm(total=cfg.per_scale * len(cfg.scales), desc=f"grasps {name}", unit="grasp")
         done: dict[float, int] = {}
+        # closed before a refusal reaches the user, so its line is the last one printed
+        with tqdm(total=cfg.per_scale * len(cfg.scales), desc=f"grasps {name}", unit="grasp") as bar:
 
-        def progress(scale: float, accepted: int, wanted: int, bar=bar, done=done) -> None:
-            done[scale] = min(accepted, wanted)
-            bar.n = sum(done.values())
-            bar.refresh()
+            def progress(scale: float, accepted: int, wanted: int, bar=bar, done=done) -> None:
+                done[scale] = min(accepted, wanted)
+                bar.n = sum(done.values())
+                bar.refresh()
 
-        cache = generate_grasps(name, tuple(cfg.scales), cfg.per_scale, seed=cfg.seed, batch_size=cfg.batch_size,
-                                noise=cfg.noise, progress=progress, max_tilt=cfg.max_tilt, hand=cfg.hand,
-                                hold=cfg.hold)
-        bar.close()
+            cache = generate_grasps(name, tuple(cfg.scales), cfg.per_scale, seed=cfg.seed,
+                                    batch_size=cfg.batch_size, noise=cfg.noise, progress=progress,
+                                    max_tilt=cfg.max_tilt, hand=cfg.hand, hold=cfg.hold)
         path = cfg.out / default_cache_path(name, cfg.hand).name
         cache.save(path)
         written.append(path)

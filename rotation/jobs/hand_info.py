@@ -14,6 +14,8 @@ from typing import Literal
 
 import numpy as np
 
+from envs.errors import JobFailed
+
 HANDS = ("allegro", "leap", "sim-allegro", "sim-leap")
 
 
@@ -89,5 +91,5 @@ def run(cfg: Config) -> None:
 
     try:
         print(read_info(cfg))
-    except (HandFault, can.CanError, OSError) as err:  # one clear line, not a traceback
-        raise SystemExit(f"rotate hand-info: error: {err}") from err
+    except (HandFault, can.CanError, OSError) as err:  # no hand answers: one clear line (rotate), not a traceback
+        raise JobFailed(str(err)) from err

@@ -12,6 +12,7 @@ import numpy as np
 from gymnasium import spaces
 
 from envs import constants as C
+from envs.errors import RequestRefused
 from rotation.policy.bundle_checks import type_problems, value_problems
 from rotation.policy.networks import AdaptationConfig, EnvFactorEncoderConfig
 
@@ -31,6 +32,11 @@ ROLE: dict[str, str] = {"privileged": "teacher", "adaptation": "student"}
 
 class BundleError(ValueError):
     """A bundle that cannot be loaded or used: says what is wrong and what was expected."""
+
+
+class BundleRefused(BundleError, RequestRefused):
+    """A bundle that reads fine but cannot be used as asked: it names a student or an encoder that is missing, or
+    whose weights changed since it was trained (`rotate` exits with status 1, not 2)."""
 
 
 @dataclass(frozen=True)

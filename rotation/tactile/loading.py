@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
+from envs.errors import RequestRefused
 from rotation.data.dataset import TouchWindows, find_sessions
 from rotation.data.skin import SkinWindows
 from rotation.data.window_cache import CachedWindows, build_cache
@@ -22,10 +23,10 @@ from rotation.tactile.runtime import Processes
 
 
 def session_paths(sources: Sequence[str | Path]) -> list[Path]:
-    """Every session file under the given files or directories, resolved and sorted (ValueError if none)."""
+    """Every session file under the given files or directories, resolved and sorted (RequestRefused if none)."""
     paths = sorted({p.resolve() for s in sources for p in find_sessions(s)})
     if not paths:
-        raise ValueError(f"no session files (*.h5) in {', '.join(map(str, sources))}")
+        raise RequestRefused(f"no session files (*.h5) in {', '.join(map(str, sources))}")
     return paths
 
 

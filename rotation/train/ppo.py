@@ -15,6 +15,7 @@ import numpy as np
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 
+from envs.errors import RequestRefused
 from rotation.configs import to_jsonable
 from rotation.interrupt import StopSignals
 from rotation.policy.bundle import PolicyBundle, load_policy_bundle
@@ -167,7 +168,8 @@ def load_checkpoint(path: str | Path, env: RotateCupSB3VecEnv | None = None, dev
     corrupted) and ValueError for one of another program, policy or observation space."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"no such checkpoint: {path}" + (" (a directory; give a .zip file)" if path.is_dir() else ""))
+        raise RequestRefused(f"no such checkpoint: {path}"
+                             + (" (a directory; give a .zip file)" if path.is_dir() else ""))
     try:
         with zipfile.ZipFile(path) as archive:
             names = archive.namelist()
@@ -222,7 +224,7 @@ def bundle_from_checkpoint(path: str | Path, card: dict | None = None) -> Policy
     """The policy bundle of a training checkpoint (.zip), e.g. to evaluate or ship a run that is still going."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"no such checkpoint: {path}")
+        raise RequestRefused(f"no such checkpoint: {path}")
     model = load_checkpoint(path)
     run_cfg = path.parent.parent / "config.json"
     train_config = json.loads(run_cfg.read_text()) if run_cfg.is_file() else {}
@@ -238,7 +240,7 @@ def bundle_from_checkpoint(path: str | Path, card: dict | None = None) -> Policy
 def build_model(cfg: Config, env: RotateCupSB3VecEnv) -> AdaptiveKLPPO:
     if cfg.resume is not None:
         if not Path(cfg.resume).is_file():
-            raise ValueError(f"--resume {cfg.resume}: no such checkpoint")
+            raise RequestRefused(f"--resume {cfg.resume}: no such checkpoint")
         return AdaptiveKLPPO.load(cfg.resume, env=env, device=cfg.device)
     if cfg.student:
         return build_student_model(cfg, env)

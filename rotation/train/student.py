@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from envs.errors import RequestRefused
 from envs.metrics import EpisodeTracker, summarize
 from rotation.configs import save_config, to_jsonable
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals, end_loop
@@ -211,7 +212,7 @@ def run(cfg: Config) -> Result:
     if cfg.resume:
         ckpt_path = _latest_checkpoint(out)
         if ckpt_path is None or not (out / "config.json").is_file():
-            raise ValueError(f"--resume: no checkpoint ({CHECKPOINT_GLOB}) and config.json in {out}")
+            raise RequestRefused(f"--resume: no checkpoint ({CHECKPOINT_GLOB}) and config.json in {out}")
         _check_resumable(cfg, out)
         older = sorted(out.glob(CHECKPOINT_GLOB), reverse=True)[1:]
         ckpt, ckpt_path = with_fallback(ckpt_path, older, lambda p: _load_checkpoint(p, cfg.device))

@@ -36,6 +36,7 @@ import torch
 from stable_baselines3.common.callbacks import CallbackList
 
 from envs.config import EnvConfig
+from envs.errors import RequestRefused
 from rotation.configs import save_config
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.bundle import PolicyBundle, load_policy_bundle
@@ -91,7 +92,7 @@ def run(cfg: Config) -> PolicyBundle:
     record = run_record(cfg)
     if cfg.resume is not None:
         if not cfg.resume.is_file():
-            raise ValueError(f"--resume {cfg.resume}: no such checkpoint")
+            raise RequestRefused(f"--resume {cfg.resume}: no such checkpoint")
         saved = resume_dir / "config.json" if resume_dir is not None else None
         if saved is not None and saved.is_file():
             check_resume_record(json.loads(saved.read_text()), record, str(saved), RESUMABLE_CHANGES)

@@ -34,6 +34,7 @@ import torch
 from tqdm import tqdm
 
 from envs.config import EnvConfig
+from envs.errors import RequestRefused
 from envs.metrics import UPRIGHT_TILT
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.actor import ActorNet
@@ -346,8 +347,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     ValueError for one of another program (a CPU run's .zip, say)."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"--resume {path}: no such checkpoint" + (" (a directory; give checkpoints/last.pt)"
-                                                                   if path.is_dir() else ""))
+        raise RequestRefused(f"--resume {path}: no such checkpoint"
+                             + (" (a directory; give checkpoints/last.pt)" if path.is_dir() else ""))
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # pickle, zip and torch errors of a truncated or foreign file

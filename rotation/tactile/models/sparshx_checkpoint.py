@@ -27,6 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from envs.errors import RequestRefused
 from rotation.configs import from_jsonable, to_jsonable
 from rotation.tactile.models.sparshx import SIZES, SparshX, SparshXConfig
 from rotation.tactile.models.sparshx_inputs import MODALITIES
@@ -80,8 +81,8 @@ def read_state_dict(path: str | Path) -> tuple[dict[str, Tensor], SparshXConfig 
         except RuntimeError:  # files of the legacy (non-zip) format cannot be mapped
             obj = torch.load(path, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError) as err:
-        raise ValueError(f"{path} is not a readable torch checkpoint (loaded with weights_only=True): "
-                         f"{str(err).splitlines()[0] if str(err) else type(err).__name__}") from err
+        raise RequestRefused(f"{path} is not a readable torch checkpoint (loaded with weights_only=True): "
+                             f"{str(err).splitlines()[0] if str(err) else type(err).__name__}") from err
     return _encoder_entries(obj, path), None
 
 

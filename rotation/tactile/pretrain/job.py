@@ -42,6 +42,7 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
+from envs.errors import JobFailed, RequestRefused
 from rotation.configs import from_jsonable, save_config, to_jsonable
 from rotation.interrupt import Interrupted, StopSignals
 from rotation.runs import summary_writer
@@ -197,7 +198,7 @@ def _train(cfg: Config, procs: Processes) -> dict[str, Any]:
     ckpt = latest_checkpoint(out)
     if cfg.resume:
         if ckpt is None or not (out / "config.json").is_file():
-            raise ValueError(f"--resume: no checkpoint (ckpt_*.safetensors) and config.json in {out}")
+            raise RequestRefused(f"--resume: no checkpoint (ckpt_*.safetensors) and config.json in {out}")
         _check_resumable(cfg, out)
     elif ckpt is not None:
         raise ValueError(f"{out} already holds checkpoints; pass --resume to continue or choose another --out")
@@ -322,7 +323,7 @@ def _train(cfg: Config, procs: Processes) -> dict[str, Any]:
             (out / "ranks.json").write_text(json.dumps({"world_size": procs.world, "student_sha256": digests,
                                                         "identical": result["identical_ranks"]}, indent=2) + "\n")
         if not result["identical_ranks"]:
-            raise RuntimeError(f"pretrain: the ranks' weights diverged ({digests}); see {out / 'ranks.json'}")
+            raise JobFailed(f"pretrain: the ranks' weights diverged ({digests}); see {out / 'ranks.json'}")
     if procs.main and history:
         print(f"pretrain: {result['steps']} steps, final loss {history[-1]['loss']:.4f}, "
               f"{history[-1]['samples_per_s']:.1f} windows/s; encoder at {result['encoder']}")
