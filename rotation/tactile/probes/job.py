@@ -42,6 +42,7 @@ import torch
 from torch.utils.data import Subset
 from tqdm import tqdm
 
+from envs.errors import RequestRefused
 from rotation.configs import save_config, to_jsonable
 from rotation.data.dataset import split_sessions
 from rotation.data.session_reader import SessionReader
@@ -80,9 +81,10 @@ def _available_tasks(cfg: Config, paths: list[Path]) -> dict[str, Task]:
         have = names if have is None else have & names
     tasks = {n: t for n, t in cfg.task_defs.items() if t.label in (have or set())}
     if not tasks:
-        raise ValueError(f"probe: no {cfg.encoder} task has its labels in every session of "
-                         f"{', '.join(map(str, cfg.sessions))} (labels in all of them: {sorted(have or ())}; tasks: "
-                         + ", ".join(f"{n} <- labels/{t.label}" for n, t in cfg.task_defs.items()) + ")")
+        raise RequestRefused(f"probe: no {cfg.encoder} task has its labels in every session of "
+                             f"{', '.join(map(str, cfg.sessions))} (labels in all of them: {sorted(have or ())}; "
+                             "tasks: " + ", ".join(f"{n} <- labels/{t.label}" for n, t in cfg.task_defs.items())
+                             + ")")
     return tasks
 
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
+import h5py
 import numpy as np
 import pytest
 import torch
@@ -138,3 +140,15 @@ def test_bad_input_is_a_clear_error(tmp_path, touch_sessions, touch_cache, capsy
                                variants=("image_only",), steps=1, num_workers=0, device="cpu", progress=False))
     assert main(["probe", "--budgets", "0.5", "2", "--no-progress"]) == 2
     assert "budgets" in capsys.readouterr().err
+    # sessions without labels: a request that cannot be done (status 1), refused before anything is written
+    unlabelled = tmp_path / "unlabelled"
+    shutil.copytree(touch_sessions, unlabelled)
+    for path in unlabelled.rglob("*.h5"):
+        with h5py.File(path, "r+") as f:
+            del f["streams/labels"]
+    out = tmp_path / "probe_unlabelled"
+    assert main(["probe", "--checkpoint", "sparshx-tinier-sim", "--sessions", str(unlabelled), "--out", str(out),
+                 "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "refused: probe: no sparshx task has its labels" in err and "Traceback" not in err
+    assert not out.exists()
