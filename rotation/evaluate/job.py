@@ -32,6 +32,7 @@ from tqdm import tqdm
 
 from envs.config import EnvConfig, Perturbation, RandomizationConfig
 from envs.errors import RequestRefused
+from envs.grasp_cache import load_default_cache
 from envs.validation import check_int, check_optional_file, check_output_dir, check_seed, check_types
 from rotation.bundles import load_bundle
 from rotation.configs import save_config
@@ -281,7 +282,10 @@ def run(cfg: Config) -> list[dict]:
     bundles = load_policies(cfg)
     first = next(iter(bundles.values()))
     out = Path(cfg.out)
-    ident = finished.identity(cfg, policy_paths(cfg), touch_env(bundles).get("hand", "digit360"))
+    hand = touch_env(bundles).get("hand", "digit360")
+    # a grasp cache that cannot be used is refused before `out` is touched (the envs load it again)
+    load_default_cache(cfg.object, cfg.grasp_cache, hand)
+    ident = finished.identity(cfg, policy_paths(cfg), hand)
     continuing = finished.check_out(out, ident, cfg.resume)  # refuses another evaluation's folder: reads only
     names = list(bundles)
     done = {c.name: rows for c in conditions if (rows := finished.rows(out, c.name, names)) is not None}

@@ -44,7 +44,7 @@ class Config:
     seed: int = 0
     """Evaluation seed (episode j of every condition is seeded seed + j)."""
     adapter_conditions: tuple[str, ...] = ("friction_0.5+mass_+0.1kg",)
-    """Conditions of the student vs adapter evaluation (when an adapter is shipped); none skips it."""
+    """Conditions of the student vs adapter evaluation (when an adapter is shipped); `none` skips it."""
     video_steps: int = 300
     """Policy steps in the student video (20 per second)."""
     deploy_seconds: float = 5.0
@@ -59,14 +59,19 @@ class Config:
             get_suite("perturbations", self.conditions)
         except ValueError as err:  # it lists the suite's conditions
             raise ValueError(f"conditions: {err}") from None
-        if self.adapter_conditions:
+        if self.adapter_suite:
             try:
-                get_suite("perturbations", self.adapter_conditions)
+                get_suite("perturbations", self.adapter_suite)
             except ValueError as err:
                 raise ValueError(f"adapter_conditions: {err}") from None
         check_seed("seed", self.seed)
         check_int("video_steps", self.video_steps, 1, 100_000)
         check_number("deploy_seconds", self.deploy_seconds, 0.0, 3600.0, unit="s")
+
+    @property
+    def adapter_suite(self) -> tuple[str, ...]:
+        """The conditions of the adapter evaluation: none when `none` (or nothing) is given."""
+        return () if self.adapter_conditions == ("none",) else self.adapter_conditions
 
 
 def run(cfg: Config) -> dict[str, Any]:
@@ -101,11 +106,11 @@ def run(cfg: Config) -> dict[str, Any]:
 
     adapter = "adapter" in shipped_bundles()
     adapter_dir = cfg.out / "evaluation_adapter"
-    if adapter and cfg.adapter_conditions:
+    if adapter and cfg.adapter_suite:
         print("[demo] evaluating student vs student + tactile adapter (simulated Digit 360 on)")
         adapter_cfg = evaluate_job.Config(
             policies={"student": "student", "adapter": "adapter"}, suite="perturbations",
-            conditions=cfg.adapter_conditions, episodes=cfg.episodes, num_envs=cfg.episodes, seed=cfg.seed,
+            conditions=cfg.adapter_suite, episodes=cfg.episodes, num_envs=cfg.episodes, seed=cfg.seed,
             out=adapter_dir, torch_threads=2)
         try:
             finished.check_out(adapter_dir, finished.identity(adapter_cfg, evaluate_job.policy_paths(adapter_cfg)),
@@ -139,7 +144,7 @@ def run(cfg: Config) -> dict[str, Any]:
              "Plots: " + ", ".join(f"[{p.stem}](evaluation/plots/{p.name})"
                                    for p in sorted((eval_dir / "plots").glob("*.png"))), "",
              ]
-    if (adapter_dir / "results.md").is_file() and adapter and cfg.adapter_conditions:
+    if (adapter_dir / "results.md").is_file() and adapter and cfg.adapter_suite:
         lines += ["## Student vs student + tactile adapter", "",
                   *[line for line in (adapter_dir / "results.md").read_text().strip().splitlines()
                     if not line.startswith("# ")], "",

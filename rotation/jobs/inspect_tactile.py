@@ -28,7 +28,7 @@ class Config:
     session: Path = Path()
     """Session file (.h5) to inspect."""
     out: Path = Path("tactile_window.png")
-    """Output PNG."""
+    """Output PNG (the name must end in .png: the file written is the one named)."""
     finger: str = "all"
     """Fingertip to plot ('all' for one row per fingertip with touch data)."""
     time: float = -1.0
@@ -42,6 +42,8 @@ class Config:
             raise ValueError(f"finger: unknown fingertip {self.finger!r}; choose one of all, {', '.join(FINGERS)}")
         check_number("time", self.time, -1e6, 1e6, unit="s")
         check_int("dpi", self.dpi, 10, 1200)
+        if Path(self.out).suffix.lower() != ".png":
+            raise ValueError(f"out: {self.out} must end in .png (the picture is a PNG)")
         check_output_file("out", self.out)
 
 

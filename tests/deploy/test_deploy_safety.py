@@ -84,6 +84,8 @@ def test_lost_can_bus_is_not_reported_as_motors_off(policy, monkeypatch, hand_ho
         assert emu.servo_on  # the hand never heard the motors-off command
     assert summary["fault"].startswith("hand fault") and summary["exit_code"] == 1
     assert summary["motors_off"] is False and summary["motors_off_confirmed"] is False
+    # the fault text says what the driver did, not that the motors are off: it agrees with motors_off
+    assert "switching the motors off" in summary["fault"] and not summary["fault"].endswith("; motors off")
     assert summary["motors_off_witness"] == "hand"
     err = capsys.readouterr().err
     assert "MOTORS NOT CONFIRMED OFF" in err and "SWITCH THE HAND OFF AT ITS POWER SUPPLY" in err

@@ -311,7 +311,7 @@ class AllegroHand(FeedbackMixin):
     def _set_fault(self, reason: str, cause: BaseException | None = None) -> None:
         if self._fault is not None:
             return
-        fault = HandFault(f"{self.name}: {reason}; motors off")
+        fault = HandFault(f"{self.name}: {reason}; switching the motors off")
         fault.__cause__ = cause
         self._fault = fault
         log.error("%s: FAULT: %s; switching motors off", self.name, reason)
