@@ -40,12 +40,16 @@ PUSH_DECAY_PERIOD = task.PUSH_DECAY_PERIOD
 
 def task_model(cfg: EnvConfig, edit=None) -> tuple[mujoco.MjModel, ObjectSpec, float]:
     """The task's compiled model, shared by both physics backends: the hand and ``cfg.object`` at the largest scale
-    the randomization may pick (smaller ones shrink geoms per simulation), the torque limit and the nominal PD gains.
+    the randomization may pick (smaller ones shrink geoms per simulation), the contact model's settings, the torque
+    limit and the nominal PD gains.
     Returns (model, object spec, compiled scale)."""
     obj = get_object(cfg.object)
     rc = cfg.randomization
     max_scale = (max(rc.scales) + rc.scale_jitter) if rc.enabled else float(rc.scales[len(rc.scales) // 2])
     m = build_model(obj, max_scale, cfg.physics_dt, edit=edit, hand=cfg.hand)
+    m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.contact.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
+    m.opt.impratio = cfg.contact.impratio
+    m.opt.noslip_iterations = cfg.contact.noslip_iterations
     m.actuator_forcerange[:] = [-cfg.torque_limit, cfg.torque_limit]
     task.set_gains(m.actuator_gainprm[None], m.actuator_biasprm[None], np.full((1, C.NUM_JOINTS), cfg.kp),
                    np.full((1, C.NUM_JOINTS), cfg.kd))

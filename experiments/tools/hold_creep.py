@@ -1,11 +1,11 @@
 """How far does a held cup creep under each contact setting? The shipped grasps held still, as the env resets into
 them, for a few seconds: the object's sink (mm) and tilt, per setting of MuJoCo's contact model.
 
-A cup held by silicone fingertips does not slide down a still hand; in simulation it does when the friction cone
-or the constraint softness lets contacts slip a little every step (issue "The simulation is the real hand": 10.9 mm
-in 5 s with the env's pyramidal cones and impratio 3). Each setting compiles the env's model with its options
-(cone, impratio, noslip iterations, physics step) and replays every grasp of the nominal-scale bucket with the
-nominal friction and mass, no pushes, zero action.
+A cup held by silicone fingertips does not slide down a still hand; in simulation it does when the friction cone or
+the constraint softness lets contacts slip a little every step (issue "The simulation is the real hand": 10.9 mm in
+5 s with the env's pyramidal cones and impratio 3). Each setting compiles the env's model with its options
+(envs.config.ContactConfig: cone, impratio, noslip iterations; the physics step; the contacts' time constant) and
+replays every grasp of the nominal-scale bucket with the nominal friction and mass, no pushes, zero action.
 
     python experiments/tools/hold_creep.py --out runs/hold_creep                # every setting in SETTINGS
     python experiments/tools/hold_creep.py --settings today elliptic_10 --seconds 5 --out runs/hold_creep
@@ -25,7 +25,7 @@ import mujoco.batch
 import numpy as np
 
 from envs import constants as C
-from envs.config import EnvConfig, RandomizationConfig
+from envs.config import ContactConfig, EnvConfig, RandomizationConfig
 from envs.core import EpisodeStarts, task_model
 from envs.geometry import tilt_angle
 from envs.grasp_cache import load_default_cache
@@ -69,11 +69,9 @@ class Config:
 
 
 def _edit(setting: dict):
+    """The settings EnvConfig has no field for: the contacts' time constant, on every geom."""
+
     def edit(spec: mujoco.MjSpec) -> None:
-        spec.option.cone = (mujoco.mjtCone.mjCONE_ELLIPTIC if setting["cone"] == "elliptic"
-                            else mujoco.mjtCone.mjCONE_PYRAMIDAL)
-        spec.option.impratio = setting["impratio"]
-        spec.option.noslip_iterations = setting.get("noslip_iterations", 0)
         if "timeconst" in setting:
             for geom in spec.geoms:
                 geom.solref = [setting["timeconst"], 1.0]
@@ -83,7 +81,9 @@ def _edit(setting: dict):
 
 def hold(setting: dict, object_name: str, seconds: float) -> dict[str, float]:
     """Replay the nominal bucket's grasps under ``setting``: the sink (mm) and tilt (deg) after ``seconds``."""
-    cfg = EnvConfig(object=object_name, physics_dt=setting.get("physics_dt", 0.01))
+    contact = ContactConfig(cone=setting["cone"], impratio=setting["impratio"],
+                            noslip_iterations=setting.get("noslip_iterations", 0))
+    cfg = EnvConfig(object=object_name, physics_dt=setting.get("physics_dt", 0.01), contact=contact)
     model, obj, max_scale = task_model(cfg, edit=_edit(setting))
     cache = load_default_cache(object_name)
     bucket = len(cache.scales) // 2

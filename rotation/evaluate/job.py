@@ -30,7 +30,7 @@ from typing import Any, Literal
 import torch
 from tqdm import tqdm
 
-from envs.config import EnvConfig, Perturbation, RandomizationConfig
+from envs.config import ContactConfig, EnvConfig, Perturbation, RandomizationConfig
 from envs.errors import RequestRefused
 from envs.grasp_cache import load_default_cache
 from envs.validation import check_int, check_optional_file, check_output_dir, check_seed, check_types
@@ -102,6 +102,9 @@ class Config:
     extra). The simulated Digit 360 touch and --video run on the cpu backend only."""
     warp_device: str = "cuda"
     """Device of the warp backend's worlds: 'cuda', 'cuda:<index>' or 'cpu' (Warp's CPU device, slow)."""
+    contact: ContactConfig = field(default_factory=ContactConfig)
+    """MuJoCo's contact model for every condition (envs.config.ContactConfig); the default is the one the shipped
+    policies were trained with, and the report says when another is used."""
 
     def __post_init__(self) -> None:
         check_types(self, skip=("com_shift",))  # Perturbation checks com_shift with its own message
@@ -184,6 +187,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", choices=list(BACKENDS), default=d.backend, help=BACKEND_HELP)
     parser.add_argument("--warp-device", default=d.warp_device,
                         help=f"device of the warp backend: cuda, cuda:N or cpu (default {d.warp_device})")
+    parser.add_argument("--contact-cone", choices=("pyramidal", "elliptic"), default=d.contact.cone,
+                        help=f"friction cone of the contact model (default {d.contact.cone}, what the shipped policies "
+                        "trained with)")
+    parser.add_argument("--contact-impratio", type=float, default=d.contact.impratio,
+                        help=f"frictional to normal impedance ratio, 1-100 (default {d.contact.impratio:g})")
+    parser.add_argument("--contact-noslip-iterations", type=int, default=d.contact.noslip_iterations,
+                        help=f"iterations of MuJoCo's noslip solver, 0 = off (default {d.contact.noslip_iterations})")
     parser.add_argument("--resume", action="store_true",
                         help="continue the interrupted evaluation in --out (its finished conditions are kept; the "
                         "same command without --resume continues it too)")
@@ -204,6 +214,8 @@ def config_from_args(args: argparse.Namespace) -> Config:
         video_size=tuple(args.video_size), nthread=args.nthread, torch_threads=args.torch_threads,
         progress=args.progress, resume=args.resume, touch_lag=args.touch_lag, backend=args.backend,
         warp_device=args.warp_device,
+        contact=ContactConfig(cone=args.contact_cone, impratio=args.contact_impratio,
+                              noslip_iterations=args.contact_noslip_iterations),
     )
 
 
@@ -261,7 +273,7 @@ def env_config(cfg: Config, bundle: PolicyBundle, perturb: Perturbation, touch: 
     rand = RandomizationConfig() if cfg.randomize else RandomizationConfig(enabled=False)
     return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, episode_steps=cfg.episode_steps,
                      control_hz=bundle.config.control_hz, action_scale=bundle.config.action_scale,
-                     randomization=rand, perturb=perturb, **(touch or {}))
+                     randomization=rand, perturb=perturb, contact=cfg.contact, **(touch or {}))
 
 
 def reads_touch(bundle: PolicyBundle) -> bool:

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from envs.config import ContactConfig
 from envs.metrics import METRICS, EpisodeMetrics, summarize
 from rotation.configs import to_jsonable
 from rotation.evaluate.suites import NOMINAL, Condition, axis_level
@@ -54,7 +55,12 @@ def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions:
     lag = config.touch_lag
     touch_note = (f"\nA tactile adapter's correction acted {lag} control step{'s' * (lag != 1)} after the touch it "
                   f"read (--touch-lag {lag}); the other policies do not read touch.\n" if lag else "")
-    (out / "results.md").write_text(markdown_table(rows) + touch_note)
+    contact, usual = getattr(config, "contact", None), ContactConfig()
+    contact_note = (f"\nContact model: {contact.cone} cones, impratio {contact.impratio:g}, noslip iterations "
+                    f"{contact.noslip_iterations}: not the settings the shipped policies were trained with "
+                    f"({usual.cone}, {usual.impratio:g}, {usual.noslip_iterations}).\n"
+                    if contact is not None and contact != usual else "")
+    (out / "results.md").write_text(markdown_table(rows) + touch_note + contact_note)
     plot_metrics(out / "plots", rows, conditions)
     plot_bars(out / "plots" / "bars.png", rows, conditions)
 

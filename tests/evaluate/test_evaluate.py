@@ -8,11 +8,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 import torch
 
-from envs.config import Perturbation
+from envs.config import ContactConfig, Perturbation
 from envs.grasps import generate_grasps
 from envs.metrics import METRICS
 from rotation.evaluate import job
@@ -135,3 +136,29 @@ def test_report_json_puts_number_lists_on_one_line_and_leaves_strings_alone():
     assert json.loads(text) == data
     assert '"ttf": [1.0, 0.25, -3e-05]' in text and '"ttf": [0.5]' in text
     assert '"note": "keep [  1,  2 ] as written"' in text
+
+
+def test_another_contact_model_runs_and_the_report_says_so(setup, tmp_path, monkeypatch):
+    """`rotate evaluate --contact-cone elliptic --contact-impratio 10 --contact-noslip-iterations 5`: every env of the
+    run compiles those settings, and results.md says they are not the ones the policies were trained with."""
+    from envs import core
+
+    seen = []
+    task_model = core.task_model
+
+    def spy(cfg, edit=None):
+        model, obj, scale = task_model(cfg, edit)
+        seen.append((int(model.opt.cone), float(model.opt.impratio), int(model.opt.noslip_iterations)))
+        return model, obj, scale
+
+    monkeypatch.setattr(core, "task_model", spy)
+    contact = ContactConfig(cone="elliptic", impratio=10.0, noslip_iterations=5)
+    rows = job.run(make_cfg(setup, tmp_path / "elliptic", contact=contact))
+    assert seen and set(seen) == {(int(mujoco.mjtCone.mjCONE_ELLIPTIC), 10.0, 5)}
+    assert all(np.isfinite(r["ttf"]) for r in rows)
+    report = (tmp_path / "elliptic" / "results.md").read_text()
+    assert "Contact model: elliptic cones, impratio 10, noslip iterations 5" in report
+    job.run(make_cfg(setup, tmp_path / "default"))
+    assert "Contact model" not in (tmp_path / "default" / "results.md").read_text()
+    with pytest.raises(ValueError, match=r"contact.impratio must be in \[1, 100\]"):
+        ContactConfig(impratio=0.5)
