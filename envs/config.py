@@ -227,7 +227,10 @@ class EnvConfig:
     kd: float = C.DEFAULT_KD
     """Nominal damping gain (N m s / rad) when randomization is off."""
     torque_limit: float = C.DEFAULT_TORQUE_LIMIT
-    """Actuator torque limit (N m), the real hand's clamp."""
+    """Actuator torque limit (N m) of every joint, with joint_torque_limits 'uniform'."""
+    joint_torque_limits: Literal["uniform", "vendor"] = "uniform"
+    """'uniform': torque_limit on every joint (what the shipped policies trained with); 'vendor': the real hand's
+    per-joint limits, 0.225-0.562 N m (envs.constants.TORQUE_LIMITS: the vendor driver's PWM limits / 1200)."""
     fall_drop: float = 0.05
     """The object has fallen when its centre is this far (m) below its grasp height."""
     max_distance: float = 0.12

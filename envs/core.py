@@ -50,7 +50,10 @@ def task_model(cfg: EnvConfig, edit=None) -> tuple[mujoco.MjModel, ObjectSpec, f
     m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.contact.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
     m.opt.impratio = cfg.contact.impratio
     m.opt.noslip_iterations = cfg.contact.noslip_iterations
-    m.actuator_forcerange[:] = [-cfg.torque_limit, cfg.torque_limit]
+    if cfg.joint_torque_limits == "vendor":
+        m.actuator_forcerange[:] = np.stack([-C.TORQUE_LIMITS, C.TORQUE_LIMITS], axis=1)
+    else:
+        m.actuator_forcerange[:] = [-cfg.torque_limit, cfg.torque_limit]
     task.set_gains(m.actuator_gainprm[None], m.actuator_biasprm[None], np.full((1, C.NUM_JOINTS), cfg.kp),
                    np.full((1, C.NUM_JOINTS), cfg.kd))
     return m, obj, max_scale

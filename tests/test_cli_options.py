@@ -44,6 +44,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "*:gae_lambda": {"zero": "lambda 0 is one-step TD, a valid estimator"},
     "*:added_mass": {"zero": "no added mass: the nominal object"},
     "*:latent_mix": {"zero": "0 = off: the actor trains on phi alone (the default)"},
+    "*:noslip_iterations": {"zero": "0 turns MuJoCo's noslip solver off (the shipped policies' contact model)"},
     "grasps:noise": {"zero": "grasps exactly at the canonical pose"},
     "grasps:hold_seconds": {"zero": "turns the hold check off (the cache records no hold rule)"},
     "train-teacher:critic_warmup": {"zero": "0 = the actor trains from the first update"},

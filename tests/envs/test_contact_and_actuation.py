@@ -1,0 +1,45 @@
+"""The contact model and the joint torque limits are config fields: their defaults are the model the shipped
+policies trained on, and other values reach the compiled model the env steps."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from envs import constants as C
+from envs.config import ContactConfig, EnvConfig
+from envs.core import RotateCupVec, task_model
+from envs.scene import hand_xml_path
+
+
+def test_defaults_keep_the_hand_models_own_settings():
+    model, _, _ = task_model(EnvConfig())
+    reference = mujoco.MjModel.from_xml_path(hand_xml_path())
+    assert model.opt.cone == reference.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+    assert model.opt.impratio == reference.opt.impratio == 3.0
+    assert model.opt.noslip_iterations == 0
+    assert np.all(model.actuator_forcerange == [[-C.DEFAULT_TORQUE_LIMIT, C.DEFAULT_TORQUE_LIMIT]] * 16)
+
+
+def test_other_settings_reach_the_stepped_model():
+    cfg = EnvConfig(contact=ContactConfig(cone="elliptic", impratio=10.0, noslip_iterations=10),
+                    joint_torque_limits="vendor")
+    env = RotateCupVec(cfg, num_envs=2, seed=0, nthread=1)
+    m = env.model
+    assert m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC and m.opt.impratio == 10.0 and m.opt.noslip_iterations == 10
+    assert np.allclose(m.actuator_forcerange[:, 1], C.TORQUE_LIMITS)
+    assert np.allclose(m.actuator_forcerange[:, 0], -C.TORQUE_LIMITS)
+    obs = env.reset(seed=3)
+    for _ in range(3):
+        obs, *_ = env.step(np.zeros((2, 16), dtype=np.float32))
+    assert all(np.all(np.isfinite(v)) for v in obs.values() if isinstance(v, np.ndarray))
+
+
+def test_bad_values_name_the_field():
+    with pytest.raises(ValueError, match="contact.cone"):
+        ContactConfig(cone="round")
+    with pytest.raises(ValueError, match="contact.noslip_iterations"):
+        ContactConfig(noslip_iterations=-1)
+    with pytest.raises(ValueError, match="joint_torque_limits"):
+        EnvConfig(joint_torque_limits="strong")
