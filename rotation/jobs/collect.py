@@ -18,7 +18,7 @@ resumes where it stopped: complete files are kept, partial ones (a killed writer
 
 from __future__ import annotations
 
-import json
+import hashlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,27 +30,25 @@ from tqdm import tqdm
 from envs import constants as C
 from envs.config import EnvConfig, Perturbation
 from envs.core import RotateCupVec
-from envs.errors import RequestRefused
 from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, FINGERS, contact_frame_force
 from envs.sensors.xela import skin_metadata
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import to_jsonable
 from rotation.data.session import LATENT_DIM, SessionMeta, StreamSetup
-from rotation.data.session_reader import SessionReader
 from rotation.data.session_writer import SessionWriter
-from rotation.jobs.collect_skin import PlayPolicy, record_skin, run_joystick, skin_streams
+from rotation.jobs.collect_resume import (
+    SETTINGS,
+    SETTINGS_KEY,
+    SKIN_SETTINGS,
+    check_manifest,
+    kept_episode,
+    settings_digest,
+    write_manifest,
+)
+from rotation.jobs.collect_skin import PlayPolicy, joystick_streams, record_skin, run_joystick, skin_streams
 
 SHARD_SIZE = 100
 """Episodes per shard directory."""
-MANIFEST = "collect.json"
-_SETTINGS = ("policy", "object", "seed", "num_envs", "friction_scale", "added_mass", "com_shift", "episode_steps",
-             "random_scale")
-"""Settings that must match to resume into an existing output directory."""
-_LATER_SETTINGS = ("control_hz", "action_scale", "policy_weights_sha256")
-"""Also compared on resume, when the earlier manifest recorded them (manifests of older versions lack them): the
-env's timing (a bundle's own) and the digest of a bundle's weights (the same path may hold a retrained policy)."""
-_SKIN_SETTINGS = {"skin": False, "task": "cup"}
-"""Settings added with the skin; a manifest without them recorded these defaults."""
 
 
 @dataclass(frozen=True)
@@ -126,17 +124,6 @@ def episode_path(out: Path, episode: int) -> Path:
     return out / f"shard_{episode // SHARD_SIZE:03d}" / f"episode_{episode:06d}.h5"
 
 
-def is_complete(path: Path) -> bool:
-    """A session file that exists and whose writer closed it."""
-    if not path.is_file():
-        return False
-    try:
-        with SessionReader(path) as r:
-            return r.complete
-    except ValueError:
-        return False
-
-
 class _RandomPolicy:
     """Low-pass filtered uniform actions, a deterministic stream per episode (seed, episode)."""
 
@@ -160,7 +147,6 @@ class _BundlePolicy:
     """A policy bundle acting on the groups it reads (batched when the bundle offers ``act_batch``)."""
 
     def __init__(self, name_or_path: str):
-        import hashlib
 
         from rotation.bundles import load_bundle
         from rotation.policy.bundle import resolve_bundle
@@ -216,7 +202,7 @@ def _labels(rows: np.ndarray) -> dict[str, np.ndarray]:
 class _Recorder:
     """Writes one env slot's episode: joints and labels per policy step, contact fields per substep."""
 
-    def __init__(self, env: RotateCupVec, cfg: Config, slot: int, episode: int, with_z: bool):
+    def __init__(self, env: RotateCupVec, cfg: Config, slot: int, episode: int, with_z: bool, digest: str):
         self.env, self.slot, self.episode = env, slot, episode
         self.path = episode_path(cfg.out, episode)
         p = env.params
@@ -225,6 +211,7 @@ class _Recorder:
             properties={"scale": float(p["scale"][slot]), "mass": float(p["mass"][slot]),
                         "friction": float(p["friction"][slot]), "com": p["com"][slot].tolist()},
             extra={"episode": episode, "slot": slot, "physics_dt": env.cfg.physics_dt, "collect": to_jsonable(cfg),
+                   SETTINGS_KEY: digest,
                    **({"hand": "xela", "skin_key": int(env.skin.skin.keys[slot]), "skin": skin_metadata()}
                       if env.skin is not None else {"touch_key": int(env.touch.episode_keys[slot])})},
         )
@@ -264,44 +251,11 @@ def _env_config(cfg: Config, policy: _RandomPolicy | _BundlePolicy) -> EnvConfig
 
 
 def _settings(cfg: Config, env_cfg: EnvConfig, policy: Any) -> dict[str, Any]:
-    settings = {k: to_jsonable(getattr(cfg, k)) for k in (*_SETTINGS, *_SKIN_SETTINGS)}
+    settings = {k: to_jsonable(getattr(cfg, k)) for k in (*SETTINGS, *SKIN_SETTINGS)}
     settings.update(control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale)
     if isinstance(policy, _BundlePolicy):
         settings["policy_weights_sha256"] = policy.digest
     return settings
-
-
-def _check_manifest(cfg: Config, settings: dict[str, Any]) -> None:
-    """Refuse (ValueError) an OUT that holds sessions recorded with other settings; reads, never writes."""
-    path = cfg.out / MANIFEST
-    if cfg.out.exists() and not cfg.out.is_dir():
-        raise ValueError(f"out: {cfg.out} is a file; give a directory for the sessions")
-    if not path.is_file():
-        return
-    try:
-        old = json.loads(path.read_text())["settings"]
-        if not isinstance(old, dict):
-            raise TypeError(f"'settings' is a {type(old).__name__}")
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as err:
-        raise RequestRefused(f"{path} is not a readable collect manifest ({type(err).__name__}: {err}); use another "
-                             "--out, or remove the file if the sessions beside it are yours to replace") from None
-    old = {**_SKIN_SETTINGS, **old}
-    diff = {k: (old.get(k), v) for k, v in settings.items()
-            if old.get(k) != v and (k not in _LATER_SETTINGS or k in old)}
-    if not diff:
-        return
-    if not any(cfg.out.glob("shard_*/episode_*.h5")):
-        # an earlier run that recorded nothing (stopped or refused before its first episode): nothing to protect
-        print(f"collect: {path} belongs to a run that recorded no session; replacing its settings")
-        return
-    changes = ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in diff.items())
-    raise RequestRefused(f"{cfg.out} holds a collection with other settings ({changes}); use another --out or "
-                         "the same settings to resume")
-
-
-def _write_manifest(cfg: Config, settings: dict[str, Any]) -> None:
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    (cfg.out / MANIFEST).write_text(json.dumps({"settings": settings, "config": to_jsonable(cfg)}, indent=2) + "\n")
 
 
 def run(cfg: Config) -> dict[str, float]:
@@ -315,19 +269,24 @@ def run(cfg: Config) -> dict[str, float]:
     policy = scripted[cfg.policy]() if cfg.policy in scripted else _BundlePolicy(cfg.policy)
     env_cfg = _env_config(cfg, policy)
     settings = _settings(cfg, env_cfg, policy)
-    _check_manifest(cfg, settings)
-    todo = [e for e in range(cfg.episodes) if not is_complete(episode_path(cfg.out, e))]
+    check_manifest(cfg, settings)
+    digest = settings_digest(settings)
+    with_z = isinstance(policy, _BundlePolicy) and policy.privileged
+    if cfg.task == "joystick":
+        streams = [s.name for s in joystick_streams()]
+    else:
+        streams = [s.name for s in _streams(env_cfg.control_hz, 1.0 / env_cfg.physics_dt, with_z, cfg.skin)]
+    todo = [e for e in range(cfg.episodes) if not kept_episode(episode_path(cfg.out, e), e, digest, streams)]
     if not todo:
         print(f"collect: {cfg.out} already holds {cfg.episodes} complete sessions")
         return {"episodes": 0, "steps": 0, "steps_per_s": 0.0, "samples_per_s": 0.0}
     if cfg.task == "joystick":
-        _write_manifest(cfg, settings)
-        return run_joystick(cfg, todo, episode_path)
+        write_manifest(cfg, settings)
+        return run_joystick(cfg, todo, episode_path, {SETTINGS_KEY: digest})
     env = RotateCupVec(env_cfg, num_envs=m, seed=cfg.seed)  # loads the grasp cache: may still refuse
-    _write_manifest(cfg, settings)
+    write_manifest(cfg, settings)
     if isinstance(policy, PlayPolicy):
         policy.bind(env)
-    with_z = isinstance(policy, _BundlePolicy) and policy.privileged
     queues = [[e for e in todo if e % m == i] for i in range(m)]  # slot i runs episodes i, i + m, ...
     obs = env.reset(seed=cfg.seed)
     recorders: list[_Recorder | None] = [None] * m
@@ -338,7 +297,7 @@ def run(cfg: Config) -> dict[str, float]:
         env.episode[slot] = e // m - 1  # _reset_ids increments it: the env draws episode e // m of this slot
         new_obs = env.reset(ids=np.array([slot]))
         policy.start(slot, e)
-        recorders[slot] = _Recorder(env, cfg, slot, e, with_z)
+        recorders[slot] = _Recorder(env, cfg, slot, e, with_z, digest)
         labels = _labels(env.touch.last_rows[:, :, -1]) if env.touch is not None else {}
         z = policy.latent(new_obs) if with_z else None
         recorders[slot].record_step(new_obs, z, labels, substeps=False)  # the state at t = 0

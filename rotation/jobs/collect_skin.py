@@ -37,6 +37,12 @@ SKIN_STREAMS = ("skin/xela", "skin/taxel_pos")
 """Streams at the skin's fixed 100 Hz."""
 
 
+def joystick_streams(control_hz: float = JoystickConfig().control_hz) -> list[StreamSetup]:
+    """The streams of a joystick session: joints per control step, then the skin and the stick's angles."""
+    joints = [StreamSetup(n, rate_hz=control_hz) for n in ("joints/position", "joints/target", "joints/torque")]
+    return joints + skin_streams(joystick=True)
+
+
 def skin_streams(joystick: bool = False) -> list[StreamSetup]:
     """Skin streams and their labels (100 Hz); the joystick's angles with ``joystick``."""
     s = [StreamSetup(n) for n in SKIN_STREAMS] + [StreamSetup("labels/skin_force", rate_hz=SAMPLE_HZ)]
@@ -90,7 +96,7 @@ class PlayPolicy:
 class _JoystickRecorder:
     """Writes one slot's joystick episode: joints per control step, skin and stick angles per skin sample."""
 
-    def __init__(self, play: JoystickPlay, cfg: Any, slot: int, episode: int, path: Any):
+    def __init__(self, play: JoystickPlay, cfg: Any, slot: int, episode: int, path: Any, tags: dict[str, Any]):
         self.play, self.slot = play, slot
         jc = play.cfg
         meta = SessionMeta(
@@ -98,12 +104,10 @@ class _JoystickRecorder:
             properties={"spring": jc.spring, "damping": jc.damping, "max_tilt": jc.max_tilt},
             extra={"episode": episode, "slot": slot, "task": "joystick", "hand": "xela",
                    "skin_key": int(play.skin.skin.keys[slot]), "physics_dt": jc.physics_dt, "skin": skin_metadata(),
-                   "collect": to_jsonable(cfg)},
+                   "collect": to_jsonable(cfg), **tags},
         )
-        streams = [StreamSetup(n, rate_hz=jc.control_hz) for n in ("joints/position", "joints/target",
-                                                                    "joints/torque")]
-        self.writer = SessionWriter(path, meta, streams + skin_streams(joystick=True),
-                                    flush_interval_s=cfg.flush_interval_s, overwrite=True)
+        self.writer = SessionWriter(path, meta, joystick_streams(jc.control_hz), flush_interval_s=cfg.flush_interval_s,
+                                    overwrite=True)
 
     def record_step(self, samples: bool) -> None:
         p, i, w = self.play, self.slot, self.writer
@@ -119,8 +123,9 @@ class _JoystickRecorder:
         self.writer.close()
 
 
-def run_joystick(cfg: Any, todo: list[int], path_of: Any) -> dict[str, float]:
-    """Record the joystick episodes ``todo`` (episode e in slot e % num_envs, as its (e // num_envs)-th)."""
+def run_joystick(cfg: Any, todo: list[int], path_of: Any, tags: dict[str, Any]) -> dict[str, float]:
+    """Record the joystick episodes ``todo`` (episode e in slot e % num_envs, as its (e // num_envs)-th); ``tags``
+    go into every session's ``extra`` (the collection's settings digest)."""
     m = cfg.num_envs
     play = JoystickPlay(JoystickConfig(motion="play" if cfg.policy == "play" else "random"), num_envs=m,
                         seed=cfg.seed)
@@ -131,7 +136,7 @@ def run_joystick(cfg: Any, todo: list[int], path_of: Any) -> dict[str, float]:
         e = queues[slot].pop(0)
         play.episode[slot] = e // m - 1  # reset increments it
         play.reset(np.array([slot]))
-        recorders[slot] = _JoystickRecorder(play, cfg, slot, e, path_of(cfg.out, e))
+        recorders[slot] = _JoystickRecorder(play, cfg, slot, e, path_of(cfg.out, e), tags)
         recorders[slot].record_step(samples=False)  # the state at t = 0
 
     for i in range(m):

@@ -313,16 +313,18 @@ def test_latent_errors_of_an_ensemble(ensemble_dir, load_script, tmp_path):
 
 
 def test_ensemble_adapters_refuses_bad_input_with_one_line(ensemble_dir, tmp_path, capsys):
-    """Bad input ends with one line and status 2, nothing written; an existing bundle is never overwritten."""
+    """Bad input ends with one line and status 2, nothing written; an existing bundle is never overwritten (a
+    request that cannot be done: status 1)."""
     member = str(ensemble_dir / "members" / "pressure")
     cases = [
-        (["--members", member, "--weights", "1", "2"], "2 weights for 1 members"),
-        (["--members", str(tmp_path / "nothing")], "not an adapter bundle"),
-        (["--members", str(ensemble_dir)], "an adapter ensemble, not one adapter; name one of its members"),
-        (["--members", member, "--out", str(ensemble_dir)], "already holds a bundle"),
+        (["--members", member, "--weights", "1", "2"], "2 weights for 1 members", 2),
+        (["--members", str(tmp_path / "nothing")], "not an adapter bundle", 2),
+        (["--members", str(ensemble_dir)], "an adapter ensemble, not one adapter; name one of its members", 2),
+        (["--members", member, "--out", str(ensemble_dir)], "already holds a bundle", 1),
     ]
-    for args, message in cases:
-        assert main(["ensemble-adapters", *args, *([] if "--out" in args else ["--out", str(tmp_path / "e")])]) == 2
+    for args, message, status in cases:
+        out = [] if "--out" in args else ["--out", str(tmp_path / "e")]
+        assert main(["ensemble-adapters", *args, *out]) == status
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err, err
     assert not (tmp_path / "e" / "config.json").exists()

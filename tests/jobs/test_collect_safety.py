@@ -10,7 +10,7 @@ import torch
 
 from rotation.cli import main
 from rotation.data.session_reader import SessionReader
-from rotation.jobs import collect
+from rotation.jobs import collect, collect_resume
 from rotation.policy.bundle import PolicyBundle
 from rotation.policy.bundle_config import BundleConfig
 
@@ -29,18 +29,18 @@ def test_refused_run_leaves_nothing_that_refuses_the_corrected_one(tmp_path, cap
     assert main(["collect", "--policy", str(tmp_path / "no_such_bundle"), "--out", str(out), "--episodes", "1",
                  "--num-envs", "1", "--episode-steps", "3", "--no-progress"]) == 2
     assert "no bundle directory" in capsys.readouterr().err
-    assert not (out / collect.MANIFEST).exists()
+    assert not (out / collect_resume.MANIFEST).exists()
     collect.run(cfg_for(out))  # the corrected command (a random policy) runs
-    assert collect.is_complete(collect.episode_path(out, 0))
+    assert collect_resume.is_complete(collect.episode_path(out, 0))
 
 
 def test_a_manifest_of_a_run_that_recorded_nothing_does_not_block(tmp_path):
     out = tmp_path / "touch"
     out.mkdir()
-    stale = {"settings": {k: None for k in collect._SETTINGS}, "config": {}}  # e.g. written by an older version
-    (out / collect.MANIFEST).write_text(json.dumps(stale))
+    stale = {"settings": {k: None for k in collect_resume.SETTINGS}, "config": {}}  # e.g. written by an older version
+    (out / collect_resume.MANIFEST).write_text(json.dumps(stale))
     collect.run(cfg_for(out))
-    assert json.loads((out / collect.MANIFEST).read_text())["settings"]["seed"] == 5
+    assert json.loads((out / collect_resume.MANIFEST).read_text())["settings"]["seed"] == 5
 
 
 def test_collect_acts_at_the_bundles_rate_and_scale(tmp_path):
@@ -50,7 +50,7 @@ def test_collect_acts_at_the_bundles_rate_and_scale(tmp_path):
     with SessionReader(collect.episode_path(out, 0)) as r:
         assert r.meta.control_hz == 10.0 and r.stream("joints/position").rate_hz == 10.0
         assert r.stream("digit360/thumb/contact").rate_hz == 100.0  # 10 physics substeps per 10 Hz step
-    settings = json.loads((out / collect.MANIFEST).read_text())["settings"]
+    settings = json.loads((out / collect_resume.MANIFEST).read_text())["settings"]
     assert (settings["control_hz"], settings["action_scale"]) == (10.0, 0.2)
 
 
@@ -67,7 +67,7 @@ def test_retrained_policy_at_the_same_path_refuses_to_resume(tmp_path):
 def test_unreadable_manifest_is_named(tmp_path):
     out = tmp_path / "touch"
     out.mkdir()
-    (out / collect.MANIFEST).write_text("{not json")
+    (out / collect_resume.MANIFEST).write_text("{not json")
     with pytest.raises(ValueError, match=r"collect.json is not a readable collect manifest"):
         collect.run(cfg_for(out))
     (tmp_path / "file").write_text("")

@@ -12,7 +12,7 @@ from envs.sensors.xela import NUM_PADS, NUM_TAXELS, PAD_NAMES, REST, TAXEL_TYPE
 from rotation.cli import main
 from rotation.data.session import STREAMS
 from rotation.data.session_reader import SessionReader
-from rotation.jobs import collect
+from rotation.jobs import collect, collect_resume
 
 SKIN = {"skin/xela": (NUM_TAXELS, 3), "skin/taxel_pos": (NUM_TAXELS, 3), "labels/skin_force": (NUM_PADS, 3)}
 
@@ -50,7 +50,7 @@ def test_collect_writes_readable_skin_sessions(task, tmp_path):
         if task == "joystick":
             angles = r.stream("labels/joystick")
             assert angles.data.shape == (len(xela), 3) and np.abs(angles.data).max() < 1.0
-    manifest = json.loads((out / collect.MANIFEST).read_text())["settings"]
+    manifest = json.loads((out / collect_resume.MANIFEST).read_text())["settings"]
     assert manifest["skin"] is True and manifest["task"] == task
 
 
@@ -62,7 +62,8 @@ def test_collect_skin_is_deterministic_and_resumes(tmp_path):
         assert np.array_equal(ra.stream("skin/xela").data, rb.stream("skin/xela").data)
     stamp = collect.episode_path(a, 0).stat().st_mtime_ns
     collect.run(cfg_for(a, episodes=2, num_envs=1))  # resumes: keeps episode 0, records episode 1
-    assert collect.episode_path(a, 0).stat().st_mtime_ns == stamp and collect.is_complete(collect.episode_path(a, 1))
+    assert collect.episode_path(a, 0).stat().st_mtime_ns == stamp
+    assert collect_resume.is_complete(collect.episode_path(a, 1))
     with pytest.raises(ValueError, match=r"other settings \(skin: True -> False\)"):
         collect.run(cfg_for(a, episodes=3, num_envs=1, skin=False))
 

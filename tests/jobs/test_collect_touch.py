@@ -11,7 +11,7 @@ from rotation.cli import main
 from rotation.data.audio import fbank
 from rotation.data.dataset import TouchWindows, find_sessions
 from rotation.data.session_reader import SessionReader
-from rotation.jobs import collect
+from rotation.jobs import collect, collect_resume
 
 STEPS = 36  # 1.8 s: long enough for full windows (1.12 s of history) at the end of each episode
 
@@ -63,7 +63,7 @@ def test_collect_resumes_and_is_deterministic(collected, tmp_path):
     assert collect.episode_path(out, 0).stat().st_mtime_ns == stamp  # complete sessions are kept
     with SessionReader(target) as r:  # the broken one is recorded again, identically
         assert r.complete and np.array_equal(r.stream("digit360/index/contact").data, reference)
-    assert collect.is_complete(collect.episode_path(out, 2))
+    assert collect_resume.is_complete(collect.episode_path(out, 2))
     with pytest.raises(ValueError, match=r"other settings \(seed: 11 -> 12\)"):
         collect.run(cfg_for(out, episodes=3, seed=12))
 
