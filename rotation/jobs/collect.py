@@ -13,7 +13,9 @@ privileged bundle). With --skin the hand is the Xela variant and sessions hold t
 of the Digit 360 ones (rotation.jobs.collect_skin, docs/skin.md); --task joystick records the hand playing with the
 joystick fixture (envs.joystick). OUT/collect.json records the settings. Episode e runs in env slot e % num_envs
 as that slot's (e // num_envs)-th episode, so a run is deterministic under its settings and an interrupted run
-resumes where it stopped: complete files are kept, partial ones (a killed writer) are recorded again, identically.
+resumes where it stopped: its complete files are kept, partial ones (a killed writer) are recorded again,
+identically. A resume keeps only what this collection wrote (each session carries the settings' digest and its
+episode index: rotation.jobs.collect_resume); any other file at an episode's path is refused, not overwritten.
 """
 
 from __future__ import annotations
