@@ -242,7 +242,7 @@ class EnvConfig:
     """Path to a grasp cache (.npz) from `rotate grasps`; empty = the cache shipped with the package."""
     tactile: bool = False
     """Simulate the Digit 360 fingertips and add the `tactile` observation group (slower)."""
-    hand: Literal["digit360", "xela"] = "digit360"
+    hand: Literal["digit360", "xela", "digit360_v4"] = "digit360"
     """Hand variant: 'digit360' (Digit 360 fingertips) or 'xela' (stock-length fingertips, 18 Xela skin pads on
     fingertips, phalanges and palm; docs/skin.md). Each has its own grasp caches."""
     skin: bool = False

@@ -18,7 +18,7 @@ import numpy as np
 
 from envs import constants as C
 from envs.objects import OBJECTS
-from envs.scene import HANDS, OBJECT_START
+from envs.scene import HANDS, object_start
 from envs.task import pick_grasps
 
 GRASP_DIM = C.NUM_JOINTS + 7
@@ -56,7 +56,7 @@ class GraspCache:
             )
         if self.grasps.shape[1] == 0:
             raise ValueError(f"{where} is empty")
-        _check_rows(self.grasps, self.scales, where)
+        _check_rows(self.grasps, self.scales, where, self.hand)
 
     @property
     def where(self) -> str:
@@ -116,11 +116,12 @@ at most 7.5 mrad)."""
 QUAT_TOLERANCE = 1e-4
 """How far a cached quaternion's norm may be from 1 (rows are stored as float32: about 3e-8)."""
 MAX_OBJECT_OFFSET = 0.10
-"""How far (m) a cached object centre may be from OBJECT_START, where grasps are generated: Hora's rule keeps every
+"""How far (m) a cached object centre may be from the hand's object start (envs.scene.OBJECT_STARTS), where grasps
+are generated: Hora's rule keeps every
 fingertip within 10 cm of it (the shipped caches: at most 5 cm)."""
 
 
-def _check_rows(grasps: np.ndarray, scales: np.ndarray, where: str) -> None:
+def _check_rows(grasps: np.ndarray, scales: np.ndarray, where: str, hand: str = "digit360") -> None:
     """Every row is finite, its joints within the limits, its quaternion a unit one, its object in the hand."""
 
     def fail(mask: np.ndarray, what: str) -> None:
@@ -143,11 +144,12 @@ def _check_rows(grasps: np.ndarray, scales: np.ndarray, where: str) -> None:
     bad = np.abs(norm - 1.0) > QUAT_TOLERANCE
     if bad.any():
         fail(bad, lambda b, g: f"the object quaternion has norm {norm[b, g]:.6f}, not 1 (+-{QUAT_TOLERANCE})")
-    offset = np.linalg.norm(grasps[..., C.NUM_JOINTS : C.NUM_JOINTS + 3] - OBJECT_START, axis=2)
+    start = object_start(hand)
+    offset = np.linalg.norm(grasps[..., C.NUM_JOINTS : C.NUM_JOINTS + 3] - start, axis=2)
     far = offset > MAX_OBJECT_OFFSET
     if far.any():
         fail(far, lambda b, g: f"the object centre {grasps[b, g, 16:19].tolist()} m is {offset[b, g]:.3f} m from "
-                               f"the hand's grasp point {OBJECT_START.tolist()} (at most {MAX_OBJECT_OFFSET} m)")
+                               f"the hand's grasp point {start.tolist()} (at most {MAX_OBJECT_OFFSET} m)")
 
 
 def default_cache_path(object_name: str, hand: str = "digit360") -> Path:

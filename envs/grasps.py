@@ -22,7 +22,7 @@ from envs.errors import RequestRefused
 from envs.geometry import tilt_angle
 from envs.grasp_cache import GRASP_DIM, GraspCache
 from envs.objects import ObjectSpec, get_object
-from envs.scene import OBJECT_BODY, OBJECT_START, build_model
+from envs.scene import OBJECT_BODY, build_model, object_start
 
 CANONICAL_POSE = np.array(
     [0.05, 0.34, 0.60, 0.89, -0.03, 0.42, 0.38, 0.80, -0.19, 0.70, -0.07, 1.04, 1.34, 0.02, 0.35, 1.17]
@@ -35,6 +35,13 @@ the task is rotating an upright cup, and grasps that already lean 15-25 degrees 
 about 40% of 10 s holds (with the default randomization and pushes)."""
 TIP_RADIUS = 0.014
 """Digit 360 dome radius (m), the fingertip geoms in the hand MJCF."""
+CANONICAL_POSES = {"digit360": CANONICAL_POSE, "xela": CANONICAL_POSE,
+                   "digit360_v4": np.array([-0.354, 0.187, 0.459, 1.341, 0.0, 0.212, 0.215, 1.534, 0.356, 0.287,
+                                            0.216, 1.515, 1.396, 0.473, 0.112, 1.682])}
+"""Each hand variant's canonical pose; digit360_v4's was found around a cup at its OBJECT_STARTS centre by
+`python experiments/tools/canonical_pose.py --seed 0` (experiments/hand_v4)."""
+TIP_RADII = {"digit360": TIP_RADIUS, "xela": TIP_RADIUS, "digit360_v4": 0.012}
+"""Dome radius (m) of each hand variant's fingertip geoms (digit360_v4: Meta's 12 mm dome)."""
 
 
 
@@ -163,6 +170,7 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
     substeps = round(0.05 / model.opt.timestep)
     mass = 0.1
     hold_test = HoldTest(object_name, hand, batch_size, nthread) if hold is not None else None
+    canonical, centre, tip_radius = CANONICAL_POSES[hand], object_start(hand), TIP_RADII[hand]
     out = []
     for scale in scales:
         accepted: list[np.ndarray] = []
@@ -173,8 +181,8 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
         for _ in range(max_rounds):
             if len(accepted) >= per_scale:
                 break
-            pose = np.clip(CANONICAL_POSE + rng.uniform(-noise, noise, (batch_size, 16)), C.JOINT_LOWER, C.JOINT_UPPER)
-            start = OBJECT_START + rng.uniform(-0.004, 0.004, (batch_size, 3))
+            pose = np.clip(canonical + rng.uniform(-noise, noise, (batch_size, 16)), C.JOINT_LOWER, C.JOINT_UPPER)
+            start = centre + rng.uniform(-0.004, 0.004, (batch_size, 3))
             # open the fingers of samples that cut into the object until they only touch it
             clear = np.zeros(batch_size, dtype=bool)
             for i in range(batch_size):
@@ -205,7 +213,7 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
             pos, quat = qpos[:, o : o + 3], qpos[:, o + 3 : o + 7]
             tips = site_xpos[:, tip_sites]  # (B, 4, 3)
             near = np.linalg.norm(tips - pos[:, None], axis=2).max(axis=1) < 0.10
-            touching = (surface_distance(obj, np.full(batch_size, scale), pos, quat, tips) < TIP_RADIUS + 0.004).sum(1)
+            touching = (surface_distance(obj, np.full(batch_size, scale), pos, quat, tips) < tip_radius + 0.004).sum(1)
             still = np.linalg.norm(qvel[:, 16:19], axis=1) < 0.05
             upright = tilt_angle(quat) < max_tilt
             ok = clear & near & (touching >= 2) & (pos[:, 2] > z0 - 0.02) & still & upright

@@ -17,10 +17,23 @@ from envs.objects import ObjectSpec
 OBJECT_BODY = "object"
 OBJECT_JOINT = "object_free"
 OBJECT_START = np.array([0.05, -0.005, 0.07])
-"""Nominal object centre above the fingers (m, world frame), where grasps are generated."""
-HANDS = ("digit360", "xela")
-"""Hand variants: 'digit360' (Digit 360 fingertips, the default) and 'xela' (stock-length fingertips with Xela
-shells, and Xela pads on the phalanges and palm: envs.sensors.xela_hand)."""
+"""Nominal object centre above the fingers (m, world frame), where grasps are generated (the 'digit360' and 'xela'
+hands)."""
+HANDS = ("digit360", "xela", "digit360_v4")
+"""Hand variants: 'digit360' (Digit 360 fingertips, the default, the model the shipped policies trained on), 'xela'
+(stock-length fingertips with Xela shells, and Xela pads on the phalanges and palm: envs.sensors.xela_hand), and
+'digit360_v4' (the vendor's published Allegro V4 kinematics with Meta's Digit 360 mount, envs.hand_model: the hand
+the retrain of issue 72 moves to; no simulated touch yet)."""
+OBJECT_STARTS = {"digit360": OBJECT_START, "xela": OBJECT_START, "digit360_v4": np.array([0.04, 0.0, 0.08])}
+"""Where each hand's grasps are generated (m, world frame); the digit360_v4 hand holds the cup lower and closer to
+the palm (experiments/hand_v4)."""
+
+
+def object_start(hand: str = "digit360") -> np.ndarray:
+    """The nominal object centre of a hand variant (OBJECT_STARTS)."""
+    if hand not in OBJECT_STARTS:
+        raise ValueError(f"unknown hand {hand!r}; hands: {', '.join(HANDS)}")
+    return OBJECT_STARTS[hand]
 
 
 def hand_xml_path() -> str:
@@ -31,6 +44,10 @@ def hand_spec(hand: str = "digit360") -> mujoco.MjSpec:
     """The spec of a hand variant (one of HANDS), without an object."""
     if hand not in HANDS:
         raise ValueError(f"unknown hand {hand!r}; hands: {', '.join(HANDS)}")
+    if hand == "digit360_v4":
+        from envs.hand_model import hand_xml
+
+        return mujoco.MjSpec.from_string(hand_xml())
     spec = mujoco.MjSpec.from_file(hand_xml_path())
     if hand == "xela":
         from envs.sensors.xela_hand import make_xela_hand
@@ -48,7 +65,7 @@ def build_model(obj: ObjectSpec, scale: float = 1.0, timestep: float = 0.01,
     """
     spec = hand_spec(hand)
     spec.option.timestep = timestep
-    body = spec.worldbody.add_body(name=OBJECT_BODY, pos=OBJECT_START.tolist())
+    body = spec.worldbody.add_body(name=OBJECT_BODY, pos=object_start(hand).tolist())
     body.add_freejoint(name=OBJECT_JOINT)
     for i, g in enumerate(obj.geoms(scale)):
         body.add_geom(

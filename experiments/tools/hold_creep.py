@@ -60,6 +60,8 @@ class Config:
     """How long each grasp is held still (s)."""
     object: str = "cup"
     """Object whose shipped grasp cache is replayed (its nominal-scale bucket)."""
+    hand: str = "digit360"
+    """Hand variant (envs.scene.HANDS) whose model and grasp cache are used."""
 
     def __post_init__(self) -> None:
         unknown = [s for s in self.settings if s not in SETTINGS]
@@ -79,13 +81,13 @@ def _edit(setting: dict):
     return edit
 
 
-def hold(setting: dict, object_name: str, seconds: float) -> dict[str, float]:
+def hold(setting: dict, object_name: str, seconds: float, hand: str = "digit360") -> dict[str, float]:
     """Replay the nominal bucket's grasps under ``setting``: the sink (mm) and tilt (deg) after ``seconds``."""
     contact = ContactConfig(cone=setting["cone"], impratio=setting["impratio"],
                             noslip_iterations=setting.get("noslip_iterations", 0))
-    cfg = EnvConfig(object=object_name, physics_dt=setting.get("physics_dt", 0.01), contact=contact)
+    cfg = EnvConfig(object=object_name, physics_dt=setting.get("physics_dt", 0.01), contact=contact, hand=hand)
     model, obj, max_scale = task_model(cfg, edit=_edit(setting))
-    cache = load_default_cache(object_name)
+    cache = load_default_cache(object_name, hand=hand)
     bucket = len(cache.scales) // 2
     rows = np.asarray(cache.grasps[bucket], dtype=np.float64)
     n = len(rows)
@@ -118,11 +120,11 @@ def run(cfg: Config) -> dict:
     print(f"{'setting':22s} {'sink med':>9s} {'p90':>7s} {'max':>7s} {'tilt':>6s} {'drops':>6s}  (mm, deg; "
           f"{cfg.seconds:g} s held)")
     for name in cfg.settings:
-        r = hold(SETTINGS[name], cfg.object, cfg.seconds)
+        r = hold(SETTINGS[name], cfg.object, cfg.seconds, cfg.hand)
         rows[name] = {**SETTINGS[name], **r}
         print(f"{name:22s} {r['sink_mm_median']:9.2f} {r['sink_mm_p90']:7.2f} {r['sink_mm_max']:7.2f} "
               f"{r['tilt_deg_median']:6.1f} {r['dropped']:6d}")
-    report = {"object": cfg.object, "seconds": cfg.seconds, "settings": rows}
+    report = {"object": cfg.object, "hand": cfg.hand, "seconds": cfg.seconds, "settings": rows}
     out.mkdir(parents=True, exist_ok=True)
     (out / "hold_creep.json").write_text(json.dumps(report, indent=2))
     print(json.dumps(report))

@@ -59,7 +59,7 @@ class Config:
     """Hold check: object mass in kg (the default is the middle of the randomization range)."""
     hold_tilt: float = HoldRule.max_tilt
     """Hold check: the largest tilt (rad) the object may reach during the hold."""
-    hand: Literal["digit360", "xela"] = "digit360"
+    hand: Literal["digit360", "xela", "digit360_v4"] = "digit360"
     """Hand variant (envs.scene.HANDS): 'digit360' fingertips or the Xela skin hand; grasps are hand-specific."""
 
     def __post_init__(self) -> None:

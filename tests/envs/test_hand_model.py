@@ -165,3 +165,25 @@ def test_the_open_and_home_poses_touch_nothing(hand):
         _pose(model, data, q)
         mujoco.mj_collision(model, data)
         assert data.ncon == 0, [(model.geom(c.geom1).name, model.geom(c.geom2).name) for c in data.contact[:data.ncon]]
+
+
+def test_the_vendor_hand_is_an_env_variant_with_its_own_grasps():
+    """EnvConfig(hand='digit360_v4') builds this model, starts from its own shipped cup grasps (generated around its
+    own canonical pose and object centre), and steps; it has no simulated touch yet."""
+    from envs.config import EnvConfig
+    from envs.core import RotateCupVec
+    from envs.grasp_cache import load_default_cache
+    from envs.scene import object_start
+
+    cache = load_default_cache("cup", hand="digit360_v4")
+    assert cache.hand == "digit360_v4" and cache.hold  # generated with the hold check
+    centres = cache.grasps[..., C.NUM_JOINTS : C.NUM_JOINTS + 3].reshape(-1, 3)
+    assert np.linalg.norm(centres.mean(axis=0) - object_start("digit360_v4")) < 0.03
+    env = RotateCupVec(EnvConfig(hand="digit360_v4"), num_envs=2, seed=0, nthread=1)
+    assert env.model.nbody == mujoco.MjModel.from_xml_string(hand_xml()).nbody + 1  # the hand and the cup
+    obs = env.reset(seed=1)
+    for _ in range(3):
+        obs, *_ = env.step(np.zeros((2, 16), dtype=np.float32))
+    assert all(np.all(np.isfinite(v)) for v in obs.values() if isinstance(v, np.ndarray))
+    with pytest.raises(ValueError, match="tactile"):
+        EnvConfig(hand="digit360_v4", tactile=True)
