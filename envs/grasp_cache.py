@@ -18,7 +18,7 @@ import numpy as np
 
 from envs import constants as C
 from envs.objects import OBJECTS
-from envs.scene import HANDS, object_start
+from envs.scene import HANDS, hand_variant
 from envs.task import pick_grasps
 
 GRASP_DIM = C.NUM_JOINTS + 7
@@ -116,7 +116,7 @@ at most 7.5 mrad)."""
 QUAT_TOLERANCE = 1e-4
 """How far a cached quaternion's norm may be from 1 (rows are stored as float32: about 3e-8)."""
 MAX_OBJECT_OFFSET = 0.10
-"""How far (m) a cached object centre may be from the hand's object start (envs.scene.OBJECT_STARTS), where grasps
+"""How far (m) a cached object centre may be from the hand's object start (envs.scene.VARIANTS), where grasps
 are generated: Hora's rule keeps every
 fingertip within 10 cm of it (the shipped caches: at most 5 cm)."""
 
@@ -144,7 +144,7 @@ def _check_rows(grasps: np.ndarray, scales: np.ndarray, where: str, hand: str = 
     bad = np.abs(norm - 1.0) > QUAT_TOLERANCE
     if bad.any():
         fail(bad, lambda b, g: f"the object quaternion has norm {norm[b, g]:.6f}, not 1 (+-{QUAT_TOLERANCE})")
-    start = object_start(hand)
+    start = hand_variant(hand).object_start
     offset = np.linalg.norm(grasps[..., C.NUM_JOINTS : C.NUM_JOINTS + 3] - start, axis=2)
     far = offset > MAX_OBJECT_OFFSET
     if far.any():

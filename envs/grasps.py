@@ -22,26 +22,12 @@ from envs.errors import RequestRefused
 from envs.geometry import tilt_angle
 from envs.grasp_cache import GRASP_DIM, GraspCache
 from envs.objects import ObjectSpec, get_object
-from envs.scene import OBJECT_BODY, build_model, object_start
+from envs.scene import OBJECT_BODY, build_model, hand_variant
 
-CANONICAL_POSE = np.array(
-    [0.05, 0.34, 0.60, 0.89, -0.03, 0.42, 0.38, 0.80, -0.19, 0.70, -0.07, 1.04, 1.34, 0.02, 0.35, 1.17]
-)
-"""Pose putting three fingertips on the +x side and the thumb on the -x side of an object at OBJECT_START
-(found by a sampling IK on fingertip targets); grasps are sampled around it."""
 DEFAULT_MAX_TILT = 0.15
 """Grasps must hold the object's up axis within this angle (rad, about 9 degrees) of vertical after settling:
 the task is rotating an upright cup, and grasps that already lean 15-25 degrees tipped over under zero action in
 about 40% of 10 s holds (with the default randomization and pushes)."""
-TIP_RADIUS = 0.014
-"""Digit 360 dome radius (m), the fingertip geoms in the hand MJCF."""
-CANONICAL_POSES = {"digit360": CANONICAL_POSE, "xela": CANONICAL_POSE,
-                   "digit360_v4": np.array([-0.354, 0.187, 0.459, 1.341, 0.0, 0.212, 0.215, 1.534, 0.356, 0.287,
-                                            0.216, 1.515, 1.396, 0.473, 0.112, 1.682])}
-"""Each hand variant's canonical pose; digit360_v4's was found around a cup at its OBJECT_STARTS centre by
-`python experiments/tools/canonical_pose.py --seed 0` (experiments/hand_v4)."""
-TIP_RADII = {"digit360": TIP_RADIUS, "xela": TIP_RADIUS, "digit360_v4": 0.012}
-"""Dome radius (m) of each hand variant's fingertip geoms (digit360_v4: Meta's 12 mm dome)."""
 
 
 
@@ -170,7 +156,8 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
     substeps = round(0.05 / model.opt.timestep)
     mass = 0.1
     hold_test = HoldTest(object_name, hand, batch_size, nthread) if hold is not None else None
-    canonical, centre, tip_radius = CANONICAL_POSES[hand], object_start(hand), TIP_RADII[hand]
+    variant = hand_variant(hand)
+    canonical, centre, tip_radius = variant.canonical_pose, variant.object_start, variant.tip_radius
     out = []
     for scale in scales:
         accepted: list[np.ndarray] = []

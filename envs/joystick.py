@@ -24,9 +24,9 @@ import mujoco.batch
 import numpy as np
 
 from envs import constants as C
-from envs.grasps import CANONICAL_POSE, FLEX_JOINTS
+from envs.grasps import FLEX_JOINTS
 from envs.rng import env_keys
-from envs.scene import hand_spec
+from envs.scene import CANONICAL_POSE, hand_spec
 from envs.sensors.skin_obs import SkinState
 from envs.sensors.xela import SAMPLE_HZ
 from envs.sensors.xela_hand import add_xela_sensors, read_ring

@@ -7,6 +7,7 @@ sizes, so the compiled bounding volumes stay conservative and collision detectio
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
@@ -17,23 +18,50 @@ from envs.objects import ObjectSpec
 OBJECT_BODY = "object"
 OBJECT_JOINT = "object_free"
 OBJECT_START = np.array([0.05, -0.005, 0.07])
-"""Nominal object centre above the fingers (m, world frame), where grasps are generated (the 'digit360' and 'xela'
-hands)."""
-HANDS = ("digit360", "xela", "digit360_v4")
+"""Nominal object centre above the fingers (m, world frame) of the 'digit360' and 'xela' hands."""
+CANONICAL_POSE = np.array(
+    [0.05, 0.34, 0.60, 0.89, -0.03, 0.42, 0.38, 0.80, -0.19, 0.70, -0.07, 1.04, 1.34, 0.02, 0.35, 1.17]
+)
+"""Pose of the 'digit360' and 'xela' hands putting three fingertips on the +x side and the thumb on the -x side of
+an object at OBJECT_START (found by a sampling IK on fingertip targets); grasps are sampled around it."""
+TIP_RADIUS = 0.014
+"""Dome radius (m) of the 'digit360' hand's fingertip geoms (envs/assets/allegro_right_digit360.xml)."""
+
+
+@dataclass(frozen=True)
+class HandVariant:
+    """What grasps of a hand variant are generated around, beside its model (hand_spec)."""
+
+    object_start: np.ndarray
+    """Nominal object centre (m, world frame), where grasps are generated and the object body is compiled."""
+    canonical_pose: np.ndarray
+    """The 16 joint angles (rad) grasps are sampled around."""
+    tip_radius: float
+    """Fingertip dome radius (m): a fingertip within it (and a few mm) of the object touches it."""
+
+
+VARIANTS: dict[str, HandVariant] = {
+    "digit360": HandVariant(OBJECT_START, CANONICAL_POSE, TIP_RADIUS),
+    "xela": HandVariant(OBJECT_START, CANONICAL_POSE, TIP_RADIUS),
+    "digit360_v4": HandVariant(
+        np.array([0.04, 0.0, 0.08]),
+        np.array([-0.354, 0.187, 0.459, 1.341, 0.0, 0.212, 0.215, 1.534, 0.356, 0.287, 0.216, 1.515, 1.396, 0.473,
+                  0.112, 1.682]),
+        0.012),
+}
 """Hand variants: 'digit360' (Digit 360 fingertips, the default, the model the shipped policies trained on), 'xela'
 (stock-length fingertips with Xela shells, and Xela pads on the phalanges and palm: envs.sensors.xela_hand), and
-'digit360_v4' (the vendor's published Allegro V4 kinematics with Meta's Digit 360 mount, envs.hand_model: the hand
-the retrain of issue 72 moves to; no simulated touch yet)."""
-OBJECT_STARTS = {"digit360": OBJECT_START, "xela": OBJECT_START, "digit360_v4": np.array([0.04, 0.0, 0.08])}
-"""Where each hand's grasps are generated (m, world frame); the digit360_v4 hand holds the cup lower and closer to
-the palm (experiments/hand_v4)."""
+'digit360_v4' (the vendor's published Allegro V4 kinematics with Meta's 12 mm Digit 360 domes, envs.hand_model: the
+hand the retrain of issue 72 moves to; no simulated touch yet). digit360_v4 holds the cup lower and closer to the
+palm, around the pose `python experiments/tools/canonical_pose.py --seed 0` found (experiments/hand_v4)."""
+HANDS = tuple(VARIANTS)
 
 
-def object_start(hand: str = "digit360") -> np.ndarray:
-    """The nominal object centre of a hand variant (OBJECT_STARTS)."""
-    if hand not in OBJECT_STARTS:
+def hand_variant(hand: str = "digit360") -> HandVariant:
+    """A hand variant (VARIANTS) by name; a ValueError names the known ones."""
+    if hand not in VARIANTS:
         raise ValueError(f"unknown hand {hand!r}; hands: {', '.join(HANDS)}")
-    return OBJECT_STARTS[hand]
+    return VARIANTS[hand]
 
 
 def hand_xml_path() -> str:
@@ -65,7 +93,7 @@ def build_model(obj: ObjectSpec, scale: float = 1.0, timestep: float = 0.01,
     """
     spec = hand_spec(hand)
     spec.option.timestep = timestep
-    body = spec.worldbody.add_body(name=OBJECT_BODY, pos=object_start(hand).tolist())
+    body = spec.worldbody.add_body(name=OBJECT_BODY, pos=hand_variant(hand).object_start.tolist())
     body.add_freejoint(name=OBJECT_JOINT)
     for i, g in enumerate(obj.geoms(scale)):
         body.add_geom(

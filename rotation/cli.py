@@ -79,6 +79,17 @@ def _one_line(err: BaseException) -> str:
     return " ".join(str(err).split())
 
 
+def _expected_error(err: Exception) -> tuple[str, int]:
+    """(the word before the message, exit status) of an error a job expects."""
+    if isinstance(err, RequestRefused):
+        return "refused", 1  # well formed but impossible
+    if isinstance(err, JobFailed):
+        return "failed", 1
+    if isinstance(err, OSError):
+        return "error", 1  # a fault of the file system or a device (disk full, permission, a vanished path)
+    return "error", 2  # any other ValueError: a bad option
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("ROTATE_DEBUG", "") not in ("", "0")
@@ -107,25 +118,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         code = getattr(err, "exit_code", 130)
         print(f"rotate {args.command}: {err or 'interrupted'} (exit status {code})", file=sys.stderr)
         return code
-    except (RequestRefused, JobFailed) as err:
-        # the job's own refusal (well formed but impossible) or failure: one line, status 1
+    except (ValueError, OSError, JobFailed) as err:
+        # the errors a job expects (envs.errors, a bad option, a file-system or device fault): one line
         if debug:
             raise
-        kind = "refused" if isinstance(err, RequestRefused) else "failed"
+        kind, code = _expected_error(err)
         print(f"rotate {args.command}: {kind}: {_one_line(err)}", file=sys.stderr)
-        return 1
-    except ValueError as err:
-        # bad input: one clear line instead of a traceback
-        if debug:
-            raise
-        print(f"rotate {args.command}: error: {_one_line(err)}", file=sys.stderr)
-        return 2
-    except OSError as err:
-        # a fault of the file system or a device (disk full, permission, a vanished path): one line, status 1
-        if debug:
-            raise
-        print(f"rotate {args.command}: error: {_one_line(err)}", file=sys.stderr)
-        return 1
+        return code
     # a job that ends itself cleanly on a fault or a signal (deploy) reports its exit status in its result
     if isinstance(result, dict) and isinstance(result.get("exit_code"), int):
         return result["exit_code"]

@@ -21,8 +21,10 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs import constants as C  # noqa: E402
-from envs.grasps import CANONICAL_POSE  # noqa: E402
-from envs.scene import hand_spec  # noqa: E402
+from envs.scene import (
+    CANONICAL_POSE,  # noqa: E402
+    hand_spec,  # noqa: E402
+)
 from envs.sensors import xela as X  # noqa: E402
 from envs.validation import check_output_file  # noqa: E402
 from rotation.configs import script_main  # noqa: E402

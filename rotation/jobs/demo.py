@@ -78,7 +78,8 @@ def run(cfg: Config) -> dict[str, Any]:
     """Run the demo; returns ``{"report": path, "exit_code": status}``: the status is the deploy dry run's (0 when
     it completed or was skipped, non-zero when it faulted or was stopped), so `rotate demo` fails with it."""
     start = time.time()
-    missing = [name for name in ("teacher", "student") if name not in shipped_bundles()]
+    shipped = shipped_bundles()
+    missing = [name for name in ("teacher", "student") if name not in shipped]
     if missing:
         raise RequestRefused(f"the demo runs the shipped teacher and student, and this installation ships no "
                              f"{' and no '.join(missing)} bundle (rotation/policies/); reinstall the package")
@@ -104,7 +105,7 @@ def run(cfg: Config) -> dict[str, Any]:
         print(f"[demo] the earlier demo evaluation (other policies or settings) is kept in {kept}")
     rows = evaluate_job.run(eval_cfg)
 
-    adapter = "adapter" in shipped_bundles()
+    adapter = "adapter" in shipped
     adapter_dir = cfg.out / "evaluation_adapter"
     if adapter and cfg.adapter_suite:
         print("[demo] evaluating student vs student + tactile adapter (simulated Digit 360 on)")

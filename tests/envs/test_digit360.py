@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from envs import EnvConfig, RotateCupVec
-from envs.grasps import CANONICAL_POSE
 from envs.objects import get_object
-from envs.scene import build_model, hand_xml_path
+from envs.scene import CANONICAL_POSE, build_model, hand_xml_path
 from envs.sensors import digit360_image as I
 from envs.sensors import digit360_model as M
 from envs.sensors import digit360_render as R

@@ -12,9 +12,9 @@ from envs import EnvConfig, RotateCupVec
 from envs import constants as C
 from envs.config import RandomizationConfig
 from envs.grasp_cache import GRASP_DIM, GraspCache, load_default_cache
-from envs.grasps import CANONICAL_POSE, HoldRule, generate_grasps, hold_check
+from envs.grasps import HoldRule, generate_grasps, hold_check
 from envs.objects import get_object
-from envs.scene import OBJECT_BODY, OBJECT_START, build_model
+from envs.scene import CANONICAL_POSE, OBJECT_BODY, OBJECT_START, build_model
 
 SCALES = (0.74, 0.82)
 

@@ -173,12 +173,12 @@ def test_the_vendor_hand_is_an_env_variant_with_its_own_grasps():
     from envs.config import EnvConfig
     from envs.core import RotateCupVec
     from envs.grasp_cache import load_default_cache
-    from envs.scene import object_start
+    from envs.scene import hand_variant
 
     cache = load_default_cache("cup", hand="digit360_v4")
     assert cache.hand == "digit360_v4" and cache.hold  # generated with the hold check
     centres = cache.grasps[..., C.NUM_JOINTS : C.NUM_JOINTS + 3].reshape(-1, 3)
-    assert np.linalg.norm(centres.mean(axis=0) - object_start("digit360_v4")) < 0.03
+    assert np.linalg.norm(centres.mean(axis=0) - hand_variant("digit360_v4").object_start) < 0.03
     env = RotateCupVec(EnvConfig(hand="digit360_v4"), num_envs=2, seed=0, nthread=1)
     assert env.model.nbody == mujoco.MjModel.from_xml_string(hand_xml()).nbody + 1  # the hand and the cup
     obs = env.reset(seed=1)
