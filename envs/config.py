@@ -6,6 +6,7 @@ ValueError that names the field and the allowed values; nothing is clamped silen
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 from dataclasses import dataclass, field
@@ -13,90 +14,15 @@ from typing import Literal
 
 from envs import constants as C
 from envs.objects import OBJECTS
+from envs.physics import (  # noqa: F401 (re-exported: the configs' public names)
+    MAX_FRICTION,
+    MAX_OBJECT_MASS,
+    ContactConfig,
+    RandomizationConfig,
+    default_randomization,
+    hand_physics,
+)
 from envs.validation import check_finite, check_types
-
-MAX_FRICTION = 3.0
-"""Highest sliding friction coefficient the contact model holds (the top of Hora's randomization range). Measured
-with the cup held under zero action for 3 s (16 envs, nominal physics): the deepest object contact penetrates a
-median 0.7 mm at 1.65, 2.4 mm at 3.0, then 3.7 mm at 3.6, 8.9 mm at 5.0, and at 6.6 the cup sinks through the palm
-(9 of 16 envs drop it). With pyramidal friction cones, larger coefficients soften the normal direction."""
-MAX_OBJECT_MASS = 0.5
-"""Heaviest object (kg) the hand is asked to rotate: a 0.5 N m actuator on a ~0.1 m finger pushes ~5 N at the tip,
-the weight of 0.5 kg, so a heavier object can only lie on the palm. The shipped teacher's rotation rate falls from
-0.30 rad/s to 0.13 at +0.5 kg and to 0.01 at +2 kg (16 envs, 10 s)."""
-
-
-def _check_range(name: str, lo_hi: tuple[float, float], low: float = -math.inf, high: float = math.inf) -> None:
-    allowed = f"a (low, high) pair with low <= high within [{low}, {high}]"
-    try:
-        if any(isinstance(v, bool | str) for v in lo_hi):  # float() would read True as 1.0 and "0.1" as 0.1
-            raise TypeError
-        lo, hi = (float(v) for v in lo_hi)
-    except (TypeError, ValueError):  # not a pair of numbers: a scalar, one or three values, text
-        raise ValueError(f"{name} must be {allowed}, got {lo_hi!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise ValueError(f"{name} must be finite, got {lo_hi!r}")
-    if lo > hi:
-        raise ValueError(f"{name} is inverted: low {lo} > high {hi}; expected {allowed}")
-    if lo < low or hi > high:
-        raise ValueError(f"{name}={lo_hi!r} is outside the allowed interval [{low}, {high}]")
-
-
-@dataclass(frozen=True)
-class RandomizationConfig:
-    """Domain randomization (docs/reference/hora.md "Domain randomization"). Ranges are (low, high), sampled
-    uniformly."""
-
-    enabled: bool = True
-    """Master switch; when False every env uses the nominal values: the middle scale bucket without jitter, the
-    middle of the mass and friction ranges, no CoM offset, the env's kp / kd, no observation noise, no pushes."""
-    scales: tuple[float, ...] = (0.70, 0.72, 0.74, 0.76, 0.78, 0.80, 0.82, 0.84, 0.86)
-    """Object scale buckets (Hora: 9 values 0.70..0.86), one picked per env at reset."""
-    scale_jitter: float = 0.025
-    """Uniform +- jitter added to the picked scale bucket."""
-    mass: tuple[float, float] = (0.01, 0.25)
-    """Object mass (kg)."""
-    com: tuple[float, float] = (-0.01, 0.01)
-    """Center-of-mass offset per axis (m) in the object frame."""
-    friction: tuple[float, float] = (0.3, 3.0)
-    """Sliding friction coefficient, the same on hand and object (Hora)."""
-    friction_log: bool = False
-    """Draw the friction log-uniformly in ``friction`` (as many episodes per factor of 2 at the slippery end as at
-    the grippy end) instead of uniformly; without randomization the nominal value stays the range's middle."""
-    kp: tuple[float, float] = (2.9, 3.1)
-    """Per-joint proportional gain (N m / rad), resampled at every reset."""
-    kd: tuple[float, float] = (0.09, 0.11)
-    """Per-joint damping gain (N m s / rad), resampled at every reset."""
-    joint_noise: float = 0.02
-    """Joint observation noise, U(-x, x) rad per step."""
-    push_prob: float = 0.25
-    """Probability per policy step of a random push on the object."""
-    push_scale: float = 2.0
-    """Push force = N(0, 1) per axis x mass x this (N per kg)."""
-    push_decay: float = 0.9
-    """Push decay factor per 0.08 s (Hora)."""
-
-    def __post_init__(self) -> None:
-        check_types(self, "randomization.", skip=("mass", "com", "friction", "kp", "kd"))
-        if not self.scales:
-            raise ValueError("randomization.scales must list at least one scale")
-        if any(not (0.1 <= s <= 3.0) for s in self.scales):
-            raise ValueError(f"randomization.scales must lie in [0.1, 3.0], got {self.scales!r}")
-        if not (0.0 <= self.scale_jitter < min(self.scales)):
-            raise ValueError(f"randomization.scale_jitter must be in [0, {min(self.scales)}), got {self.scale_jitter}")
-        _check_range("randomization.mass", self.mass, low=1e-4, high=MAX_OBJECT_MASS)
-        _check_range("randomization.com", self.com, low=-0.05, high=0.05)
-        _check_range("randomization.friction", self.friction, low=0.01, high=MAX_FRICTION)
-        _check_range("randomization.kp", self.kp, low=0.01, high=100.0)
-        _check_range("randomization.kd", self.kd, low=0.0, high=10.0)
-        for name, top in (("joint_noise", 1.0), ("push_scale", 100.0)):
-            if not (0.0 <= getattr(self, name) <= top):
-                raise ValueError(f"randomization.{name} must be finite and >= 0 (at most {top}), "
-                                 f"got {getattr(self, name)}")
-        if not (0.0 <= self.push_prob <= 1.0):
-            raise ValueError(f"randomization.push_prob must be in [0, 1], got {self.push_prob}")
-        if not (0.0 <= self.push_decay <= 1.0):
-            raise ValueError(f"randomization.push_decay must be in [0, 1], got {self.push_decay}")
 
 
 @dataclass(frozen=True)
@@ -146,28 +72,6 @@ class RewardConfig:
         for name in ("rotate_clip", "rotate_back_clip"):
             if not (0 < getattr(self, name) <= 100.0):
                 raise ValueError(f"reward.{name} must be > 0 (at most 100 rad/s), got {getattr(self, name)}")
-
-
-@dataclass(frozen=True)
-class ContactConfig:
-    """MuJoCo's contact model (experiments/contact_creep measures what each setting does to a held cup). The
-    defaults are the settings the shipped policies were trained with: under them a still hand's cup sinks about 9 mm
-    in 5 s; elliptic cones with impratio 10 and the noslip solver hold it within half a millimetre."""
-
-    cone: Literal["pyramidal", "elliptic"] = "pyramidal"
-    """Friction cone: 'pyramidal' (the shipped policies') or 'elliptic' (MuJoCo's usual choice for grasping)."""
-    impratio: float = 3.0
-    """Ratio of the frictional to the normal constraint impedance: higher makes friction stiffer (less creep)."""
-    noslip_iterations: int = 0
-    """Iterations of MuJoCo's noslip post-solver (0 = off): it removes the slip of contacts that should stick, at
-    about 50% more physics time with 10."""
-
-    def __post_init__(self) -> None:
-        check_types(self, "contact.")
-        if not (math.isfinite(self.impratio) and 1.0 <= self.impratio <= 100.0):
-            raise ValueError(f"contact.impratio must be in [1, 100], got {self.impratio}")
-        if not (0 <= self.noslip_iterations <= 100):
-            raise ValueError(f"contact.noslip_iterations must be in [0, 100], got {self.noslip_iterations}")
 
 
 @dataclass(frozen=True)
@@ -228,9 +132,10 @@ class EnvConfig:
     """Nominal damping gain (N m s / rad) when randomization is off."""
     torque_limit: float = C.DEFAULT_TORQUE_LIMIT
     """Actuator torque limit (N m) of every joint, with joint_torque_limits 'uniform'."""
-    joint_torque_limits: Literal["uniform", "vendor"] = "uniform"
+    joint_torque_limits: Literal["uniform", "vendor"] | None = None
     """'uniform': torque_limit on every joint (what the shipped policies trained with); 'vendor': the real hand's
-    per-joint limits, 0.225-0.562 N m (envs.constants.TORQUE_LIMITS: the vendor driver's PWM limits / 1200)."""
+    per-joint limits, 0.225-0.562 N m (envs.constants.TORQUE_LIMITS: the vendor driver's PWM limits / 1200);
+    None = the hand's (envs.physics.HAND_PHYSICS)."""
     fall_drop: float = 0.05
     """The object has fallen when its centre is this far (m) below its grasp height."""
     max_distance: float = 0.12
@@ -244,16 +149,25 @@ class EnvConfig:
     """Simulate the Digit 360 fingertips and add the `tactile` observation group (slower)."""
     hand: Literal["digit360", "xela", "digit360_v4"] = "digit360"
     """Hand variant: 'digit360' (Digit 360 fingertips) or 'xela' (stock-length fingertips, 18 Xela skin pads on
-    fingertips, phalanges and palm; docs/skin.md). Each has its own grasp caches."""
+    fingertips, phalanges and palm; docs/skin.md), both on the physics the shipped policies trained on, or
+    'digit360_v4' (the vendor's kinematics with Meta's Digit 360 mount, on the hardware's physics:
+    envs.physics.V4_PHYSICS). Each has its own grasp caches; the fields left None take the hand's physics. Move a
+    config to another hand with :meth:`with_hand` (dataclasses.replace would keep the old hand's physics)."""
     skin: bool = False
     """Simulate the Xela skin (needs hand='xela') and add the `skin` observation group (docs/skin.md)."""
-    randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+    randomization: RandomizationConfig | None = None
+    """Domain randomization; None = the hand's (envs.physics.default_randomization)."""
     reward: RewardConfig = field(default_factory=RewardConfig)
     perturb: Perturbation = field(default_factory=Perturbation)
-    contact: ContactConfig = field(default_factory=ContactConfig)
+    contact: ContactConfig | None = None
+    """The contact model; None = the hand's (envs.physics.HAND_PHYSICS)."""
 
     def __post_init__(self) -> None:
         check_types(self)
+        physics = hand_physics(self.hand)
+        for name in ("randomization", "contact", "joint_torque_limits"):  # unset: the hand's physics
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, getattr(physics, name))
         if self.skin and self.hand != "xela":
             raise ValueError(f"skin: the Xela skin needs hand='xela', got hand={self.hand!r}")
         if self.tactile and self.hand != "digit360":
@@ -312,6 +226,15 @@ class EnvConfig:
                 f"perturb.added_mass {p.added_mass:g} kg makes the object weigh up to {mass:.3g} kg, above "
                 f"{MAX_OBJECT_MASS} kg, what the 0.5 N m actuators can lift; with this randomization added_mass must "
                 f"be in [0, {top:.3g}] kg")
+
+    def with_hand(self, hand: str) -> EnvConfig:
+        """This config on another hand with that hand's physics (randomization on or off as here, its contact model
+        and torque limits: envs.physics.HAND_PHYSICS); the task fields (object, timing, reward, perturbation)
+        stay."""
+        physics = hand_physics(hand)
+        rc = dataclasses.replace(physics.randomization, enabled=self.randomization.enabled)
+        return dataclasses.replace(self, hand=hand, contact=physics.contact,
+                                   joint_torque_limits=physics.joint_torque_limits, randomization=rc)
 
     @property
     def substeps(self) -> int:

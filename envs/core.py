@@ -33,7 +33,7 @@ from envs.sensors.xela_hand import add_xela_sensors
 from envs.validation import check_int, check_seed
 
 # Random streams (see envs.rng): one id per use, so adding a draw never shifts another.
-_STREAM_RESET, _STREAM_NOISE, _STREAM_PUSH_P, _STREAM_PUSH_F = 1, 2, 3, 4
+_STREAM_RESET, _STREAM_NOISE, _STREAM_PUSH_P, _STREAM_PUSH_F, _STREAM_PHYS = 1, 2, 3, 4, 5
 PUSH_DECAY_PERIOD = task.PUSH_DECAY_PERIOD
 """Hora decays pushes by `push_decay` every 0.08 s."""
 
@@ -50,6 +50,10 @@ def task_model(cfg: EnvConfig, edit=None) -> tuple[mujoco.MjModel, ObjectSpec, f
     m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.contact.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
     m.opt.impratio = cfg.contact.impratio
     m.opt.noslip_iterations = cfg.contact.noslip_iterations
+    if cfg.contact.timeconst is not None:
+        m.geom_solref[:, 0] = cfg.contact.timeconst
+    if cfg.contact.solimp is not None:
+        m.geom_solimp[:, :3] = cfg.contact.solimp
     if cfg.joint_torque_limits == "vendor":
         m.actuator_forcerange[:] = np.stack([-C.TORQUE_LIMITS, C.TORQUE_LIMITS], axis=1)
     else:
@@ -81,27 +85,66 @@ class EpisodeStarts:
         self.body_mass, self.body_ipos = batch.expand("body_mass"), batch.expand("body_ipos")
         self.body_inertia = batch.expand("body_inertia")
         self.gainprm, self.biasprm = batch.expand("actuator_gainprm"), batch.expand("actuator_biasprm")
+        # the hardware physics (envs.physics): tips and the rest of the hand, and the fields its draws write
+        self.tip_geoms = np.array([model.geom(f"{finger}_tip").id for finger in C.FINGERS])
+        self.link_geoms = np.setdiff1d(np.flatnonzero(model.geom_contype > 0), np.r_[self.tip_geoms, self.obj_geoms])
+        self.forcerange0 = model.actuator_forcerange.copy()
+        self.frictionloss0 = model.dof_frictionloss.copy()
+        self.solref0 = model.geom_solref.copy()
+        self.noslip0 = int(model.opt.noslip_iterations)
+        self.impratio0 = float(model.opt.impratio)
+        self._fields: dict[str, np.ndarray] = {}
         # live state views
         self.qpos, self.qvel, self.ctrl = batch.bind("qpos"), batch.bind("qvel"), batch.bind("ctrl")
         self.xfrc = batch.bind("xfrc_applied")
 
+    def _field(self, name: str) -> np.ndarray:
+        """A per-simulation model field, given its own values on first use (the shipped physics never expands
+        these, so its simulations stay as they were)."""
+        if name not in self._fields:
+            self._fields[name] = self.batch.expand(name)
+        return self._fields[name]
+
+    def _start_hardware_physics(self, ids: np.ndarray, p: dict[str, np.ndarray]) -> None:
+        """Write the hardware physics' parameters of ``p`` (envs.task.sample_hardware_params) that are present."""
+        if "torque_scale" in p:
+            self._field("actuator_forcerange")[ids] = self.forcerange0[None] * p["torque_scale"][:, None, None]
+        if "joint_friction" in p:
+            loss = np.repeat(self.frictionloss0[None], len(ids), axis=0)
+            loss[:, : C.NUM_JOINTS] = p["joint_friction"]
+            self._field("dof_frictionloss")[ids] = loss
+        if "impratio" in p:
+            self._field("opt.impratio")[ids] = p["impratio"]
+        if "timeconst" in p:
+            solref = np.repeat(self.solref0[None], len(ids), axis=0)
+            solref[:, :, 0] = p["timeconst"][:, None]
+            self._field("geom_solref")[ids] = solref
+        if "noslip" in p:
+            self._field("opt.noslip_iterations")[ids] = np.where(p["noslip"] > 0, self.noslip0, 0)
+
     def start(self, ids: np.ndarray, p: dict[str, np.ndarray], q: np.ndarray, pose: np.ndarray) -> None:
         """Reset simulations ``ids`` (k,) with parameters ``p`` (scale, friction, mass (k,); com (k, 3); kp, kd
-        (k, 16)), joints and joint targets ``q`` (k, 16) and object pose ``pose`` (k, 7), at rest with no push."""
+        (k, 16); and those of the hardware physics that its config sets, envs.task.PHYS_KEYS), joints and joint
+        targets ``q`` (k, 16) and object pose ``pose`` (k, 7), at rest with no push."""
         self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
         s = p["scale"][:, None, None]
         self.geom_size[np.ix_(ids, self.obj_geoms)] = self.geom_size1[None] * s
         self.geom_pos[np.ix_(ids, self.obj_geoms)] = self.geom_pos1[None] * s
         fr = self.geom_friction[ids]
         fr[:, :, 0] = p["friction"][:, None]  # one coefficient for hand and object (Hora); the floor never collides
+        if "link_friction" in p:  # gel domes and the rest of the hand apart; the contact takes the larger (MuJoCo)
+            fr[:, self.link_geoms, 0] = p["link_friction"][:, None]
+            fr[:, self.obj_geoms, 0] = np.minimum(p["friction"], p["link_friction"])[:, None]
         self.geom_friction[ids] = fr
         self.body_mass[ids, self.obj_body] = p["mass"]
         self.body_ipos[ids, self.obj_body] = p["com"]
         self.body_inertia[ids, self.obj_body] = task.object_inertia(np, self.obj.kind, self.obj.radius,
                                                                     self.obj.length, p["scale"], p["mass"])
         gain, bias = self.gainprm[ids], self.biasprm[ids]
-        task.set_gains(gain, bias, p["kp"], p["kd"])
+        scale = p["torque_scale"][:, None] if "torque_scale" in p else 1.0  # N m per normalized torque unit
+        task.set_gains(gain, bias, p["kp"] * scale, p["kd"] * scale)
         self.gainprm[ids], self.biasprm[ids] = gain, bias
+        self._start_hardware_physics(ids, p)
         self.batch.set_const(ids)
         qpos = self.qpos[ids]
         qpos[:, : C.NUM_JOINTS] = q
@@ -185,6 +228,9 @@ class RotateCupVec:
         self.push = np.zeros((n, 3))
         self.params = {k: np.zeros(s) for k, s in
                        (("scale", n), ("mass", n), ("friction", n), ("com", (n, 3)), ("kp", (n, 16)), ("kd", (n, 16)))}
+        self.hardware_physics = task.uses_hardware_physics(cfg)
+        self.delay = np.zeros(n, dtype=np.int64)
+        """Physics steps each env's new targets wait before they reach the motors (the action delay)."""
         self.history = ProprioHistory(n)
         self._axis = np.asarray(cfg.reward.axis, dtype=np.float64)
         self._needs_reset = True
@@ -199,8 +245,11 @@ class RotateCupVec:
 
     def _sample_params(self, ids: np.ndarray) -> dict[str, np.ndarray]:
         """Per-env physical parameters for envs ``ids`` (vectorized, keyed by env and episode; envs.task)."""
-        u = self.rng.uniform(ids, self.episode[ids], np.zeros(len(ids), np.int64), _STREAM_RESET, task.PARAM_DRAWS)
-        return task.sample_params(np, self.cfg, u)
+        zero = np.zeros(len(ids), np.int64)
+        u = self.rng.uniform(ids, self.episode[ids], zero, _STREAM_RESET, task.PARAM_DRAWS)
+        u_phys = (self.rng.uniform(ids, self.episode[ids], zero, _STREAM_PHYS, task.PHYS_DRAWS)
+                  if self.hardware_physics else None)
+        return task.sample_params(np, self.cfg, u, u_phys)
 
     # ------------------------------------------------------------------ API
     def reset(self, seed: int | None = None, ids: np.ndarray | None = None) -> dict[str, np.ndarray]:
@@ -223,6 +272,10 @@ class RotateCupVec:
         self.starts.start(ids, p, q, pose)
         for key in ("scale", "mass", "friction", "com", "kp", "kd"):
             self.params[key][ids] = p[key]
+        for key in task.PHYS_KEYS:  # the hardware physics' draws, kept for reports (not in priv)
+            if key in p:
+                self.params.setdefault(key, np.zeros((self.num_envs, *np.shape(p[key])[1:])))[ids] = p[key]
+        self.delay[ids] = p.get("delay", 0)
         self.targets[ids] = q
         self.grasp_q[ids] = q
         self.start_pos[ids] = pose[:, :3]
@@ -258,7 +311,6 @@ class RotateCupVec:
             raise ValueError(f"actions must be finite; env {bad[0]} joint {bad[1]} is {a[tuple(bad)]}")
         cfg, rc, all_ids = self.cfg, self.cfg.randomization, np.arange(self.num_envs)
         self.targets = task.step_targets(np, cfg, self.targets, a, C.JOINT_LOWER, C.JOINT_UPPER)
-        self._ctrl[:] = self.targets
 
         # random pushes on the object (Hora): new with probability p, otherwise decaying
         if rc.enabled and rc.push_prob > 0:
@@ -272,7 +324,7 @@ class RotateCupVec:
         o = self.obj_qpos
         pos0 = self._qpos[:, o : o + 3].copy()
         quat0 = self._qpos[:, o + 3 : o + 7].copy()
-        self.batch.step(nstep=cfg.substeps)
+        self._advance()
         if self.touch is not None:  # touch: every substep's sensor sample, from the sensors' history
             self.touch.push(self.batch.bind("history"))
         if self.skin is not None:  # skin: every substep is one 100 Hz sample
@@ -295,6 +347,24 @@ class RotateCupVec:
         if self.skin is not None:  # skin: per-pad contact force label [normal, shear x, shear y] (N, pad frame)
             info["skin_force"] = self.skin.pad_force.copy()
         return self._observe(), out["reward"].astype(np.float64), terminated, truncated, info
+
+    def _advance(self) -> None:
+        """One control step of physics: each env's new targets reach its motors after its action delay (the old
+        ones act until then)."""
+        sub = self.cfg.substeps
+        if not self.delay.any():
+            self._ctrl[:] = self.targets
+            self.batch.step(nstep=sub)
+            return
+        done = 0
+        for d in np.unique(self.delay):  # the switch points, in order; delay < substeps
+            if d > done:
+                self.batch.step(nstep=int(d - done))
+                done = int(d)
+            ctrl, now = self._ctrl, self.delay == d
+            ctrl[now] = self.targets[now]
+            self._ctrl[:] = ctrl
+        self.batch.step(nstep=sub - done)
 
     # ------------------------------------------------------------------ tools
     def get_data(self, i: int = 0) -> tuple[mujoco.MjModel, mujoco.MjData]:

@@ -9,14 +9,15 @@ centre, at least two touch it, it did not fall, and (our additions for the uprig
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import mujoco
 import mujoco.batch
 import numpy as np
 
 from envs import constants as C
-from envs.config import EnvConfig, RandomizationConfig
+from envs import task
+from envs.config import EnvConfig, RandomizationConfig, default_randomization
 from envs.core import EpisodeStarts, task_model
 from envs.errors import RequestRefused
 from envs.geometry import tilt_angle
@@ -60,6 +61,38 @@ def _penetration(model: mujoco.MjModel, data: mujoco.MjData, q: np.ndarray, pos:
     return min((data.contact[i].dist for i in range(data.ncon)), default=1.0)
 
 
+def set_nominal_physics(model: mujoco.MjModel, cfg: EnvConfig) -> None:
+    """Write ``cfg``'s contact model, torque limits and, for the hardware physics, the middles of its friction, joint
+    friction, torque scale and contact ranges into ``model`` itself (in place): what a grasp is settled under, so
+    that an episode starting from it does not first settle again."""
+    m = model
+    m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.contact.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
+    m.opt.impratio = cfg.contact.impratio
+    m.opt.noslip_iterations = cfg.contact.noslip_iterations
+    limits = C.TORQUE_LIMITS if cfg.joint_torque_limits == "vendor" else np.full(C.NUM_JOINTS, cfg.torque_limit)
+    m.actuator_forcerange[:] = np.stack([-limits, limits], axis=1)
+    if not task.uses_hardware_physics(cfg):
+        return
+    nominal = replace(cfg, randomization=replace(cfg.randomization, enabled=False))
+    p = {k: v[0] for k, v in task.sample_hardware_params(np, nominal, np.zeros((1, task.PHYS_DRAWS))).items()}
+    rc = nominal.randomization
+    tips = np.array([m.geom(f"{finger}_tip").id for finger in C.FINGERS])
+    obj = np.flatnonzero(m.geom_bodyid == m.body(OBJECT_BODY).id)
+    tip_friction = float(np.mean(rc.friction))
+    if "link_friction" in p:
+        m.geom_friction[m.geom_contype > 0, 0] = p["link_friction"]
+        m.geom_friction[tips, 0] = tip_friction
+        m.geom_friction[obj, 0] = min(tip_friction, float(p["link_friction"]))
+    if "joint_friction" in p:
+        m.dof_frictionloss[: C.NUM_JOINTS] = p["joint_friction"]
+    if "torque_scale" in p:
+        m.actuator_forcerange[:] *= p["torque_scale"]
+    if "impratio" in p:
+        m.opt.impratio = p["impratio"]
+    if "timeconst" in p:
+        m.geom_solref[:, 0] = p["timeconst"]
+
+
 HOLD_DROP = 0.02
 """How far (m) the object may sink below its grasped height during a hold check before it counts as dropped."""
 
@@ -84,6 +117,13 @@ class HoldRule:
     def as_array(self) -> np.ndarray:
         return np.array([self.seconds, self.friction, self.mass, self.max_tilt])
 
+    @classmethod
+    def for_hand(cls, hand: str, **changes) -> HoldRule:
+        """The rule at a hand's nominal physics (the middle of its friction and mass ranges, envs.physics), with
+        ``changes`` on top; on the shipped physics that is the default rule."""
+        rc = default_randomization(hand)
+        return replace(cls(friction=float(np.mean(rc.friction)), mass=float(np.mean(rc.mass))), **changes)
+
 
 class HoldTest:
     """Runs HoldRule checks on batches of grasp rows of one object (the env's model, built once)."""
@@ -104,6 +144,9 @@ class HoldTest:
         steps = max(1, round(rule.seconds * cfg.control_hz))
         params = {"friction": np.full(n, rule.friction), "mass": np.full(n, rule.mass), "com": np.zeros((n, 3)),
                   "kp": np.full((n, C.NUM_JOINTS), cfg.kp), "kd": np.full((n, C.NUM_JOINTS), cfg.kd)}
+        if task.uses_hardware_physics(cfg):  # the hand's other parameters at their nominal values
+            nominal = replace(cfg, randomization=replace(cfg.randomization, enabled=False))
+            params.update(task.sample_hardware_params(np, nominal, np.zeros((n, task.PHYS_DRAWS))))
         worst = np.zeros(len(rows))
         for first in range(0, len(rows), n):
             k = min(n, len(rows) - first)
@@ -141,6 +184,10 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
         raise ValueError(f"per_scale must be >= 1, got {per_scale}")
     obj = get_object(object_name)
     model = build_model(obj, max(scales), hand=hand)
+    env_cfg = EnvConfig(object=object_name, hand=hand)
+    mass = 0.1
+    if task.uses_hardware_physics(env_cfg):  # settle the grasps under the physics the env starts them in
+        set_nominal_physics(model, env_cfg)
     rng = np.random.default_rng(seed)
     batch = mujoco.batch.Batch(model, batch_size, nthread or 0, persistent=True)
     geom_size, geom_pos = batch.expand("geom_size"), batch.expand("geom_pos")
@@ -154,7 +201,6 @@ def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int,
     site_xpos = batch.bind("site_xpos")
     o = int(model.joint("object_free").qposadr[0])
     substeps = round(0.05 / model.opt.timestep)
-    mass = 0.1
     hold_test = HoldTest(object_name, hand, batch_size, nthread) if hold is not None else None
     variant = hand_variant(hand)
     canonical, centre, tip_radius = variant.canonical_pose, variant.object_start, variant.tip_radius

@@ -21,6 +21,7 @@ import numpy as np
 
 from envs.config import EnvConfig
 from envs.geometry import angular_velocity, tilt_angle
+from envs.physics import OPTIONAL_RANGES
 
 Array = Any
 """A numpy array or a torch tensor; every argument of one call lives in the same namespace and device."""
@@ -31,6 +32,18 @@ PARAM_DRAWS = 40
 """Uniform draws per env and reset: scale bucket, jitter, mass, CoM (3), friction, kp (16), kd (16), grasp row."""
 PARAM_KEYS = ("scale", "mass", "friction", "com", "kp", "kd")
 """Physical parameters of one episode, what `params` holds and `priv` reports (with the object position)."""
+PHYS_DRAWS = 22
+"""Uniform draws per env and reset for the hardware physics' parameters (their own stream, so the shipped physics'
+draws never move): link friction, joint friction (16), torque scale, action delay, impratio, contact time
+constant, noslip dropout."""
+PHYS_KEYS = ("link_friction", "joint_friction", "torque_scale", "delay", "impratio", "timeconst", "noslip")
+"""The hardware physics' per-episode parameters (present only where the randomization config sets them)."""
+
+
+def uses_hardware_physics(cfg: EnvConfig) -> bool:
+    """Whether ``cfg`` randomizes any of the hardware physics' parameters (envs.physics.OPTIONAL_RANGES)."""
+    rc = cfg.randomization
+    return rc.noslip_dropout > 0 or any(getattr(rc, name) is not None for name in OPTIONAL_RANGES)
 
 
 # ---------------------------------------------------------------------------------------------------------- helpers
@@ -47,12 +60,13 @@ def to_int(xp: ModuleType, x: Array) -> Array:
 
 
 # ---------------------------------------------------------------------------------------------------- randomization
-def sample_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str, Array]:
+def sample_params(xp: ModuleType, cfg: EnvConfig, u: Array, u_phys: Array | None = None) -> dict[str, Array]:
     """Physical parameters of k episodes from (k, PARAM_DRAWS) uniform draws in [0, 1).
 
     Returns ``scale`` (k,), ``bucket`` (k,) int64 index into ``randomization.scales``, ``mass`` (k,) kg, ``com``
     (k, 3) m, ``friction`` (k,), ``kp`` / ``kd`` (k, 16) and ``grasp_u`` (k,) (picks the grasp row), with the
-    evaluation perturbation applied on top.
+    evaluation perturbation applied on top; with (k, PHYS_DRAWS) draws ``u_phys`` also the hardware physics'
+    parameters (sample_hardware_params).
     """
     rc = cfg.randomization
 
@@ -73,11 +87,47 @@ def sample_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str, Array]:
         p = dict(scale=scales[bucket], bucket=bucket, mass=zero + float(np.mean(rc.mass)), com=u[:, 3:6] * 0.0,
                  friction=zero + float(np.mean(rc.friction)), kp=u[:, 7:23] * 0.0 + cfg.kp,
                  kd=u[:, 23:39] * 0.0 + cfg.kd)
+    if u_phys is not None:
+        p.update(sample_hardware_params(xp, cfg, u_phys))
     pert = cfg.perturb
     p["friction"] = p["friction"] * pert.friction_scale
+    if "link_friction" in p:
+        p["link_friction"] = p["link_friction"] * pert.friction_scale
     p["mass"] = p["mass"] + pert.added_mass
     p["com"] = p["com"] + const(xp, pert.com_shift, u)
     p["grasp_u"] = u[:, 39]
+    return p
+
+
+def sample_hardware_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str, Array]:
+    """The hardware physics' parameters of k episodes from (k, PHYS_DRAWS) uniform draws, for the ranges the
+    randomization sets (envs.physics.RandomizationConfig; without randomization each range's middle, noslip on):
+    ``link_friction`` (k,), ``joint_friction`` (k, 16) N m, ``torque_scale`` (k,), ``delay`` (k,) whole physics
+    steps, ``impratio`` (k,), ``timeconst`` (k,) s, ``noslip`` (k,) 1.0 where the episode runs the noslip solver."""
+    rc = cfg.randomization
+    if not rc.enabled:
+        u = u * 0.0 + 0.5  # the middle of every range
+    p: dict[str, Array] = {}
+
+    def draw(lo_hi, x, log=False):
+        lo, hi = float(lo_hi[0]), float(lo_hi[1])
+        return lo * (hi / lo) ** x if log else lo + (hi - lo) * x
+
+    if rc.link_friction is not None:
+        p["link_friction"] = draw(rc.link_friction, u[:, 0])
+    if rc.joint_friction is not None:
+        p["joint_friction"] = draw(rc.joint_friction, u[:, 1:17])
+    if rc.torque_scale is not None:
+        p["torque_scale"] = draw(rc.torque_scale, u[:, 17])
+    if rc.action_delay is not None:  # whole physics steps, at most one control step less one
+        steps = to_int(xp, draw(rc.action_delay, u[:, 18]) / cfg.physics_dt + 1e-9)
+        p["delay"] = xp.clip(steps, 0, cfg.substeps - 1)
+    if rc.impratio is not None:
+        p["impratio"] = draw(rc.impratio, u[:, 19], log=True)
+    if rc.contact_timeconst is not None:
+        p["timeconst"] = draw(rc.contact_timeconst, u[:, 20])
+    if rc.noslip_dropout > 0:
+        p["noslip"] = (u[:, 21] >= rc.noslip_dropout) * 1.0 if rc.enabled else u[:, 21] * 0.0 + 1.0
     return p
 
 

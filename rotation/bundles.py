@@ -24,8 +24,9 @@ from adapters.bundle_config import CONFIG_FILE, is_adapter_dir
 from adapters.bundle_config import WEIGHTS_FILE as ADAPTER_WEIGHTS
 from adapters.ensemble import EnsemblePolicy, load_ensemble
 from adapters.ensemble_config import ensemble_digest, is_ensemble_dir
+from envs.sim_identity import bundle_hand, hand_problem
 from rotation.policy.bundle import PolicyBundle, resolve_bundle
-from rotation.policy.bundle_config import WEIGHTS_FILE
+from rotation.policy.bundle_config import WEIGHTS_FILE, BundleRefused
 
 AnyPolicy = PolicyBundle | AdaptedPolicy | EnsemblePolicy
 """What :func:`load_bundle` returns; all three act through ``act`` / ``act_batch`` on the same observations."""
@@ -55,3 +56,19 @@ def weights_digest(policy: str | Path) -> str:
     else:
         data = (path / WEIGHTS_FILE).read_bytes()
     return hashlib.sha256(data).hexdigest()[:16]
+
+
+def policy_hand(bundle: AnyPolicy) -> str:
+    """The hand variant a policy acts on in simulation: the one its touch needs (a skin adapter: the Xela hand),
+    otherwise the one it trained on (envs.sim_identity)."""
+    needs = bundle.env_needs if isinstance(bundle, AdaptedPolicy | EnsemblePolicy) else {}
+    return str(needs.get("hand", bundle_hand(bundle.config.sim)))
+
+
+def check_policy_hand(label: str, bundle: AnyPolicy, hand: str) -> None:
+    """Refuse (BundleRefused, one line) a policy that cannot act on ``hand``: trained on another hand, or on a
+    model of this hand that has changed since."""
+    problem = hand_problem(bundle.config.sim, hand)
+    if problem is not None:
+        raise BundleRefused(f"{label}: {problem}; a policy acts only on the hand it was trained on (retrain it with "
+                            f"--hand {hand}, or choose a policy trained there)")

@@ -157,6 +157,8 @@ def dataclass_from_args(cls: type, args: argparse.Namespace, prefix: str = "", b
     hints = typing.get_type_hints(cls)
     values: dict[str, Any] = {}
     ns = vars(args)
+    if base is not None and hasattr(base, "with_hand") and ns.get(prefix + "hand", base.hand) != base.hand:
+        base = base.with_hand(ns[prefix + "hand"])  # another hand brings its physics (envs.config.EnvConfig)
     for f in dataclasses.fields(cls):
         if not f.init:
             continue
@@ -169,7 +171,7 @@ def dataclass_from_args(cls: type, args: argparse.Namespace, prefix: str = "", b
             continue
         if dest in ns:
             value = ns[dest]
-            if typing.get_origin(tp) is tuple:
+            if typing.get_origin(tp) is tuple and value is not None:
                 value = tuple(value)
             values[f.name] = value
     values.update(overrides)

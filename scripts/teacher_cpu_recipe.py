@@ -47,6 +47,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from envs.grasp_cache import default_cache_path
 from rotation.configs import script_main
 
 STAGE2_PPO = ["--critic-warmup", "20", "--num-envs", "512", "--n-steps", "32", "--batch-size", "4096", "--n-epochs",
@@ -94,8 +95,16 @@ class Config:
     """Progress bars."""
     dry_run: bool = False
     """Print the commands (what is left to run, and how) without running them."""
+    hand: str = "digit360"
+    """Hand variant (envs.scene.HANDS) the recipe trains on: its grasps, its physics (envs.physics.HAND_PHYSICS)
+    and its shipped hold-checked grasps for stages 3-5. 'digit360_v4' is the vendor's kinematics on the hardware's
+    physics; the student stages and the evaluation take the hand from the teacher's bundle."""
 
     def __post_init__(self) -> None:
+        from envs.scene import HANDS
+
+        if self.hand not in HANDS:
+            raise ValueError(f"hand: unknown hand {self.hand!r}; hands: {', '.join(HANDS)}")
         self.out = Path(self.out)
         if self.eval_episodes < 0:
             raise ValueError(f"eval_episodes must be >= 0, got {self.eval_episodes}")
@@ -169,17 +178,29 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     """(what, `rotate` arguments) still to run, in order: finished steps are left out, stopped stages resume."""
     out = cfg.out
     grasps_dir = out / "grasps_unchecked"
-    grasps = grasps_dir / "grasps_cup.npz"
+    grasps = grasps_dir / default_cache_path("cup", cfg.hand).name
+    hand = ["--hand", cfg.hand] if cfg.hand != "digit360" else []
+    checked = _checked_cache(cfg)
     todo: list[tuple[str, list[str]]] = []
     if not grasps.is_file():
         todo.append(("stage 0: the grasp cache without the hold check",
-                     ["grasps", "--objects", "cup", "--hold-seconds", "0", "--out", str(grasps_dir)]))
+                     ["grasps", "--objects", "cup", "--hold-seconds", "0", "--out", str(grasps_dir), *hand]))
     progress = [] if cfg.progress else ["--no-progress"]
     prev = None
+    # stages 3 on train (and the evaluation runs) on the hold-checked grasps: the shipped ones of the shipped hand,
+    # the recipe's own for another hand (generated before stage 3 needs them)
+    on_checked = {"train-teacher": ["--grasp-cache", str(checked)], "train-student": ["--env.grasp-cache",
+                  str(checked)], "finetune-student": ["--grasp-cache", str(checked)]} if checked else {}
     stages = [(name, "train-teacher", steps, ["--out", "{run}", *options, "--total-steps", "{steps}",
-                                               "--checkpoint-every", "1000000"]) for name, steps, options in STAGES]
+                                               "--checkpoint-every", "1000000", *hand])
+              for name, steps, options in STAGES]
     for name, job, steps, options in stages + ([] if cfg.teacher_only else list(STUDENT_STAGES)):
         run_dir = out / name
+        if checked and "{grasps}" not in options:
+            options = [*options, *on_checked[job]]
+            if not checked.is_file() and not any(what.startswith("grasps checked") for what, _ in todo):
+                todo.append((f"grasps checked: the {cfg.hand} hand's hold-checked grasp cache",
+                             ["grasps", "--objects", "cup", "--out", str(checked.parent), *hand]))
         if (stage := _stage(name, job, steps, options, run_dir, progress, grasps=grasps, prev=prev)) is not None:
             todo.append(stage)
         prev = run_dir / "bundle"
@@ -188,8 +209,16 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
         todo.append((f"evaluation: {' and '.join(policies)}, nominal, fresh seeds",
                      ["evaluate", *(a for label, path in policies.items() for a in ("--policy", f"{label}={path}")),
                       "--conditions", "nominal", "--episodes", str(cfg.eval_episodes), "--num-envs", "32", "--seed",
-                      str(cfg.eval_seed), "--out", str(evaluation), *progress]))
+                      str(cfg.eval_seed), "--out", str(evaluation), *progress,
+                      *(["--grasp-cache", str(checked)] if checked else [])]))
     return todo
+
+
+def _checked_cache(cfg: Config) -> Path | None:
+    """The recipe's own hold-checked grasp cache (a hand other than the shipped policies'), None for that hand."""
+    if cfg.hand == "digit360":
+        return None
+    return cfg.out / "grasps_checked" / default_cache_path("cup", cfg.hand).name
 
 
 def _result(cfg: Config) -> str:

@@ -91,6 +91,10 @@ ALLOWED: dict[str, dict[str, str]] = {
     "finetune-adapter:env.randomization.com": {"zero": "the range (0, 0): no CoM randomization"},
     "finetune-adapter:env.randomization.kd": {"zero": "the range (0, 0): no damping"},
     "finetune-adapter:student_steps": {"zero": "0 = the adapter acts from the first step (no student-only phase)"},
+    **{f"{command}:env.randomization.{name}": {"zero": why} for command in ("train-student", "finetune-adapter")
+       for name, why in (("joint_friction", "the range (0, 0): frictionless joints"),
+                         ("action_delay", "the range (0, 0): targets reach the motors at once"),
+                         ("noslip_dropout", "every episode with the noslip solver"))},
     **{f"{command}:env.reward.{term}": {
         "negative": "a penalty weight", "zero": "turns the term off",
         "huge": "reward weights need only be finite (their relative sizes are the reward design)"}

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import mujoco
@@ -25,6 +25,7 @@ import mujoco.batch
 import numpy as np
 
 from envs import constants as C
+from envs import task
 from envs.config import ContactConfig, EnvConfig, RandomizationConfig
 from envs.core import EpisodeStarts, task_model
 from envs.geometry import tilt_angle
@@ -44,10 +45,13 @@ SETTINGS: dict[str, dict] = {
     "elliptic_10_noslip_5ms": {"cone": "elliptic", "impratio": 10.0, "noslip_iterations": 10, "physics_dt": 0.005},
     "today_5ms_stiff": {"cone": "pyramidal", "impratio": 3.0, "physics_dt": 0.005, "timeconst": 0.01},
     "elliptic_10_5ms_stiff": {"cone": "elliptic", "impratio": 10.0, "physics_dt": 0.005, "timeconst": 0.01},
+    "hand": {},
 }
 """Contact settings compared: MuJoCo's friction cone, the ratio of frictional to normal constraint impedance, the
 noslip post-solver's iterations (0 = off), the physics step (s) and the contacts' time constant (s; the model's is
-0.02, the stiffest MuJoCo honours at a 10 ms step: it needs at least two steps)."""
+0.02, the stiffest MuJoCo honours at a 10 ms step: it needs at least two steps). 'hand' is the hand's own physics
+(envs.physics.HAND_PHYSICS) at its nominal values: on the digit360_v4 hand the tips' and the links' frictions
+apart, joint friction, torque scale, the contact model it trains with."""
 
 
 @dataclass
@@ -62,6 +66,11 @@ class Config:
     """Object whose shipped grasp cache is replayed (its nominal-scale bucket)."""
     hand: str = "digit360"
     """Hand variant (envs.scene.HANDS) whose model and grasp cache are used."""
+    grasp_cache: str = ""
+    """Grasp cache to replay (empty: the one shipped for the object and hand)."""
+    settle: float = 0.0
+    """Seconds held before the sink is measured from: a grasp found under other physics first settles into this
+    one's equilibrium (a step down, then still), which is not creep."""
 
     def __post_init__(self) -> None:
         unknown = [s for s in self.settings if s not in SETTINGS]
@@ -81,25 +90,34 @@ def _edit(setting: dict):
     return edit
 
 
-def hold(setting: dict, object_name: str, seconds: float, hand: str = "digit360") -> dict[str, float]:
-    """Replay the nominal bucket's grasps under ``setting``: the sink (mm) and tilt (deg) after ``seconds``."""
-    contact = ContactConfig(cone=setting["cone"], impratio=setting["impratio"],
-                            noslip_iterations=setting.get("noslip_iterations", 0))
+def hold(setting: dict, object_name: str, seconds: float, hand: str = "digit360", grasp_cache: str = "",
+         limit: int | None = None, settle: float = 0.0) -> dict[str, float]:
+    """Replay the nominal bucket's grasps (the first ``limit`` of them) under ``setting``: the sink (mm) and tilt
+    (deg) over ``seconds`` after the first ``settle`` seconds. An empty setting is the hand's own physics at its
+    nominal values."""
+    contact = (ContactConfig(cone=setting["cone"], impratio=setting["impratio"],
+                             noslip_iterations=setting.get("noslip_iterations", 0)) if setting else None)
     cfg = EnvConfig(object=object_name, physics_dt=setting.get("physics_dt", 0.01), contact=contact, hand=hand)
     model, obj, max_scale = task_model(cfg, edit=_edit(setting))
-    cache = load_default_cache(object_name, hand=hand)
-    bucket = len(cache.scales) // 2
-    rows = np.asarray(cache.grasps[bucket], dtype=np.float64)
+    cache = load_default_cache(object_name, grasp_cache, hand=hand)
+    nominal = float(cfg.randomization.scales[len(cfg.randomization.scales) // 2])
+    bucket = int(np.abs(cache.scales - nominal).argmin())
+    rows = np.asarray(cache.grasps[bucket][:limit], dtype=np.float64)
     n = len(rows)
     batch = mujoco.batch.Batch(model, n, 0, persistent=True)
     starts = EpisodeStarts(batch, model, obj, max_scale)
-    rc = RandomizationConfig()
+    rc = cfg.randomization if not setting else RandomizationConfig()
     params = {"friction": np.full(n, float(np.mean(rc.friction))), "mass": np.full(n, float(np.mean(rc.mass))),
               "com": np.zeros((n, 3)), "kp": np.full((n, C.NUM_JOINTS), cfg.kp),
               "kd": np.full((n, C.NUM_JOINTS), cfg.kd), "scale": np.full(n, float(cache.scales[bucket]))}
+    if not setting and task.uses_hardware_physics(cfg):  # its other parameters at the middle of their ranges
+        nominal_cfg = replace(cfg, randomization=replace(rc, enabled=False))
+        params.update(task.sample_hardware_params(np, nominal_cfg, np.zeros((n, task.PHYS_DRAWS))))
     ids = np.arange(n)
     starts.start(ids, params, rows[:, : C.NUM_JOINTS], rows[:, C.NUM_JOINTS :])
     o = starts.obj_qpos
+    for _ in range(round(settle * cfg.control_hz)):
+        batch.step(nstep=cfg.substeps)
     z0 = starts.qpos[:, o + 2].copy()
     t0 = time.perf_counter()
     for _ in range(max(1, round(seconds * cfg.control_hz))):
@@ -120,11 +138,12 @@ def run(cfg: Config) -> dict:
     print(f"{'setting':22s} {'sink med':>9s} {'p90':>7s} {'max':>7s} {'tilt':>6s} {'drops':>6s}  (mm, deg; "
           f"{cfg.seconds:g} s held)")
     for name in cfg.settings:
-        r = hold(SETTINGS[name], cfg.object, cfg.seconds, cfg.hand)
+        r = hold(SETTINGS[name], cfg.object, cfg.seconds, cfg.hand, cfg.grasp_cache, settle=cfg.settle)
         rows[name] = {**SETTINGS[name], **r}
         print(f"{name:22s} {r['sink_mm_median']:9.2f} {r['sink_mm_p90']:7.2f} {r['sink_mm_max']:7.2f} "
               f"{r['tilt_deg_median']:6.1f} {r['dropped']:6d}")
-    report = {"object": cfg.object, "hand": cfg.hand, "seconds": cfg.seconds, "settings": rows}
+    report = {"object": cfg.object, "hand": cfg.hand, "seconds": cfg.seconds, "settle": cfg.settle,
+              "grasp_cache": cfg.grasp_cache, "settings": rows}
     out.mkdir(parents=True, exist_ok=True)
     (out / "hold_creep.json").write_text(json.dumps(report, indent=2))
     print(json.dumps(report))

@@ -71,6 +71,11 @@ class Config:
     """Fault (end the run) after this long without a usable action from the policy (s)."""
     status_every_s: float = 1.0
     """Status line period (s)."""
+    allow_model_mismatch: bool = False
+    """Run a policy on a real hand whose model it was not trained on: one of the older 'digit360' / 'xela' model on a
+    real Allegro (whose kinematics differ: its grasps open by 26-50 mm there), or any policy on a real LEAP (no LEAP
+    model exists yet). Refused without it; meant for rehearsing the real-hand path against an emulator on a
+    virtual bus, or for a lab that knows what it is testing. The summary records it."""
 
     def __post_init__(self) -> None:
         if self.hand not in HANDS:

@@ -59,6 +59,8 @@ class HandSetup:
     """Emulation: grasp cache row to start from."""
     sim_transport: Literal["virtual", "slcan"] = "virtual"
     """Emulated Allegro: python-can virtual bus or SLCAN adapter on a pty."""
+    sim_hand: str = "digit360"
+    """Emulation: the simulated hand variant (envs.scene.HANDS) whose body the emulator drives: the policy's."""
 
     @property
     def kind(self) -> str:
@@ -164,7 +166,7 @@ def emulated_physics(setup: HandSetup) -> HandPhysics | None:
         return None
     from rotation.sim_hardware.hand_physics import HandPhysics
 
-    return HandPhysics.at_grasp(setup.object, setup.grasp, hold=True)
+    return HandPhysics.at_grasp(setup.object, setup.grasp, hold=True, hand=setup.sim_hand)
 
 
 def open_hand(setup: HandSetup, stack: contextlib.ExitStack,

@@ -130,7 +130,7 @@ def run(cfg: Config) -> dict[str, Any]:
 
     from rotation.bundles import load_bundle
     from rotation.deploy.loop import ControlLoop, LoopConfig
-    from rotation.deploy.policy import check_deployable
+    from rotation.deploy.policy import check_deployable, deploy_sim_hand
     from rotation.deploy.recording import DeployRecorder
     from rotation.deploy.sensors import MEDIA_STREAMS, check_media_extras, find_media, open_digit360, open_skin
     from rotation.deploy.touch import reads_touch, touch_sensors, wait_for_touch
@@ -139,9 +139,11 @@ def run(cfg: Config) -> dict[str, Any]:
     bundle = load_bundle(cfg.policy)
     touch = reads_touch(bundle)
     check_deployable(bundle.config, cfg.policy, reads_touch=touch)
+    sim_hand = deploy_sim_hand(cfg.hand, bundle, cfg.policy, cfg.allow_model_mismatch)
     hz = float(bundle.config.control_hz)
     setup = HandSetup(hand=cfg.hand, can=cfg.can, port=cfg.port, baud=cfg.baud, gain_scale=cfg.gain_scale,
-                      control_hz=hz, object=cfg.object, grasp=cfg.grasp, sim_transport=cfg.sim_transport)
+                      control_hz=hz, object=cfg.object, grasp=cfg.grasp, sim_transport=cfg.sim_transport,
+                      sim_hand=sim_hand)
     digit_specs = parse_digit360(cfg.digit360, setup.emulated)
     check_digit360(digit_specs)  # first: a sensor that is not there is named as such, not as one without a camera
     media: dict[str, Any] = {}
@@ -274,7 +276,8 @@ def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, readers: dict[
     properties.update(stated)
     extra = {
         "hand": cfg.hand, "policy": cfg.policy, "policy_latent_source": bundle.config.latent_source,
-        "policy_card": bundle.config.card, "torque_unit": opened.hand.torque_unit,
+        "policy_card": bundle.config.card, "policy_sim": bundle.config.sim,
+        "model_mismatch_allowed": cfg.allow_model_mismatch, "torque_unit": opened.hand.torque_unit,
         "hand_info": {"kind": info.kind, "firmware": info.firmware, "hardware": info.hardware,
                       "serial": info.serial},
         "target": "targets commanded by the policy (before the driver's rate limit)",

@@ -89,6 +89,7 @@ def finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, cr
         "record": str(recorder.path) if recorder is not None else None, "exit_code": exit_code,
         "skin": None if skin is None else {k: skin.counters[k] for k in ("frames", "skipped", "disconnects")},
         "touch": None if loop is None or loop.touch is None else loop.touch.stats.summary(),
+        "model_mismatch_allowed": bool(getattr(cfg, "allow_model_mismatch", False)),
     }
     rot = "" if summary["rotation_rad"] is None else f" (object rotation {summary['rotation_rad']:+.2f} rad)"
     rate = "n/a" if summary["loop_hz"] is None else f"{summary['loop_hz']:.1f} Hz"

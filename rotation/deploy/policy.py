@@ -100,6 +100,40 @@ class PolicyState:
         self.history.push(np.asarray(q, dtype=np.float64)[None], self.targets[None])
 
 
+REAL_ALLEGRO_MODEL = "digit360_v4"
+"""The simulated hand built from the vendor's Allegro kinematics (envs.hand_model): the only one whose policies
+a real Allegro runs."""
+
+
+def deploy_sim_hand(hand: str, bundle: Any, name: str, allow_mismatch: bool = False) -> str:
+    """The simulated hand variant ``bundle`` acts on, checked against the hand ``rotate deploy --hand`` names.
+
+    A real LEAP hand runs no policy yet: every policy here trained on an Allegro model, and the LEAP's kinematics
+    are not the Allegro's (an angle offset does not make one the other). A real Allegro runs only policies of the
+    vendor-kinematics model; the older 'digit360' / 'xela' model puts the thumb and the finger roll joints
+    elsewhere (its cup grasps open by 26-50 mm on the real kinematics: experiments/hand_v4). The emulated hands
+    simulate the policy's own model. Raises BundleRefused (one line); ``allow_mismatch`` (deploy's
+    --allow-model-mismatch) lets a real hand run a policy of another model."""
+    from rotation.bundles import check_policy_hand, policy_hand
+    from rotation.policy.bundle_config import BundleRefused
+
+    trained = policy_hand(bundle)
+    check_policy_hand(f"--policy {name}", bundle, trained)  # its own model has not changed since
+    if allow_mismatch:
+        return trained
+    if hand == "leap":
+        raise BundleRefused(f"--policy {name}: it was trained on the {trained} hand (an Allegro model); a real LEAP "
+                            "hand needs a policy trained on a LEAP model, which this stack does not have yet "
+                            "(--hand sim-leap rehearses the LEAP bus with an Allegro body; --allow-model-mismatch runs "
+                            "it anyway)")
+    if hand == "allegro" and trained != REAL_ALLEGRO_MODEL:
+        raise BundleRefused(f"--policy {name}: it was trained on the {trained} hand model, whose kinematics are not "
+                            f"the real Allegro's (its grasps open by 26-50 mm there); deploy a policy trained with "
+                            f"--hand {REAL_ALLEGRO_MODEL}, rehearse with --hand sim-allegro, or run it anyway with "
+                            "--allow-model-mismatch")
+    return trained
+
+
 def action_problem(action: object) -> str | None:
     """Why ``action`` cannot be used (wrong shape, NaN/inf), or None if it is a usable (16,) action."""
     a = np.asarray(action)

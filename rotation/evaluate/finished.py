@@ -20,7 +20,6 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from envs.config import ContactConfig
 from envs.errors import RequestRefused
 from envs.grasp_cache import cache_digest
 from envs.metrics import METRICS
@@ -34,7 +33,7 @@ RESUMABLE_CHANGES = frozenset({"out", "resume", "progress", "nthread", "video", 
 """Config fields that do not change a single result row (threads of MuJoCo, where and whether videos are drawn):
 they may differ between a run and its continuation. Everything else must match."""
 
-LATER_FIELDS = {"touch_lag": 0, "contact": to_jsonable(ContactConfig())}
+LATER_FIELDS = {"touch_lag": 0, "contact": None, "physics_dt": None}
 """Config fields added after evaluations were first recorded, with their defaults: at its default such a field is
 left out of the identity, so an interrupted evaluation recorded before it existed still continues."""
 

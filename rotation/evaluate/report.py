@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from envs.config import ContactConfig
+from envs.config import hand_physics
 from envs.metrics import METRICS, EpisodeMetrics, summarize
 from rotation.configs import to_jsonable
 from rotation.evaluate.suites import NOMINAL, Condition, axis_level
@@ -48,21 +48,33 @@ def json_text(data: Any) -> str:
     return re.sub(r"\[(\n[^\[\]{}\"]*)\]", lambda m: "[" + " ".join(m.group(1).split()) + "]", text) + "\n"
 
 
-def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions: list[Condition]) -> None:
-    """results.json, results.md and plots/<metric>.png under ``out``."""
+def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions: list[Condition],
+                 hand: str = "digit360") -> None:
+    """results.json, results.md and plots/<metric>.png under ``out`` (the episodes ran on ``hand``)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json_text({"rows": rows, "config": to_jsonable(config)}))
     lag = config.touch_lag
     touch_note = (f"\nA tactile adapter's correction acted {lag} control step{'s' * (lag != 1)} after the touch it "
                   f"read (--touch-lag {lag}); the other policies do not read touch.\n" if lag else "")
-    contact, usual = getattr(config, "contact", None), ContactConfig()
-    contact_note = (f"\nContact model: {contact.cone} cones, impratio {contact.impratio:g}, noslip iterations "
-                    f"{contact.noslip_iterations}: not the settings the shipped policies were trained with "
-                    f"({usual.cone}, {usual.impratio:g}, {usual.noslip_iterations}).\n"
-                    if contact is not None and contact != usual else "")
+    contact, usual = getattr(config, "contact", None), hand_physics(hand).contact
+    contact_note = (f"\nContact model: {_contact_text(contact)}: not the settings the policies were trained with on "
+                    f"the {hand} hand ({_contact_text(usual)}).\n" if contact is not None and contact != usual else "")
+    dt = getattr(config, "physics_dt", None)
+    if dt is not None:
+        contact_note += f"\nPhysics step: {dt:g} s (the policies trained at 0.01 s).\n"
     (out / "results.md").write_text(markdown_table(rows) + touch_note + contact_note)
     plot_metrics(out / "plots", rows, conditions)
     plot_bars(out / "plots" / "bars.png", rows, conditions)
+
+
+def _contact_text(contact: Any) -> str:
+    """A contact model in words: cone, impratio, noslip iterations and, where set, time constant and impedance."""
+    text = f"{contact.cone} cones, impratio {contact.impratio:g}, noslip iterations {contact.noslip_iterations}"
+    if contact.timeconst is not None:
+        text += f", time constant {contact.timeconst:g} s"
+    if contact.solimp is not None:
+        text += ", solimp " + " ".join(f"{v:g}" for v in contact.solimp)
+    return text
 
 
 def markdown_table(rows: list[dict[str, Any]]) -> str:

@@ -32,6 +32,7 @@ from tqdm import tqdm
 from envs import constants as C
 from envs.config import EnvConfig, Perturbation
 from envs.core import RotateCupVec
+from envs.errors import RequestRefused
 from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, FINGERS, contact_frame_force
 from envs.sensors.xela import skin_metadata
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
@@ -246,9 +247,17 @@ class _Recorder:
 def _env_config(cfg: Config, policy: _RandomPolicy | _BundlePolicy) -> EnvConfig:
     """The collection's env; with a bundle, at the control rate and action scale it was trained at."""
     timing = {}
+    sensors = _sensors(cfg.skin)
     if isinstance(policy, _BundlePolicy):
+        from rotation.bundles import check_policy_hand, policy_hand
+
         timing = dict(control_hz=policy.bundle.config.control_hz, action_scale=policy.bundle.config.action_scale)
-    return EnvConfig(object=cfg.object, episode_steps=cfg.episode_steps, **_sensors(cfg.skin),
+        hand = sensors.get("hand", policy_hand(policy.bundle))
+        check_policy_hand(f"--policy {cfg.policy}", policy.bundle, hand)
+        if hand not in ("digit360", "xela"):  # no simulated touch on it yet (EnvConfig would say so less plainly)
+            raise RequestRefused(f"--policy {cfg.policy} acts on the {hand} hand, which has no simulated touch yet; "
+                                 "collect touch with a policy of the digit360 hand")
+    return EnvConfig(object=cfg.object, episode_steps=cfg.episode_steps, **sensors,
                      perturb=Perturbation(cfg.friction_scale, cfg.added_mass, tuple(cfg.com_shift)), **timing)
 
 

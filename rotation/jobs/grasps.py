@@ -26,7 +26,7 @@ from typing import Literal
 
 from tqdm import tqdm
 
-from envs.config import RandomizationConfig
+from envs.config import RandomizationConfig, default_randomization
 from envs.grasp_cache import default_cache_path
 from envs.grasps import DEFAULT_MAX_TILT, HoldRule, generate_grasps
 from envs.objects import OBJECTS, get_object
@@ -37,8 +37,9 @@ from envs.validation import check_int, check_number, check_output_dir, check_see
 class Config:
     objects: tuple[str, ...] = ("cup",)
     """Objects to generate grasps for (names in envs.objects.OBJECTS)."""
-    scales: tuple[float, ...] = RandomizationConfig().scales
-    """Scale buckets (the env picks the nearest bucket for each env's scale)."""
+    scales: tuple[float, ...] | None = None
+    """Scale buckets (the env picks the nearest bucket for each env's scale); default: the hand's randomization's
+    (envs.physics.HAND_PHYSICS)."""
     per_scale: int = 100
     """Accepted grasps to keep per scale."""
     seed: int = 0
@@ -53,10 +54,11 @@ class Config:
     """Output directory."""
     hold_seconds: float = HoldRule.seconds
     """Hold check: seconds the grasp must hold the object still by itself (0 turns the check off)."""
-    hold_friction: float = HoldRule.friction
-    """Hold check: friction of hand and object (the default is the middle of the randomization range)."""
-    hold_mass: float = HoldRule.mass
-    """Hold check: object mass in kg (the default is the middle of the randomization range)."""
+    hold_friction: float | None = None
+    """Hold check: friction of the fingertips (of hand and object on a hand with one coefficient); default: the
+    middle of the hand's randomization range."""
+    hold_mass: float | None = None
+    """Hold check: object mass in kg; default: the middle of the hand's randomization range."""
     hold_tilt: float = HoldRule.max_tilt
     """Hold check: the largest tilt (rad) the object may reach during the hold."""
     hand: Literal["digit360", "xela", "digit360_v4"] = "digit360"
@@ -70,6 +72,13 @@ class Config:
         for name in self.objects:
             if name not in OBJECTS:
                 raise ValueError(f"objects: unknown object {name!r}; known objects: {', '.join(sorted(OBJECTS))}")
+        rule = HoldRule.for_hand(self.hand)
+        if self.scales is None:
+            self.scales = default_randomization(self.hand).scales
+        if self.hold_friction is None:
+            self.hold_friction = rule.friction
+        if self.hold_mass is None:
+            self.hold_mass = rule.mass
         try:
             RandomizationConfig(scales=tuple(self.scales))
         except ValueError as err:
@@ -97,7 +106,7 @@ def run(cfg: Config) -> list[Path]:
         get_object(name)  # fail before any work on an unknown name
     if cfg.per_scale < 1 or cfg.batch_size < 1:
         raise ValueError(f"per_scale and batch_size must be >= 1, got {cfg.per_scale}, {cfg.batch_size}")
-    RandomizationConfig(scales=tuple(cfg.scales))  # validates the scales
+    RandomizationConfig(scales=tuple(cfg.scales or ()))  # validates the scales
     written = []
     for name in cfg.objects:
         start = time.time()

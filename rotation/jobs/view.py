@@ -13,12 +13,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import imageio.v2 as imageio
 import mujoco
 import numpy as np
 
-from envs.config import EnvConfig, RandomizationConfig
+from envs.config import EnvConfig, default_randomization
 from envs.core import RotateCupVec
 from envs.objects import OBJECTS
 from envs.render import render_frame
@@ -50,6 +51,9 @@ class Config:
     """Grasp cache file; empty = the one shipped for the object."""
     randomize: bool = True
     """Domain randomization on (as in training)."""
+    hand: Literal["digit360", "xela", "digit360_v4"] = "digit360"
+    """Hand variant of a still or of a 'zero' / 'random' video (envs.scene.HANDS); a policy's video runs on the hand
+    the policy was trained on."""
 
     def __post_init__(self) -> None:
         check_types(self)
@@ -79,11 +83,18 @@ def _load_bundle(cfg: Config):
 
 def env_config(cfg: Config, bundle) -> EnvConfig:
     """The env to render; with a bundle, at the control rate and action scale it was trained at (as evaluate does)."""
-    rc = RandomizationConfig() if cfg.randomize else RandomizationConfig(enabled=False)
     timing = {} if bundle is None else dict(control_hz=bundle.config.control_hz,
                                             action_scale=bundle.config.action_scale)
-    touch = bundle.env_needs if getattr(bundle, "touch_every", 0) else {}  # a tactile adapter: its simulated touch
-    return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, randomization=rc, **touch, **timing)
+    touch = dict(bundle.env_needs) if getattr(bundle, "touch_every", 0) else {}  # a tactile adapter: its touch
+    if bundle is None:
+        hand = touch.pop("hand", cfg.hand)
+    else:
+        from rotation.bundles import check_policy_hand, policy_hand
+
+        hand = touch.pop("hand", policy_hand(bundle))
+        check_policy_hand(f"--policy {cfg.policy}", bundle, hand)
+    return EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, hand=hand,
+                     randomization=default_randomization(hand, cfg.randomize), **touch, **timing)
 
 
 def _actor(cfg: Config, bundle):

@@ -130,12 +130,13 @@ class PolicyBundle:
     # ------------------------------------------------------------------ building
     @classmethod
     def from_sb3(cls, model: Any, *, control_hz: float = C.CONTROL_HZ, action_scale: float = C.ACTION_SCALE,
-                 card: dict[str, Any] | None = None) -> PolicyBundle:
+                 card: dict[str, Any] | None = None, sim: dict[str, Any] | None = None) -> PolicyBundle:
         """Bundle the acting path of a stable-baselines3 PPO (or its policy) built with our extractors.
 
         Copies the features extractor (normalization statistics included), ``mlp_extractor.policy_net`` and
         ``action_net``; the critic and the log-std are training-only and are left out. Pass the env's
-        ``control_hz`` / ``action_scale`` when they differ from the defaults.
+        ``control_hz`` / ``action_scale`` when they differ from the defaults, and the ``sim`` it trained in
+        (envs.sim_identity.sim_record).
         """
         policy = getattr(model, "policy", model)
         extractor = getattr(policy, "pi_features_extractor", None) or getattr(policy, "features_extractor", None)
@@ -161,6 +162,7 @@ class PolicyBundle:
             control_hz=control_hz,
             action_scale=action_scale,
             card=dict(card or {}),
+            sim=dict(sim or {}),
             **kw,  # type: ignore[arg-type]
         )
         net = ActorNet(config)
@@ -193,7 +195,7 @@ class PolicyBundle:
         """
         self.require("adaptation", "with_teacher_latent")
         teacher.require("privileged", "with_teacher_latent")
-        for name in ("proprio_shape", "latent_dim", "action_dim", "control_hz", "action_scale"):
+        for name in ("proprio_shape", "latent_dim", "action_dim", "control_hz", "action_scale", "sim"):
             mine, theirs = getattr(self.config, name), getattr(teacher.config, name)
             if to_jsonable(mine) != to_jsonable(theirs):
                 raise BundleError(f"the student and the teacher disagree on {name}: {mine} vs {theirs}")

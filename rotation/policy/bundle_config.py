@@ -75,6 +75,10 @@ class BundleConfig:
     """Optional reference to the frozen touch encoder the adapter reads."""
     card: dict[str, Any] = field(default_factory=dict)
     """Free-form metadata: how it was trained, the env config, steps, scores."""
+    sim: dict[str, Any] = field(default_factory=dict)
+    """The simulation it trained in (envs.sim_identity.sim_record): the hand variant, a fingerprint of that hand's
+    kinematics and fingertips, the contact settings and torque limits. Empty in a bundle from before bundles
+    recorded it: such a policy trained on the 'digit360' hand. Jobs refuse a policy on another hand."""
     format_version: int = FORMAT_VERSION
     """Bundle layout version (see FORMAT_VERSION)."""
     env_version: str = ENV_VERSION

@@ -29,11 +29,12 @@ from functools import partial
 import mujoco
 import numpy as np
 
-from envs.config import RandomizationConfig
+from envs.config import default_randomization
 from envs.constants import HOME_POSE, JOINT_NAMES, NUM_JOINTS
 from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
-from envs.scene import OBJECT_JOINT, OBJECT_START, build_model
+from envs.physics import hand_physics as physics_of
+from envs.scene import OBJECT_JOINT, build_model, hand_variant
 from envs.sensors.digit360 import Digit360Readout, add_digit360_sensors
 
 TIMESTEP = 1e-3
@@ -44,16 +45,23 @@ class HandPhysics:
     """MuJoCo hand + object; :meth:`advance` integrates with the last torque held constant (zero-order hold)."""
 
     def __init__(self, object_name: str = "cup", scale: float = 0.8, q0: np.ndarray | None = None,
-                 object_pose: np.ndarray | None = None, hold: bool = False) -> None:
+                 object_pose: np.ndarray | None = None, hold: bool = False, hand: str = "digit360") -> None:
         """``q0``: initial joint angles (16,) rad, bus order (default: the vendor home pose); ``object_pose``:
         initial object position (3, m) + quaternion (4, wxyz), world frame (default: above the fingers, upright);
-        ``hold``: keep the scene frozen until :meth:`release` (see the module docstring)."""
+        ``hold``: keep the scene frozen until :meth:`release` (see the module docstring); ``hand``: the simulated
+        hand variant (envs.scene.HANDS) with its contact model (envs.physics.HAND_PHYSICS)."""
         self.object_name = object_name
+        self.hand = hand
         self.scale = float(scale)
         self.grasp: int | None = None
         """Grasp cache row the scene started from (set by :meth:`at_grasp`), None otherwise."""
         self.model = build_model(get_object(object_name), scale=scale, timestep=TIMESTEP,
-                                 edit=partial(add_digit360_sensors, history=1))
+                                 edit=partial(add_digit360_sensors, history=1), hand=hand)
+        contact = physics_of(hand).contact
+        self.model.opt.cone = (mujoco.mjtCone.mjCONE_ELLIPTIC if contact.cone == "elliptic"
+                               else mujoco.mjtCone.mjCONE_PYRAMIDAL)
+        self.model.opt.impratio = contact.impratio
+        self.model.opt.noslip_iterations = contact.noslip_iterations
         self.model.actuator_gainprm[:, 0] = 0.0  # position actuators off: torque comes from qfrc_applied
         self.model.actuator_biasprm[:, :3] = 0.0
         self.data = mujoco.MjData(self.model)
@@ -84,13 +92,14 @@ class HandPhysics:
         mujoco.mj_sensorAcc(self.model, self.data)
 
     @classmethod
-    def at_grasp(cls, object_name: str = "cup", grasp: int = 0, hold: bool = True) -> HandPhysics:
+    def at_grasp(cls, object_name: str = "cup", grasp: int = 0, hold: bool = True, hand: str = "digit360"
+                 ) -> HandPhysics:
         """The hand holding ``object_name`` as a RotateCup-v0 episode starts: row ``grasp`` of the shipped grasp
         cache (envs.grasps) in the bucket of the env's nominal scale (the middle randomization scale, as with
         randomization off), joints at the grasp pose, object at the grasp's pose. ValueError if no cache ships
         for the object or ``grasp`` is out of range."""
-        cache = load_default_cache(object_name)
-        scales = RandomizationConfig().scales
+        cache = load_default_cache(object_name, hand=hand)
+        scales = default_randomization(hand).scales
         scale = float(scales[len(scales) // 2])  # = envs.core.RotateCupVec._nominal_scale
         bucket = int(np.abs(cache.scales - scale).argmin())
         if not 0 <= grasp < cache.grasps.shape[1]:
@@ -98,7 +107,7 @@ class HandPhysics:
                              f"grasps per scale (0..{cache.grasps.shape[1] - 1})")
         row = cache.grasps[bucket, grasp]  # (23,) = q (16) + object position (3) + quaternion wxyz (4)
         physics = cls(object_name, float(cache.scales[bucket]), q0=row[:NUM_JOINTS], object_pose=row[NUM_JOINTS:],
-                      hold=hold)
+                      hold=hold, hand=hand)
         physics.grasp = int(grasp)
         return physics
 
@@ -137,7 +146,7 @@ class HandPhysics:
                 mujoco.mj_step(self.model, self.data)
             self._steps += n
             if self.data.qpos[self._obj_qpos + 2] < -0.5:  # the object fell off: put it back above the hand
-                self.data.qpos[self._obj_qpos: self._obj_qpos + 3] = OBJECT_START
+                self.data.qpos[self._obj_qpos: self._obj_qpos + 3] = hand_variant(self.hand).object_start
                 self.data.qpos[self._obj_qpos + 3: self._obj_qpos + 7] = (1.0, 0.0, 0.0, 0.0)
                 self.data.qvel[self._obj_dof: self._obj_dof + 6] = 0.0
 

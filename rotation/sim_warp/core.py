@@ -108,6 +108,10 @@ class RotateCupWarp:
                              "touch (the warp backend simulates proprioception and privileged info)")
         if getattr(cfg, "skin", False):
             raise ValueError("skin: the simulated Xela skin runs on the cpu backend only; use --backend cpu for it")
+        if task.uses_hardware_physics(cfg) or cfg.contact.noslip_iterations:
+            raise ValueError(f"hand: the {cfg.hand} hand's physics (separate tip and link friction, joint friction, "
+                             "torque scale, action delay, randomized contact, the noslip solver: envs.physics) runs "
+                             "on the cpu backend only for now; use --backend cpu")
         self.warp_cfg = wcfg = warp_cfg if warp_cfg is not None else WarpConfig()
         if not isinstance(wcfg, WarpConfig):
             raise ValueError(f"warp_cfg must be a WarpConfig, got {type(wcfg).__name__}")

@@ -10,6 +10,7 @@ from typing import Literal
 
 from envs.config import EnvConfig
 from envs.constants import HISTORY_STEPS, PROPRIO_DIM
+from envs.sim_identity import LEGACY_HAND, bundle_hand
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import check_device, config_resuming_in_out, from_jsonable
 from rotation.policy.networks import AdaptationConfig
@@ -81,6 +82,23 @@ class Config:
                                  f"{PROPRIO_DIM}), got {getattr(self.adaptation, name)}")
         if self.resume and self.overwrite:
             raise ValueError("--resume continues the run in --out and --overwrite deletes it: give one of them")
+        self._follow_teacher_hand()
+
+    def _follow_teacher_hand(self) -> None:
+        """The student trains on its teacher's hand (and that hand's physics); an env on another hand is refused."""
+        from rotation.policy.bundle import load_policy_bundle
+
+        try:
+            sim = load_policy_bundle(self.teacher).config.sim
+        except ValueError:  # unreadable or missing: run() names the problem
+            return
+        hand = bundle_hand(sim)
+        if hand == self.env.hand:
+            return
+        if self.env.hand != LEGACY_HAND:
+            raise ValueError(f"env.hand: the teacher {self.teacher} was trained on the {hand} hand; its student "
+                             f"trains on the same hand, not on {self.env.hand}")
+        self.env = self.env.with_hand(hand)
 
 
 RUN_OUTPUTS = ("config.json", "bundle", "curves.jsonl", "tb")

@@ -37,6 +37,7 @@ from stable_baselines3.common.callbacks import CallbackList
 
 from envs.config import EnvConfig
 from envs.errors import RequestRefused
+from envs.sim_identity import sim_record
 from rotation.configs import save_config
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.bundle import PolicyBundle, load_policy_bundle
@@ -163,7 +164,7 @@ def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: 
         if signum:
             card["interrupted"] = f"stopped by {SIGNAL_NAMES.get(signum, signum)} at {steps} of {cfg.total_steps} steps"
         bundle = PolicyBundle.from_sb3(model, control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale,
-                                       card=card)
+                                       card=card, sim=sim_record(env_cfg))
         bundle.save(cfg.out / "bundle")
     last = cfg.out / "checkpoints" / "last.zip"
     if signum:

@@ -5,12 +5,14 @@ the warp backend, and what a resumed run may change.
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from envs.config import EnvConfig, RandomizationConfig, RewardConfig
+from envs.config import EnvConfig, RewardConfig, default_randomization
 from envs.objects import OBJECTS
+from envs.sim_identity import LEGACY_HAND, bundle_hand
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import check_device
 from rotation.policy.bundle import load_policy_bundle
@@ -75,7 +77,8 @@ class Config:
     """Checkpoint to continue from (cpu backend: checkpoints/last.zip; warp: checkpoints/last.pt); the step count
     continues from it, and options not given are the run's (its config.json), --out its folder."""
     randomize: bool = True
-    """Domain randomization on (Hora's ranges); off trains on nominal physics (an easy setting for tests)."""
+    """Domain randomization on (the hand's ranges, envs.physics.HAND_PHYSICS); off trains on nominal physics (an
+    easy setting for tests)."""
     episode_steps: int = 400
     """Episode length in policy steps (20 s at 20 Hz)."""
     grasp_cache: str = ""
@@ -134,6 +137,7 @@ class Config:
             except ValueError as err:  # a missing or broken bundle (BundleError)
                 raise ValueError(f"student: {err}") from None
             student.require("adaptation", f"student: {self.student}")
+            self._follow_bundle_hand(student.config.sim, f"student {self.student}")
         check_number("latent_mix", self.latent_mix, 0.0, 1.0)
         if self.latent_mix > 0:
             if not self.student:
@@ -159,6 +163,10 @@ class Config:
                 raise ValueError(f"init_from: {self.init_from} is not a policy bundle directory (no config.json)")
             if self.resume is not None:
                 raise ValueError("init_from and resume exclude each other: --resume continues a run exactly")
+            init_sim = _recorded_sim(self.init_from)
+            if bundle_hand(init_sim) != self.hand:
+                raise ValueError(f"init_from: {self.init_from} was trained on the {bundle_hand(init_sim)} hand, not "
+                                 f"the {self.hand} hand (pass --hand {bundle_hand(init_sim)}, or start from scratch)")
         check_output_dir("out", self.out)
         if self.object not in OBJECTS:
             raise ValueError(f"object: unknown object {self.object!r}; known objects: {', '.join(sorted(OBJECTS))}")
@@ -195,11 +203,30 @@ class Config:
                              "resume into another --out, or drop --overwrite")
         self.env_config()  # episode_steps and the rest of the env, checked by EnvConfig
 
+    def _follow_bundle_hand(self, sim: dict, what: str) -> None:
+        """A fine-tune trains on its bundle's hand: the default hand follows it, another one is refused."""
+        hand = bundle_hand(sim)
+        if hand == self.hand:
+            return
+        if self.hand != LEGACY_HAND:
+            raise ValueError(f"hand: the {what} was trained on the {hand} hand, not the {self.hand} hand")
+        self.hand = hand  # type: ignore[assignment]
+
     def env_config(self) -> EnvConfig:
-        rc = RandomizationConfig() if self.randomize else RandomizationConfig(enabled=False)
+        rc = default_randomization(self.hand, self.randomize)  # the hand's physics (envs.physics.HAND_PHYSICS)
         return EnvConfig(object=self.object, hand=self.hand, episode_steps=self.episode_steps, randomization=rc,
                          grasp_cache=self.grasp_cache, reward=RewardConfig(rotate_back_clip=self.rotate_back_clip,
                                                                fall=self.fall_reward))
+
+
+def _recorded_sim(bundle_dir: Path) -> dict:
+    """The sim a bundle's config.json records ({} when it records none or cannot be read: loading the bundle
+    reports that later)."""
+    try:
+        sim = json.loads((bundle_dir / "config.json").read_text()).get("sim")
+    except (OSError, ValueError, AttributeError):
+        return {}
+    return sim if isinstance(sim, dict) else {}
 
 
 def config_from_args(args) -> Config:

@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from envs.config import EnvConfig
+from envs.sim_identity import sim_record
 from rotation.policy.actor import ActorNet
 from rotation.policy.bundle_config import BundleConfig
 from rotation.policy.features import PrivilegedExtractor
@@ -110,7 +111,8 @@ class TeacherCritic(_Feedforward, nn.Module):
 def build_models(cfg, env_cfg: EnvConfig) -> tuple[BundleConfig, TeacherActor, TeacherCritic]:
     """The bundle config and fresh actor / critic, initialized like stable-baselines3's (gains sqrt(2), 0.01, 1)."""
     config = BundleConfig(latent_source="privileged", actor_hidden=tuple(cfg.net_arch),
-                          control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale)
+                          control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale,
+                          sim=sim_record(env_cfg))
     net = ActorNet(config)
     _orthogonal_init(net, math.sqrt(2))
     _orthogonal_init(net.action_mean, 0.01)

@@ -192,12 +192,12 @@ def test_real_hand_without_the_adapters_sensors_is_refused_before_the_motors(ada
 
     with AllegroEmulator(channel="deploy-adapter-bus") as emu:
         code = main(["deploy", "--hand", "allegro", "--can", "virtual:deploy-adapter-bus", "--policy", adapter_dir,
-                     "--duration", "1"])
+                     "--duration", "1", "--allow-model-mismatch"])
         err = capsys.readouterr().err
         assert code == 2 and "no --digit360 was given" in err and "index, middle, ring, thumb" in err
         assert hand_hook.opened is None and not emu.servo_on  # the hand was never started
         with pytest.raises(ValueError, match="thumb"):  # a sensor on every fingertip it reads
-            run(Config(hand="allegro", can="virtual:deploy-adapter-bus", policy=adapter_dir,
+            run(Config(hand="allegro", can="virtual:deploy-adapter-bus", policy=adapter_dir, allow_model_mismatch=True,
                        digit360="index=/dev/null,middle=/dev/null,ring=/dev/null"))
         assert hand_hook.opened is None and not emu.servo_on
 

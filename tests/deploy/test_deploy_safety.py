@@ -80,7 +80,8 @@ def test_lost_can_bus_is_not_reported_as_motors_off(policy, monkeypatch, hand_ho
                                                                     reply_timeout_s=0.2))
     with AllegroEmulator(channel="deploy-bus-lost") as emu:
         hand_hook.after(1.0, lambda opened: setattr(emu.faults, "bus_off", True))
-        summary = run(Config(hand="allegro", can="virtual:deploy-bus-lost", policy=policy, duration=10.0))
+        summary = run(Config(hand="allegro", can="virtual:deploy-bus-lost", policy=policy, duration=10.0,
+                                 allow_model_mismatch=True))
         assert emu.servo_on  # the hand never heard the motors-off command
     assert summary["fault"].startswith("hand fault") and summary["exit_code"] == 1
     assert summary["motors_off"] is False and summary["motors_off_confirmed"] is False
@@ -114,7 +115,7 @@ def test_leap_servo_refusing_torque_off_is_not_reported_as_motors_off(policy, mo
                 return write(dxl_id, addr, data)
 
             monkeypatch.setattr(emu, "_write", refuse_torque_off)
-            summary = run(Config(hand="leap", port=emu.path, policy=policy, duration=1.0))
+            summary = run(Config(hand="leap", port=emu.path, policy=policy, duration=1.0, allow_model_mismatch=True))
             assert emu.register(stubborn, "torque_enable") == 1
     finally:
         sys.setswitchinterval(switch)
@@ -159,7 +160,8 @@ def test_missing_touch_sensor_is_refused_before_the_motors_are_on(policy, no_han
     err = capsys.readouterr().err
     assert code == 2 and "--digit360: thumb=/dev/no-such-digit360-tty (no such device)" in err
     with pytest.raises(ValueError, match=r"index=D360-NOT-HERE \(no connected Digit 360 has this USB serial\)"):
-        run(Config(hand="allegro", can="virtual:unused", policy=policy, digit360="index=D360-NOT-HERE"))
+        run(Config(hand="allegro", can="virtual:unused", policy=policy, digit360="index=D360-NOT-HERE",
+                   allow_model_mismatch=True))
 
 
 @pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc")

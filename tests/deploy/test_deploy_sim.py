@@ -112,13 +112,15 @@ def test_real_allegro_path_against_an_emulator_on_a_virtual_bus(tmp_path, policy
     record = tmp_path / "real.h5"
     with AllegroEmulator(channel="deploy-test-bus") as emu:
         summary = run(Config(hand="allegro", can="virtual:deploy-test-bus", policy=policy, duration=1.5,
-                             record=str(record)))
+                             allow_model_mismatch=True, record=str(record)))
         assert summary["exit_code"] == 0 and summary["source"] == "real" and summary["rotation_rad"] is None
+        assert summary["model_mismatch_allowed"]  # the older model's student on a real-hand path, recorded as such
         assert summary["motors_off"] and summary["motors_off_confirmed"] and summary["motors_off_witness"] == "hand"
         assert not emu.servo_on
     with read_session(record, summary["steps"]) as r:
         assert r.meta.source == "real" and not r.has("labels/object_pose") and r.meta.properties == {}
         assert r.meta.extra["hand_info"]["serial"] == "SAH040E1"
+        assert r.meta.extra["model_mismatch_allowed"] and r.meta.extra["policy_sim"] == {}
 
 
 def pause_allegro_stream(opened):

@@ -162,3 +162,32 @@ def test_another_contact_model_runs_and_the_report_says_so(setup, tmp_path, monk
     assert "Contact model" not in (tmp_path / "default" / "results.md").read_text()
     with pytest.raises(ValueError, match=r"contact.impratio must be in \[1, 100\]"):
         ContactConfig(impratio=0.5)
+
+
+def test_contact_options_set_the_whole_model_and_replace_the_hands_contact_randomization(tmp_path):
+    """--contact-timeconst / --contact-solimp / --physics-dt reach the env; on a hand whose training randomizes the
+    contact (digit360_v4), an explicit contact model is run exactly: none of that randomization is left on."""
+    from envs.sim_identity import sim_record
+    from rotation.cli import build_parser
+
+    args = build_parser().parse_args(["evaluate", "--contact-timeconst", "0.03", "--contact-solimp", "0.8", "0.9",
+                                      "0.002", "--physics-dt", "0.005", "--out", str(tmp_path / "e")])
+    cfg = job.config_from_args(args)
+    assert cfg.contact == ContactConfig(timeconst=0.03, solimp=(0.8, 0.9, 0.002)) and cfg.physics_dt == 0.005
+    assert job.config_from_args(build_parser().parse_args(["evaluate", "--out", str(tmp_path / "f")])).contact is None
+    from envs.config import EnvConfig
+
+    v4 = PolicyBundle(BundleConfig(latent_source="privileged", sim=sim_record(EnvConfig(hand="digit360_v4"))))
+    env = job.env_config(cfg, v4, Perturbation())
+    assert env.hand == "digit360_v4" and env.physics_dt == 0.005 and env.contact == cfg.contact
+    rc = env.randomization
+    assert rc.impratio is None and rc.contact_timeconst is None and rc.noslip_dropout == 0.0
+    assert rc.link_friction is not None  # the rest of the hand's physics stays
+    plain = job.env_config(job.Config(out=tmp_path / "g"), v4, Perturbation())
+    assert plain.contact.cone == "elliptic" and plain.randomization.impratio == (3.0, 30.0)
+    from envs.core import task_model
+
+    model, _, _ = task_model(env)
+    assert np.allclose(model.geom_solref[:, 0], 0.03) and np.allclose(model.geom_solimp[:, :3], (0.8, 0.9, 0.002))
+    with pytest.raises(ValueError, match="contact.solimp"):
+        ContactConfig(solimp=(0.95, 0.9, 0.001))
