@@ -89,6 +89,13 @@ DIGIT360_MASS = 0.0168
 """Not published: the stock tip's mass (kg) stands in for the sensor's."""
 
 
+# The stock fingertip (the vendor's description), which the Xela hand's fingertip shells replace
+STOCK_TIP_OFFSET = {"finger": 0.0267, "thumb": 0.0423}
+"""The stock tip sphere's centre along the last link past joint 3 / 7 / 11 (finger) and past joint 15 (thumb) (m)."""
+STOCK_TIP_RADIUS = 0.012
+STOCK_TIP_MASS = 0.0168
+
+
 def dome_offset(finger: str) -> float:
     """Distance of a fingertip's dome centre past the finger's last joint (m): 0.057 for a finger, 0.0723 for the
     thumb."""
@@ -101,7 +108,7 @@ def _centred(length: float) -> tuple[float, float, float]:
 
 def finger_links(finger: str) -> tuple[Link, ...]:
     """The four links of a finger (joints 0-3) or of the thumb (joints 12-15), from the palm outward; the last
-    link's box is the distal link up to the Digit 360's base."""
+    link's box is the distal link up to the Digit 360's base (where a stock tip or a Xela shell begins too)."""
     if finger not in C.FINGERS:
         raise ValueError(f"unknown finger {finger!r}; fingers: {', '.join(C.FINGERS)}")
     w = FINGER_BOX

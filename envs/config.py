@@ -147,11 +147,11 @@ class EnvConfig:
     """Path to a grasp cache (.npz) from `rotate grasps`; empty = the cache shipped with the package."""
     tactile: bool = False
     """Simulate the Digit 360 fingertips and add the `tactile` observation group (slower)."""
-    hand: Literal["digit360", "xela", "digit360_v4"] = "digit360"
+    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = "digit360"
     """Hand variant: 'digit360' (Digit 360 fingertips) or 'xela' (stock-length fingertips, 18 Xela skin pads on
     fingertips, phalanges and palm; docs/skin.md), both on the physics the shipped policies trained on, or
-    'digit360_v4' (the vendor's kinematics with Meta's Digit 360 mount, on the hardware's physics:
-    envs.physics.V4_PHYSICS). Each has its own grasp caches; the fields left None take the hand's physics. Move a
+    'digit360_v4' (the vendor's kinematics with Meta's Digit 360 mount) and 'xela_v4' (the vendor's kinematics with
+    the Xela shells and pads on its own links), both on the hardware's physics (envs.physics.V4_PHYSICS). Each has its own grasp caches; the fields left None take the hand's physics. Move a
     config to another hand with :meth:`with_hand` (dataclasses.replace would keep the old hand's physics)."""
     skin: bool = False
     """Simulate the Xela skin (needs hand='xela') and add the `skin` observation group (docs/skin.md)."""
@@ -168,8 +168,8 @@ class EnvConfig:
         for name in ("randomization", "contact", "joint_torque_limits"):  # unset: the hand's physics
             if getattr(self, name) is None:
                 object.__setattr__(self, name, getattr(physics, name))
-        if self.skin and self.hand != "xela":
-            raise ValueError(f"skin: the Xela skin needs hand='xela', got hand={self.hand!r}")
+        if self.skin and self.hand not in ("xela", "xela_v4"):
+            raise ValueError(f"skin: the Xela skin needs hand='xela' or 'xela_v4', got hand={self.hand!r}")
         if self.tactile and self.hand != "digit360":
             raise ValueError(f"tactile: the Digit 360 touch needs hand='digit360', got hand={self.hand!r}")
         if self.skin and self.physics_dt != 0.01:  # one Xela sample per physics step (envs.sensors.xela.SAMPLE_HZ)

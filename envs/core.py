@@ -86,7 +86,11 @@ class EpisodeStarts:
         self.body_inertia = batch.expand("body_inertia")
         self.gainprm, self.biasprm = batch.expand("actuator_gainprm"), batch.expand("actuator_biasprm")
         # the hardware physics (envs.physics): tips and the rest of the hand, and the fields its draws write
-        self.tip_geoms = np.array([model.geom(f"{finger}_tip").id for finger in C.FINGERS])
+        # the skin (gel domes, Xela shells and pads) and the rest of the hand: their own frictions on the hardware's
+        # physics
+        skin = {f"{finger}_tip" for finger in C.FINGERS}
+        self.tip_geoms = np.array([g for g in range(model.ngeom) if model.geom(g).name in skin
+                                   or model.geom(g).name.startswith("xela_")])
         self.link_geoms = np.setdiff1d(np.flatnonzero(model.geom_contype > 0), np.r_[self.tip_geoms, self.obj_geoms])
         self.forcerange0 = model.actuator_forcerange.copy()
         self.frictionloss0 = model.dof_frictionloss.copy()

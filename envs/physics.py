@@ -219,10 +219,11 @@ V4_PHYSICS = HandPhysics(
     ContactConfig(cone="elliptic", impratio=10.0, noslip_iterations=10),
     "vendor",
 )
-"""The hardware's physics, for the 'digit360_v4' hand (the vendor's kinematics): see each value's comment."""
+"""The hardware's physics, for the vendor-kinematics hands 'digit360_v4' and 'xela_v4': see each value's comment
+(on the Xela hand the skin's silicone takes the gel domes' friction range)."""
 
 HAND_PHYSICS: dict[str, HandPhysics] = {"digit360": SHIPPED_PHYSICS, "xela": SHIPPED_PHYSICS,
-                                        "digit360_v4": V4_PHYSICS}
+                                        "digit360_v4": V4_PHYSICS, "xela_v4": V4_PHYSICS}
 """Hand variant -> its physics (the hands of envs.scene.VARIANTS)."""
 
 

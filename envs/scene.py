@@ -48,12 +48,21 @@ VARIANTS: dict[str, HandVariant] = {
         np.array([-0.354, 0.187, 0.459, 1.341, 0.0, 0.212, 0.215, 1.534, 0.356, 0.287, 0.216, 1.515, 1.396, 0.473,
                   0.112, 1.682]),
         0.012),
+    "xela_v4": HandVariant(
+        np.array([0.05, 0.0, 0.08]),
+        np.array([-0.332, 0.516, 0.394, 0.418, 0.0, 0.571, 0.079, 0.66, 0.332, 0.599, 0.147, 0.664, 1.089, 0.712, 1.422,
+                  -0.106]),
+        0.0145),
 }
 """Hand variants: 'digit360' (Digit 360 fingertips, the default, the model the shipped policies trained on), 'xela'
 (stock-length fingertips with Xela shells, and Xela pads on the phalanges and palm: envs.sensors.xela_hand), and
 'digit360_v4' (the vendor's published Allegro V4 kinematics with Meta's 12 mm Digit 360 domes, envs.hand_model: the
-hand the retrain of issue 72 moves to; no simulated touch yet). digit360_v4 holds the cup lower and closer to the
-palm, around the pose `python experiments/tools/canonical_pose.py --seed 0` found (experiments/hand_v4)."""
+hand the retrain of issue 72 moves to; no simulated touch yet), and 'xela_v4' (the same kinematics with the stock
+tips under Xela shells and the 18 pads on its own links: envs.sensors.xela_layout.pad_mounts). digit360_v4 holds
+the cup lower and closer to the palm, around the pose `python experiments/tools/canonical_pose.py --seed 0` found
+(experiments/hand_v4); xela_v4, whose stock-length tips are 26 mm shorter, around the pose of `python
+experiments/tools/canonical_pose.py --hand xela_v4 --scale 0.9 --centres-x 0.02 0.03 0.04 0.05 --centres-z 0.05 0.06
+0.07 0.08` (experiments/sim_v4)."""
 HANDS = tuple(VARIANTS)
 
 
@@ -72,10 +81,15 @@ def hand_spec(hand: str = "digit360") -> mujoco.MjSpec:
     """The spec of a hand variant (one of HANDS), without an object."""
     if hand not in HANDS:
         raise ValueError(f"unknown hand {hand!r}; hands: {', '.join(HANDS)}")
-    if hand == "digit360_v4":
+    if hand in ("digit360_v4", "xela_v4"):
         from envs.hand_model import hand_xml
 
-        return mujoco.MjSpec.from_string(hand_xml())
+        spec = mujoco.MjSpec.from_string(hand_xml(tips="digit360" if hand == "digit360_v4" else "stock"))
+        if hand == "xela_v4":
+            from envs.sensors.xela_hand import make_xela_hand
+
+            make_xela_hand(spec, hand)
+        return spec
     spec = mujoco.MjSpec.from_file(hand_xml_path())
     if hand == "xela":
         from envs.sensors.xela_hand import make_xela_hand

@@ -28,6 +28,7 @@ from envs.sensors.xela import (
     TIP_LENGTH,
     TIP_RADIUS,
     TIP_START,
+    V4_TIP_START,
     PadSpec,
     taxel_layout,
 )
@@ -61,17 +62,19 @@ def _quat(rot: np.ndarray) -> list[float]:
     return q.tolist()
 
 
-def make_xela_hand(spec: mujoco.MjSpec) -> None:
-    """Edit the Digit 360 hand spec into the Xela hand (before compiling): fingertip shells, pad geoms and sites."""
-    lay = taxel_layout()
+def make_xela_hand(spec: mujoco.MjSpec, hand: str = "xela") -> None:
+    """Edit a hand spec into a Xela hand (before compiling): fingertip shells, pad geoms and sites, at the pad
+    mounts of ``hand`` (envs.sensors.xela_layout.pad_mounts): 'xela' edits the older model's Digit 360 hand,
+    'xela_v4' the vendor-kinematics model with stock tips (envs.hand_model.hand_xml(tips='stock'))."""
+    lay = taxel_layout(hand)
     if any(s.name == pad_site(PADS[0]) for s in spec.sites):
         raise ValueError("make_xela_hand: the spec already has the Xela pads")
     for p, pad in enumerate(PADS):
-        body = spec.body(pad.body)
+        body = spec.body(lay.pad_body[p])
         if body is None:
-            raise ValueError(f"make_xela_hand: the spec has no body {pad.body!r} for pad {pad.name!r}")
+            raise ValueError(f"make_xela_hand: the spec has no body {lay.pad_body[p]!r} for pad {pad.name!r}")
         rot = lay.pad_rot[p]  # columns: pad x, y, z in the body frame
-        origin = np.asarray(pad.pos)
+        origin = np.asarray(lay.pad_pos[p])
         body.add_site(name=pad_site(pad), pos=origin.tolist(), quat=_quat(rot), size=[0.002, 0, 0],
                       rgba=[0.2, 0.4, 1.0, 1.0], group=3)
         if pad.kind == "fingertip":
@@ -85,13 +88,18 @@ def make_xela_hand(spec: mujoco.MjSpec) -> None:
             half = (TIP_LENGTH - 2 * TIP_RADIUS) / 2
             tip.type = mujoco.mjtGeom.mjGEOM_CAPSULE
             tip.size = [TIP_RADIUS, half, 0.0]
-            tip.pos = (axis * (TIP_START + TIP_RADIUS + half)).tolist()
+            start = TIP_START if hand == "xela" else V4_TIP_START["thumb" if pad.name.startswith("thumb") else "finger"]
+            tip.pos = (axis * (start + TIP_RADIUS + half)).tolist()
             tip.quat = _quat(turn)
             tip.rgba = _PAD_RGBA
-            for g in body.geoms:  # the distal link inside the shell, back to the stock link's length
-                if g.name != tip.name and g.type == mujoco.mjtGeom.mjGEOM_CAPSULE:
+            for g in body.geoms:  # the distal link inside the shell
+                if g.name == tip.name:
+                    continue
+                if g.type == mujoco.mjtGeom.mjGEOM_CAPSULE:  # the older model: back to the stock link's length
                     g.fromto = [0.0, 0.0, 0.0, *(axis * DISTAL_LINK).tolist()]
                     g.size = [LINK_RADIUS, 0.0, 0.0]
+                elif g.type == mujoco.mjtGeom.mjGEOM_BOX:  # the vendor's: the shell covers it, the shell touches
+                    g.contype, g.conaffinity = 0, 0
             site.pos = origin.tolist()  # the fingertip site: the dome centre, z along the finger as before
         else:
             length, width = pad.size

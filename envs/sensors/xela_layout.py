@@ -128,7 +128,63 @@ def _pads() -> tuple[PadSpec, ...]:
 
 PADS: tuple[PadSpec, ...] = _pads()
 """The 18 pads in taxel order: per finger (index, middle, ring) tip, medial, proximal_1 (distal), proximal_0; the
-thumb's tip, medial, proximal; the palm's three pads."""
+thumb's tip, medial, proximal; the palm's three pads. Their bodies and frames are the 'xela' hand's (the older
+model); another hand mounts the same pads on its own links (pad_mounts)."""
+
+
+@dataclass(frozen=True)
+class PadMount:
+    """Where a pad sits on one hand model: its body, and its frame in that body's frame."""
+
+    body: str
+    pos: tuple[float, float, float]
+    xaxis: tuple[float, float, float]
+    zaxis: tuple[float, float, float]
+
+
+XELA_HANDS = ("xela", "xela_v4")
+"""Hand variants that carry the Xela skin (envs.scene.HANDS)."""
+V4_TIP_START = {"finger": TIP_START, "thumb": TIP_START + 0.0423 - 0.0267}
+"""Where the fingertip shell starts along the vendor model's last link (m past the last joint): the stock tip it
+replaces sits 26.7 mm past a finger's last joint and 42.3 mm past the thumb's (envs.allegro_description), so the
+thumb's shell starts that much further out."""
+_V4_ALONG, _V4_PALMAR = (0.0, 0.0, 1.0), (1.0, 0.0, 0.0)
+"""In every link frame of the vendor's model (and its palm frame) the finger runs along +z and curls toward +x."""
+_V4_PALM_FACE = 0.0111
+"""The palm's palmar face in its frame (m): the palm box's centre -9.3 mm plus half of its 40.8 mm thickness."""
+
+
+def _v4_mount(pad: PadSpec) -> PadMount:
+    """A pad's mount on the vendor-kinematics hand: the same place along its phalanx as on the older model where the
+    link has the same length; the thumb's two pads both on its one long phalanx (after joint 14, 51.4 mm), since
+    the vendor's thumb link after joint 13 is 17.7 mm, shorter than a pad."""
+    along, palmar = np.asarray(_V4_ALONG), np.asarray(_V4_PALMAR)
+    finger, _, link = pad.body.partition("_")
+    if pad.kind == "fingertip":
+        start = V4_TIP_START["thumb" if finger == "thumb" else "finger"]
+        centre = along * (start + TIP_LENGTH - TIP_RADIUS)
+        return PadMount(pad.body, tuple(centre.tolist()), _V4_ALONG, _V4_PALMAR)
+    if pad.kind == "palm":
+        y = {"palm_index": 0.036, "palm_middle": 0.0, "palm_ring": -0.036}[pad.name]  # the index is on +y here
+        return PadMount("palm", (_V4_PALM_FACE + PAD_THICKNESS, y, -0.032), _V4_ALONG, _V4_PALMAR)
+    if finger == "thumb":
+        centre = {"thumb_proximal": 0.0135, "thumb_medial": 0.038}[pad.name]
+        body = "thumb_medial"
+    else:
+        centre = {"medial": 0.0192, "proximal_1": 0.0405, "proximal_0": 0.0135}[pad.name.partition("_")[2]]
+        body = pad.body
+    pos = along * centre + palmar * _PAD_SURFACE
+    return PadMount(body, tuple(pos.tolist()), _V4_ALONG, _V4_PALMAR)
+
+
+@cache
+def pad_mounts(hand: str = "xela") -> tuple[PadMount, ...]:
+    """Where each pad of PADS sits on a Xela hand variant (XELA_HANDS), in PADS order."""
+    if hand == "xela":
+        return tuple(PadMount(p.body, p.pos, p.xaxis, p.zaxis) for p in PADS)
+    if hand == "xela_v4":
+        return tuple(_v4_mount(p) for p in PADS)
+    raise ValueError(f"unknown Xela hand {hand!r}; Xela hands: {', '.join(XELA_HANDS)}")
 PAD_NAMES: tuple[str, ...] = tuple(p.name for p in PADS)
 PAD_TAXELS: tuple[int, ...] = tuple(p.taxels for p in PADS)
 NUM_PADS = len(PADS)
@@ -215,19 +271,24 @@ class TaxelLayout:
     """(18, 3) pad frame origins in their bodies' frames (m)."""
     pad_rot: np.ndarray
     """(18, 3, 3) pad frame axes (columns x, y, z) in their bodies' frames."""
+    pad_body: tuple[str, ...]
+    """The body of the hand model that carries each pad."""
 
 
 @cache
-def taxel_layout() -> TaxelLayout:
-    """The taxel layout (computed once)."""
+def taxel_layout(hand: str = "xela") -> TaxelLayout:
+    """The taxel layout on a Xela hand variant (XELA_HANDS; computed once per hand): the taxels in their pad
+    frames are the same on every hand, the pads' mounts are the hand's (pad_mounts)."""
     tip = _tip_taxels()
     parts = [tip if p.kind == "fingertip" else _flat_taxels(p) for p in PADS]
+    mounts = pad_mounts(hand)
     pad_rot = []
-    for p in PADS:
-        x, z = np.asarray(p.xaxis, float), np.asarray(p.zaxis, float)
+    for m in mounts:
+        x, z = np.asarray(m.xaxis, float), np.asarray(m.zaxis, float)
         pad_rot.append(np.stack([x, np.cross(z, x), z], axis=1))
     layout = TaxelLayout(np.concatenate([q[0] for q in parts]), np.concatenate([q[1] for q in parts]),
-                         np.concatenate([q[2] for q in parts]), np.array([p.pos for p in PADS]), np.array(pad_rot))
+                         np.concatenate([q[2] for q in parts]), np.array([m.pos for m in mounts]),
+                         np.array(pad_rot), tuple(m.body for m in mounts))
     for a in (layout.pos, layout.frames, layout.area, layout.pad_pos, layout.pad_rot):
         a.setflags(write=False)
     return layout

@@ -28,7 +28,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs import constants as C  # noqa: E402
-from envs.hand_model import hand_xml  # noqa: E402
+from envs.scene import hand_spec  # noqa: E402
 from envs.objects import get_object  # noqa: E402
 from envs.validation import check_output_dir  # noqa: E402
 from rotation.configs import script_main  # noqa: E402
@@ -54,8 +54,13 @@ class Config:
     """Random samples per finger and candidate centre."""
     seed: int = 0
     """Sampling seed."""
+    hand: str = "digit360_v4"
+    """The vendor-kinematics hand variant: 'digit360_v4' (Digit 360 domes, which touch with their end) or 'xela_v4'
+    (Xela shells, which touch with their palmar side: the cost turns the fingertip pad's normal to the cup)."""
 
     def __post_init__(self) -> None:
+        if self.hand not in ("digit360_v4", "xela_v4"):
+            raise ValueError(f"hand must be 'digit360_v4' or 'xela_v4', got {self.hand!r}")
         if not self.centres_x or not self.centres_z:
             raise ValueError("centres_x and centres_z need at least one value each")
         if self.samples < 10:
@@ -65,10 +70,12 @@ class Config:
 class Hand:
     """The model and the cost of one finger's dome against its target."""
 
-    def __init__(self) -> None:
-        self.model = mujoco.MjModel.from_xml_string(hand_xml())
+    def __init__(self, variant: str = "digit360_v4") -> None:
+        self.model = hand_spec(variant).compile()
         self.data = mujoco.MjData(self.model)
         self.radius = float(self.model.geom("middle_tip").size[0])
+        # the axis that must face the cup: the dome's own (along the finger), or the Xela fingertip pad's normal
+        self.facing_site = "{}_tip" if variant == "digit360_v4" else "xela_{}_tip"
 
     def cost(self, q: np.ndarray, finger: int, target: np.ndarray, centre: np.ndarray, weight: float) -> float:
         self.data.qpos[:16] = q
@@ -77,7 +84,7 @@ class Hand:
         inward = centre - target
         inward[2] = 0.0
         inward /= np.linalg.norm(inward)
-        facing = site.xmat.reshape(3, 3)[:, 2] @ inward
+        facing = self.data.site(self.facing_site.format(C.FINGERS[finger])).xmat.reshape(3, 3)[:, 2] @ inward
         return float(np.linalg.norm(site.xpos - target)) + weight * (1.0 - facing)
 
 
@@ -118,11 +125,12 @@ def solve(hand: Hand, centre: np.ndarray, reach: float, cfg: Config, rng: np.ran
     return q, total
 
 
-def picture(q: np.ndarray, centre: np.ndarray, radius: float, height: float, path: Path) -> list[tuple]:
+def picture(q: np.ndarray, centre: np.ndarray, radius: float, height: float, path: Path,
+            variant: str = "digit360_v4") -> list[tuple]:
     """Render the pose with a cylinder of the object's size at ``centre``; returns the hand-object contacts."""
     import imageio
 
-    spec = mujoco.MjSpec.from_string(hand_xml())
+    spec = hand_spec(variant)
     body = spec.worldbody.add_body(name="object", pos=centre.tolist())
     body.add_geom(type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[radius, height / 2, 0], rgba=[0.85, 0.45, 0.2, 0.7],
                   contype=2, conaffinity=1)
@@ -146,7 +154,7 @@ def run(cfg: Config) -> dict:
     out = Path(cfg.out)
     obj = get_object(cfg.object)
     radius, height = obj.radius * cfg.scale, obj.length * cfg.scale
-    hand = Hand()
+    hand = Hand(cfg.hand)
     rng = np.random.default_rng(cfg.seed)
     rows = []
     for x in cfg.centres_x:
@@ -158,7 +166,7 @@ def run(cfg: Config) -> dict:
     best = min(rows, key=lambda r: r["cost"])
     out.mkdir(parents=True, exist_ok=True)
     contacts = picture(np.asarray(best["pose"]), np.asarray(best["centre"]), radius, height,
-                       out / "canonical_pose.png")
+                       out / "canonical_pose.png", cfg.hand)
     report = {"object": cfg.object, "scale": cfg.scale, "best": best, "contacts": contacts, "candidates": rows}
     (out / "canonical_pose.json").write_text(json.dumps(report, indent=1))
     print(json.dumps({"best": best, "contacts": contacts}))

@@ -51,7 +51,7 @@ class Config:
     """Grasp cache file; empty = the one shipped for the object."""
     randomize: bool = True
     """Domain randomization on (as in training)."""
-    hand: Literal["digit360", "xela", "digit360_v4"] = "digit360"
+    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = "digit360"
     """Hand variant of a still or of a 'zero' / 'random' video (envs.scene.HANDS); a policy's video runs on the hand
     the policy was trained on."""
 

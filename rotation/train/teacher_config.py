@@ -24,7 +24,7 @@ class Config:
     """Output directory (checkpoints, TensorBoard logs, config, final bundle)."""
     object: str = "cup"
     """Training object (envs.objects): the upright cup with a handle, scaled per env."""
-    hand: Literal["digit360", "xela", "digit360_v4"] = "digit360"
+    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = "digit360"
     """Hand variant (envs.config.EnvConfig.hand): Digit 360 fingertips, or stock fingertips with the Xela skin pads
     (a teacher for a skin adapter; the skin itself is not simulated while the teacher trains)."""
     num_envs: int = 256

@@ -187,3 +187,78 @@ def test_the_vendor_hand_is_an_env_variant_with_its_own_grasps():
     assert all(np.all(np.isfinite(v)) for v in obs.values() if isinstance(v, np.ndarray))
     with pytest.raises(ValueError, match="tactile"):
         EnvConfig(hand="digit360_v4", tactile=True)
+
+
+# ---------------------------------------------------------------------------------------- the Xela variant (xela_v4)
+@pytest.fixture(scope="module")
+def xela_hand():
+    from envs.scene import hand_spec
+
+    model = hand_spec("xela_v4").compile()
+    return model, mujoco.MjData(model)
+
+
+def test_the_xela_variant_shares_the_kinematics_and_carries_stock_length_tips(xela_hand):
+    """The same description builds both variants: every joint where the Digit 360 model has it, the stock tip's
+    place (26.7 mm past a finger's last joint, 42.3 mm past the thumb's: the vendor's figures) inside the Xela shell."""
+    from envs.sensors.xela import TIP_LENGTH, TIP_RADIUS, V4_TIP_START
+
+    model, data = xela_hand
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        q = rng.uniform(C.JOINT_LOWER, C.JOINT_UPPER)
+        _pose(model, data, q)
+        chain = vendor_chain(q)
+        for name in C.JOINT_NAMES:
+            assert np.linalg.norm(data.joint(name).xanchor - chain[name][0]) < 1e-3, name
+        for finger in C.FINGERS:
+            kind = "thumb" if finger == "thumb" else "finger"
+            link_rot = chain[f"{finger}_3"][2]
+            centre = chain[f"{finger}_3"][0] + link_rot @ [0, 0, V4_TIP_START[kind] + TIP_LENGTH - TIP_RADIUS]
+            assert np.linalg.norm(data.site(f"{finger}_tip").xpos - centre) < 1e-3, finger
+            stock = chain[f"{finger}_3"][0] + link_rot @ [0, 0, {"finger": 0.0267, "thumb": 0.0423}[kind]]
+            assert np.linalg.norm(data.site(f"{finger}_tip").xpos - stock) < TIP_RADIUS  # the stock tip is inside
+
+
+def test_xela_pads_lie_on_the_palmar_faces_of_their_links(xela_hand):
+    """Every flat pad's outer face sits 2 mm (its thickness less 1 mm overlap) off its link's palmar face (+x in the
+    vendor's link frames) or on the palm's, its normal along that face's, within the link's length."""
+    from envs.sensors.xela import PADS, taxel_layout
+
+    model, _ = xela_hand
+    lay = taxel_layout("xela_v4")
+    for p, pad in enumerate(PADS):
+        body = lay.pad_body[p]
+        rot, pos = lay.pad_rot[p], lay.pad_pos[p]
+        assert np.allclose(rot[:, 2], [1, 0, 0]) and np.allclose(rot[:, 0], [0, 0, 1]), pad.name
+        box = next(g for g in range(model.ngeom) if model.geom_bodyid[g] == model.body(body).id
+                   and model.geom(g).name == (body if body != "palm" else "palm"))
+        centre, half = model.geom_pos[box], model.geom_size[box]
+        if pad.kind == "fingertip":
+            continue
+        face = centre[0] + half[0]
+        assert 0.0015 < pos[0] - face < 0.0031, (pad.name, pos[0] - face)
+        length = pad.size[0] / 2
+        assert centre[2] - half[2] - 1e-9 <= pos[2] - length and pos[2] + length <= centre[2] + half[2] + 1e-9, \
+            pad.name
+
+
+def test_moving_one_joint_moves_only_the_taxels_on_its_links(xela_hand):
+    """Joint j moves the pads (and so every taxel) on its own link and on the links past it, and no other pad."""
+    from envs.sensors.xela import PADS
+    from envs.sensors.xela_hand import pad_site
+
+    model, data = xela_hand
+    q0 = (C.JOINT_LOWER + C.JOINT_UPPER) / 2
+    _pose(model, data, q0)
+    pads = [model.site(pad_site(p)).id for p in PADS]
+    before = data.site_xpos[pads].copy(), data.site_xmat[pads].copy()
+    for j, name in enumerate(C.JOINT_NAMES):
+        finger, k = name.rsplit("_", 1)
+        carried = {model.body(f"{finger}_{seg}").id for seg in SEGMENTS[int(k):]}
+        q = q0.copy()
+        q[j] += 0.2
+        _pose(model, data, q)
+        for i, s in enumerate(pads):
+            moved = not (np.allclose(data.site_xpos[s], before[0][i]) and np.allclose(data.site_xmat[s], before[1][i]))
+            assert moved == (model.site_bodyid[s] in carried), (name, PADS[i].name)

@@ -119,3 +119,18 @@ def test_an_action_reaches_the_motors_after_its_delay():
         assert env.delay[0] == round(delay / cfg.physics_dt)
     assert moved[0.0] > 0 and moved[0.03] < 0.7 * moved[0.0]
 
+
+
+def test_the_xela_hand_on_the_vendor_kinematics_feels_its_grasp():
+    """hand='xela_v4' (the vendor's kinematics, stock-length tips under Xela shells, pads on its own links) with
+    the skin on: it starts from its own shipped grasps on the hardware's physics, and the pads holding the cup carry
+    its load (a few newtons on two or more pads per env)."""
+    env = RotateCupVec(EnvConfig(hand="xela_v4", skin=True), num_envs=4, seed=0, nthread=1)
+    assert env.cfg.contact.cone == "elliptic" and env.grasps.hand == "xela_v4"
+    env.reset()
+    for _ in range(5):
+        obs, _, terminated, _, info = env.step(np.zeros((4, C.NUM_JOINTS)))
+    normal = info["skin_force"][..., 0]  # (envs, 18 pads) N
+    assert not terminated.any()
+    assert np.all((normal > 0.05).sum(axis=1) >= 2) and np.all(normal.sum(axis=1) > 0.5), normal.sum(axis=1)
+    assert obs["skin"].shape == (4, 10, 368, 6)
