@@ -151,10 +151,12 @@ class EnvConfig:
     """Hand variant: 'digit360' (Digit 360 fingertips) or 'xela' (stock-length fingertips, 18 Xela skin pads on
     fingertips, phalanges and palm; docs/skin.md), both on the physics the shipped policies trained on, or
     'digit360_v4' (the vendor's kinematics with Meta's Digit 360 mount) and 'xela_v4' (the vendor's kinematics with
-    the Xela shells and pads on its own links), both on the hardware's physics (envs.physics.V4_PHYSICS). Each has its own grasp caches; the fields left None take the hand's physics. Move a
-    config to another hand with :meth:`with_hand` (dataclasses.replace would keep the old hand's physics)."""
+    the Xela shells and pads on its own links), both on the hardware's physics (envs.physics.V4_PHYSICS). Each has
+    its own grasp caches; the fields left None take the hand's physics. Move a config to another hand with
+    :meth:`with_hand` (dataclasses.replace would keep the old hand's physics)."""
     skin: bool = False
-    """Simulate the Xela skin (needs hand='xela') and add the `skin` observation group (docs/skin.md)."""
+    """Simulate the Xela skin (needs hand='xela' or 'xela_v4') and add the `skin` observation group
+    (docs/skin.md)."""
     randomization: RandomizationConfig | None = None
     """Domain randomization; None = the hand's (envs.physics.default_randomization)."""
     reward: RewardConfig = field(default_factory=RewardConfig)

@@ -28,8 +28,8 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs import constants as C  # noqa: E402
-from envs.scene import hand_spec  # noqa: E402
 from envs.objects import get_object  # noqa: E402
+from envs.scene import hand_spec  # noqa: E402
 from envs.validation import check_output_dir  # noqa: E402
 from rotation.configs import script_main  # noqa: E402
 
