@@ -40,6 +40,9 @@ class Config:
     """Resolution of the PNG."""
 
     def __post_init__(self) -> None:
+        self.out = Path(self.out)
+        if self.out.suffix.lower() != ".png":  # matplotlib would add ".png" to a bare name and the message would lie
+            raise ValueError(f"out must end in .png, got {self.out}")
         check_output_file("out", self.out)
         if not 20 <= self.dpi <= 600:
             raise ValueError(f"dpi must be in [20, 600], got {self.dpi}")

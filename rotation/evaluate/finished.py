@@ -14,6 +14,7 @@ earlier version) is refused rather than overwritten.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
@@ -94,27 +95,36 @@ def _condition_file(out: Path, name: str) -> Path:
     return out / CONDITIONS_DIR / f"{name.replace(os.sep, '_')}.json"
 
 
-def rows(out: Path, name: str, policies: list[str]) -> list[dict[str, Any]] | None:
-    """The saved rows of condition ``name``, or None when it must run (never finished, unreadable, another set of
-    policies, or rows from a version that reported other metrics)."""
+def identity_digest(ident: dict[str, Any]) -> str:
+    """sha256 of an evaluation's identity (:func:`identity`): what each of its condition files carries."""
+    return hashlib.sha256(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def rows(out: Path, name: str, policies: list[str], digest: str) -> list[dict[str, Any]] | None:
+    """The saved rows of condition ``name``, or None when it must run (never finished, or rows from a version that
+    reported other metrics). A file there that this evaluation did not write (another evaluation's, one without
+    its identity digest, an unreadable one) is refused (RequestRefused) and left as it is. Reads only."""
     path = _condition_file(out, name)
     if not path.is_file():
         return None
     try:
         saved = json.loads(path.read_text())
         rows = saved["rows"]
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError):
-        return None
-    if saved.get("condition") != name or [r.get("policy") for r in rows] != policies:
-        return None
-    if not all(all(k in r for k in METRICS) for r in rows):
+        mine = saved.get("identity_sha256") == digest and saved.get("condition") == name
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, AttributeError):
+        mine = False
+    if not mine:
+        raise RequestRefused(f"{path} is not a condition this evaluation wrote (another evaluation's, or no "
+                             "record of which); move it away, or use another --out")
+    if [r.get("policy") for r in rows] != policies or not all(all(k in r for k in METRICS) for r in rows):
         return None
     return rows
 
 
-def save_rows(out: Path, name: str, rows: list[dict[str, Any]]) -> None:
-    """Keep the rows of one finished condition (atomic: an interruption leaves the old file or the new one)."""
-    _write_atomically(_condition_file(out, name), {"condition": name, "rows": rows})
+def save_rows(out: Path, name: str, rows: list[dict[str, Any]], digest: str) -> None:
+    """Keep the rows of one finished condition with the evaluation's identity digest (atomic: an interruption
+    leaves the old file or the new one)."""
+    _write_atomically(_condition_file(out, name), {"condition": name, "identity_sha256": digest, "rows": rows})
 
 
 def _write_atomically(path: Path, data: Any) -> None:

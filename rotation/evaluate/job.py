@@ -137,7 +137,8 @@ def run(cfg: Config) -> list[dict]:
     ident = finished.identity(cfg, policy_paths(cfg), hand)
     continuing = finished.check_out(out, ident, cfg.resume)  # refuses another evaluation's folder: reads only
     names = list(bundles)
-    done = {c.name: rows for c in conditions if (rows := finished.rows(out, c.name, names)) is not None}
+    digest = finished.identity_digest(ident)
+    done = {c.name: rows for c in conditions if (rows := finished.rows(out, c.name, names, digest)) is not None}
     if continuing:
         print(f"evaluate: continuing the evaluation in {out}: {len(done)} of {len(conditions)} conditions done")
     out.mkdir(parents=True, exist_ok=True)
@@ -151,7 +152,7 @@ def run(cfg: Config) -> list[dict]:
                                          dynamic_ncols=True) as bar:
             for cond in todo:
                 done[cond.name] = _run_condition(cfg, cond, bundles, first, out, bar)
-                finished.save_rows(out, cond.name, done[cond.name])  # kept now, whatever happens next
+                finished.save_rows(out, cond.name, done[cond.name], digest)  # kept now, whatever happens next
     except KeyboardInterrupt as err:  # Ctrl-C, or SIGTERM through _sigterm_interrupts
         signum = getattr(err, "signum", signal.SIGINT)
         message = (f"evaluate: stopped by {SIGNAL_NAMES.get(signum, f'signal {signum}')}; {len(done)} of "

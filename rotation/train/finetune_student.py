@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from rotation.policy.bundle import PolicyBundle
 from rotation.train import teacher, teacher_config
@@ -55,6 +56,8 @@ class Config(teacher_config.Config):
     """Initial log std of the Gaussian actions: std 0.37, narrower than from scratch, around a trained actor."""
     total_steps: int = 8_000_000
     """Total environment steps, counted across resumes."""
+    backend: Literal["cpu"] = "cpu"
+    """Physics backend: the cpu backend only (a student fine-tune runs stable-baselines3's PPO on its actor)."""
     overlap: bool = False
     """Collect the next rollout during the update (train-teacher's --overlap). Off by default here: around a trained
     actor with a narrow std the adaptive-KL schedule, which then judges the previous update's lag too, cut the

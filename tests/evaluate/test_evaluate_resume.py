@@ -10,6 +10,7 @@ import signal
 import pytest
 import torch
 
+from envs.errors import RequestRefused
 from envs.grasp_cache import cache_digest
 from rotation.cli import main
 from rotation.evaluate import finished, job
@@ -156,3 +157,28 @@ def test_changes_that_do_not_alter_results_may_differ(bundles, tmp_path, monkeyp
     calls = Calls(monkeypatch)
     job.run(make_cfg(bundles, out, nthread=2, progress=True, resume=True))
     assert calls.n == 2
+
+
+def test_a_condition_file_this_evaluation_did_not_write_is_refused_and_left_alone(bundles, tmp_path, monkeypatch):
+    """A continued evaluation keeps a finished condition only if the file carries this evaluation's identity digest:
+    another evaluation's condition copied in (same policies, other seed), or a forged one, is refused in one line
+    naming it, and nothing is written."""
+    other, out = tmp_path / "other", tmp_path / "eval"
+    job.run(make_cfg(bundles, other, seed=7))
+    Calls(monkeypatch, stop_at=3, stop=ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        job.run(make_cfg(bundles, out))  # nominal finished, friction_0.5 not
+    foreign = (other / "conditions" / "friction_0.5.json").read_bytes()
+    (out / "conditions" / "friction_0.5.json").write_bytes(foreign)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    with pytest.raises(RequestRefused, match=r"friction_0\.5\.json is not a condition this evaluation wrote.*move it"):
+        job.run(make_cfg(bundles, out, resume=True))
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    forged = json.loads(foreign)
+    forged["identity_sha256"] = "0" * 64
+    (out / "conditions" / "friction_0.5.json").write_text(json.dumps(forged))
+    with pytest.raises(RequestRefused, match="not a condition this evaluation wrote"):
+        job.run(make_cfg(bundles, out, resume=True))
+    (out / "conditions" / "friction_0.5.json").unlink()  # moved away: the evaluation continues
+    rows = job.run(make_cfg(bundles, out, resume=True))
+    assert [r["condition"] for r in rows] == ["nominal", "nominal", "friction_0.5", "friction_0.5"]
