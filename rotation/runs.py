@@ -10,14 +10,20 @@
   latest checkpoint (a truncated file from an older version or a full disk) falls back to the newest intact
   earlier one, with a warning.
 - The training curve (``curves.jsonl``) is appended and flushed to disk with each checkpoint.
+- A run folder records a random run id (``run.json``), and every checkpoint it writes proves it belongs to that run
+  (the id and the checkpoint's sha256 in a ``<checkpoint>.owner.json`` beside it, or inside the checkpoint): a
+  resume refuses a checkpoint of another run copied into the folder, in one line naming it. A folder from before
+  run ids (no ``run.json``) resumes its checkpoints as it always did.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
 import sys
+import uuid
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -184,3 +190,65 @@ def summary_writer(log_dir: Path, purge_step: int):
     from torch.utils.tensorboard import SummaryWriter
 
     return SummaryWriter(log_dir=str(log_dir), purge_step=purge_step or None)
+
+
+RUN_FILE = "run.json"
+"""The run's identity in its folder: {"run_id": 32 hex digits}."""
+OWNER_SUFFIX = ".owner.json"
+
+
+def run_id(out: Path, create: bool) -> str | None:
+    """The run id recorded in ``out`` (None for a folder from before run ids); with ``create`` a new run records a
+    fresh one (call it only once the run may write). A RUN_FILE that cannot be read is refused."""
+    path = out / RUN_FILE
+    if path.is_file():
+        try:
+            value = json.loads(path.read_text())["run_id"]
+            if not (isinstance(value, str) and len(value) == 32):
+                raise ValueError(value)
+        except (ValueError, KeyError, TypeError, UnicodeDecodeError) as err:
+            raise RequestRefused(f"{path} is not a run record ({type(err).__name__}); move it away, or use another "
+                                 "--out") from None
+        return value
+    if not create:
+        return None
+    value = uuid.uuid4().hex
+    save_atomically(lambda tmp: Path(tmp).write_text(json.dumps({"run_id": value}) + "\n"), path)
+    return value
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def write_owner(checkpoint: Path, owner: str | None) -> None:
+    """Record beside ``checkpoint`` that run ``owner`` wrote it (its sha256 too); nothing for a run without an id."""
+    if owner is None:
+        return
+    record = {"run_id": owner, "sha256": file_sha256(checkpoint)}
+    save_atomically(lambda tmp: Path(tmp).write_text(json.dumps(record) + "\n"),
+                    checkpoint.with_name(checkpoint.name + OWNER_SUFFIX))
+
+
+def remove_owner(checkpoint: Path) -> None:
+    checkpoint.with_name(checkpoint.name + OWNER_SUFFIX).unlink(missing_ok=True)
+
+
+def check_owner(checkpoint: Path, owner: str | None) -> None:
+    """Refuse (RequestRefused, one line) a checkpoint that run ``owner`` did not write: no owner record beside it,
+    another run's, or a file changed since. A run without an id (``owner`` None) checks nothing."""
+    if owner is None:
+        return
+    sidecar = checkpoint.with_name(checkpoint.name + OWNER_SUFFIX)
+    try:
+        record = json.loads(sidecar.read_text())
+        mine = record.get("run_id") == owner and record.get("sha256") == file_sha256(checkpoint)
+    except (OSError, ValueError, AttributeError, UnicodeDecodeError):
+        mine = False
+    if not mine:
+        raise RequestRefused(f"--resume: {checkpoint} is not a checkpoint this run wrote (no record of it, another "
+                             "run's, or changed since); move it away, or resume the run it belongs to")

@@ -16,6 +16,7 @@ with `vec_over_raw` (target >= 0.8) and `vec_over_subproc` (target >= 3 on 2 cor
 
     python scripts/bench_env.py
     python scripts/bench_env.py --num-envs 1024 --seconds 5 --action 0.2 --rounds 5
+    python scripts/bench_env.py --hand digit360_v4                      # on the hardware's physics
 """
 
 from __future__ import annotations
@@ -64,6 +65,9 @@ class Config:
     """Grasp cache file; empty = the one shipped for the object."""
     seed: int = 0
     """Seed of the envs and of the actions."""
+    hand: str = "digit360"
+    """Hand variant (envs.scene.HANDS) with its physics: 'digit360_v4' measures the hardware's physics (elliptic
+    cones, noslip, the action delay's split steps)."""
 
 
 def _timed(step, seconds: float) -> tuple[int, float]:
@@ -82,7 +86,7 @@ class Bench:
 
     def __init__(self, cfg: Config):
         self.cfg = cfg
-        self.env_cfg = EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache)
+        self.env_cfg = EnvConfig(object=cfg.object, grasp_cache=cfg.grasp_cache, hand=cfg.hand)
         self.substeps = self.env_cfg.substeps
         self.nthread = cfg.nthread or num_cores()
         self.subproc_envs = cfg.subproc_envs or num_cores()

@@ -30,7 +30,9 @@ from rotation.policy.networks import EnvFactorEncoderConfig, RunningNorm
 from rotation.runs import (
     CurveLog,
     DamagedCheckpoint,
+    remove_owner,
     save_atomically,
+    write_owner,
 )
 from rotation.train.overlap import RolloutPrefetch
 from rotation.train.teacher_config import Config
@@ -133,9 +135,9 @@ class Checkpoints(BaseCallback):
     (returns False) once ``stop`` saw a signal."""
 
     def __init__(self, folder: Path, every: int, stats: EpisodeStats | None = None, curves: CurveLog | None = None,
-                 stop: StopSignals | None = None) -> None:
+                 stop: StopSignals | None = None, owner: str | None = None) -> None:
         super().__init__()
-        self.folder, self.every = folder, every
+        self.folder, self.every, self.owner = folder, every, owner
         self.stats, self.curves, self.stop = stats, curves, stop
         self.flushed = 0  # rows of stats.history already in curves
         self.next_at = 0
@@ -154,9 +156,12 @@ class Checkpoints(BaseCallback):
         self.folder.mkdir(parents=True, exist_ok=True)
         path = self.folder / f"step_{self.num_timesteps:010d}.zip"
         save_atomically(self.model.save, path)
+        write_owner(path, self.owner)  # the run that wrote it (rotation.runs)
         save_atomically(self.model.save, self.folder / "last.zip")
+        write_owner(self.folder / "last.zip", self.owner)
         for old in sorted(self.folder.glob("step_*.zip"))[:-2]:
             old.unlink()
+            remove_owner(old)
         if self.stats is not None and self.curves is not None:
             self.curves.append(self.stats.history[self.flushed :])
             self.flushed = len(self.stats.history)

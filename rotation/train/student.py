@@ -50,6 +50,7 @@ from rotation.runs import (
     clear_outputs,
     config_differences,
     refuse_differences,
+    run_id,
     save_atomically,
     summary_writer,
     with_fallback,
@@ -208,7 +209,7 @@ def run(cfg: Config) -> Result:
     n = cfg.num_envs
     total_iters = math.ceil(cfg.total_steps / n)
     interval = max(1, round(cfg.checkpoint_every / n))
-    start_iter = 0
+    start_iter, owner = 0, None
     if cfg.resume:
         ckpt_path = _latest_checkpoint(out)
         if ckpt_path is None or not (out / "config.json").is_file():
@@ -216,6 +217,10 @@ def run(cfg: Config) -> Result:
         _check_resumable(cfg, out)
         older = sorted(out.glob(CHECKPOINT_GLOB), reverse=True)[1:]
         ckpt, ckpt_path = with_fallback(ckpt_path, older, lambda p: _load_checkpoint(p, cfg.device))
+        owner = run_id(out, create=False)  # a run folder from before run ids: None, its checkpoints as before
+        if owner is not None and ckpt.get("run_id") != owner:
+            raise RequestRefused(f"--resume: {ckpt_path} is not a checkpoint this run wrote (another run's, or no "
+                                 "record of which); move it away, or resume the run it belongs to")
         if ckpt["teacher_digest"] != teacher_digest:
             raise ValueError(f"--resume: {ckpt_path} was trained with another teacher (weights digest "
                              f"{ckpt['teacher_digest']}, this teacher {teacher_digest})")
@@ -235,6 +240,8 @@ def run(cfg: Config) -> Result:
         if removed:
             print(f"train-student: --overwrite deleted {', '.join(removed)} in {out}")
     save_config(cfg, out / "config.json")
+    if not cfg.resume:
+        owner = run_id(out, create=True)  # every checkpoint of this run carries it (rotation.runs)
     curves = CurveLog(out / "curves.jsonl", key="env_steps")
     curves.trim(start_iter * n)  # points a crashed or interrupted run logged after its last checkpoint
 
@@ -279,14 +286,14 @@ def run(cfg: Config) -> Result:
                 mse_sum, mse_count, t_log = 0.0, 0, now
             done_iters = it + 1
             if (it + 1) % interval == 0 or it + 1 == total_iters or stop.requested:
-                _save_checkpoint(out, student, optim, it + 1, teacher_digest)
+                _save_checkpoint(out, student, optim, it + 1, teacher_digest, owner)
                 curves.append(history[flushed:])
                 flushed = len(history)
             if stop.requested:
                 break
     except KeyboardInterrupt as err:  # a second signal (stop at once), or Ctrl-C where no handler could be installed
         signum = getattr(err, "signum", signal.SIGINT)
-        _save_checkpoint(out, student, optim, done_iters, teacher_digest)
+        _save_checkpoint(out, student, optim, done_iters, teacher_digest, owner)
         curves.append(history[flushed:])
     finally:
         end_loop(stop, bar, writer, env)
@@ -326,12 +333,12 @@ def _card(cfg: Config, digest: str, history: list[dict[str, float]]) -> dict[str
 
 
 def _save_checkpoint(out: Path, student: PolicyBundle, optim: torch.optim.Optimizer, iteration: int,
-                     teacher_digest: str) -> Path:
+                     teacher_digest: str, owner: str | None = None) -> Path:
     path = out / f"ckpt_{iteration:09d}.pt"
     state = {k: v.detach().cpu() for k, v in student.net.state_dict().items()}
     # atomic: a crash never leaves a half-written checkpoint as the latest
     save_atomically(lambda tmp: torch.save({"student": state, "optim": optim.state_dict(), "iteration": iteration,
-                                            "teacher_digest": teacher_digest}, tmp), path)
+                                            "teacher_digest": teacher_digest, "run_id": owner}, tmp), path)
     return path
 
 

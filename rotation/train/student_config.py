@@ -101,7 +101,7 @@ class Config:
         self.env = self.env.with_hand(hand)
 
 
-RUN_OUTPUTS = ("config.json", "bundle", "curves.jsonl", "tb")
+RUN_OUTPUTS = ("config.json", "run.json", "bundle", "curves.jsonl", "tb")
 """What a run writes into `out` besides its checkpoints (what --overwrite deletes, with them)."""
 RESUMABLE_CHANGES = {"out", "total_steps", "resume", "progress", "nthread", "torch_threads", "device", "overwrite"}
 """Config fields that may differ between a run and its resumption without breaking exactness of the result."""

@@ -44,11 +44,13 @@ from rotation.policy.bundle import PolicyBundle, load_policy_bundle
 from rotation.runs import (
     GRASPS_KEY,
     CurveLog,
+    check_owner,
     check_resume_record,
     check_run_dir,
     clear_outputs,
     config_differences,
     refuse_differences,
+    run_id,
     run_record,
     with_fallback,
 )
@@ -102,11 +104,14 @@ def run(cfg: Config) -> PolicyBundle:
     env_cfg = cfg.env_config()
     env = RotateCupSB3VecEnv(env_cfg, cfg.num_envs, seed=cfg.seed, reward_scale=cfg.reward_scale,
                              obs_groups=obs_groups(cfg), latent_mix=cfg.latent_mix)
+    owner = run_id(out, create=False) if resuming_here else None  # RequestRefused for an unreadable run.json
     try:
         resumed_from = None
         if cfg.resume is not None:
             model, resumed_from = with_fallback(cfg.resume, older_checkpoints(cfg.resume),
                                                 lambda p: load_checkpoint(p, env, cfg.device))
+            # the checkpoint must be one its run folder wrote (a folder from before run ids: any, as before)
+            check_owner(resumed_from, run_id(resume_dir, create=False) if resume_dir is not None else None)
             differences = config_differences(checkpoint_options(model), {k: record[k] for k in PPO_OPTIONS}, ())
             refuse_differences(differences, f"recorded in {resumed_from}", RESUMABLE_CHANGES)
             env.seed(cfg.seed + model.num_timesteps)  # fresh, reproducible episodes after a resume
@@ -122,21 +127,22 @@ def run(cfg: Config) -> PolicyBundle:
             if removed:
                 print(f"{_role(cfg)}: --overwrite deleted {', '.join(removed)} in {out}")
         out.mkdir(parents=True, exist_ok=True)
+        owner = run_id(out, create=not resuming_here or owner is not None)  # a run from before run ids stays one
         save_config(record, out / "config.json")
         curves = CurveLog(out / "curves.jsonl")
         if resuming_here and (dropped := curves.trim(model.num_timesteps)):
             print(f"{_role(cfg)}: dropped {dropped} curve rows logged after step {model.num_timesteps} (not in the "
                   "checkpoint resumed from)")
-        return _train(cfg, model, env, env_cfg, curves, resumed_from, record[GRASPS_KEY])
+        return _train(cfg, model, env, env_cfg, curves, resumed_from, record[GRASPS_KEY], owner)
     finally:
         env.close()
 
 
 def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: EnvConfig, curves: CurveLog,
-           resumed_from: Path | None, grasps_sha256: str) -> PolicyBundle:
+           resumed_from: Path | None, grasps_sha256: str, owner: str | None = None) -> PolicyBundle:
     stats = EpisodeStats()
     with StopSignals() as stop:
-        ckpt = Checkpoints(cfg.out / "checkpoints", cfg.checkpoint_every, stats, curves, stop)
+        ckpt = Checkpoints(cfg.out / "checkpoints", cfg.checkpoint_every, stats, curves, stop, owner)
         remaining = cfg.total_steps - model.num_timesteps
         start = time.time()
         signum = None

@@ -293,7 +293,7 @@ RESUMABLE_CHANGES = {"out", "total_steps", "progress", "checkpoint_every", "resu
 """Options that may change on resume: the run's length, where it writes, and how fast it runs."""
 
 
-RUN_OUTPUTS = ("config.json", "checkpoints", "bundle", "curves.jsonl", "tb")
+RUN_OUTPUTS = ("config.json", "run.json", "checkpoints", "bundle", "curves.jsonl", "tb")
 """What a run writes into `out` (what --overwrite deletes)."""
 
 

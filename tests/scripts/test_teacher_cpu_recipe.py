@@ -204,7 +204,8 @@ def test_a_tiny_recipe_runs_end_to_end_and_a_second_call_has_nothing_left(recipe
     assert [p.name for p in ckpts] == ["ckpt_000000008.pt", "ckpt_000000016.pt"]
     ckpts[-1].unlink()
     rl_ckpts = out / "student_rl" / "checkpoints"
-    shutil.copy(rl_ckpts / "step_0000000128.zip", rl_ckpts / "last.zip")
+    shutil.copy(rl_ckpts / "step_0000000128.zip", rl_ckpts / "last.zip")  # with the record that its run wrote it
+    shutil.copy(rl_ckpts / "step_0000000128.zip.owner.json", rl_ckpts / "last.zip.owner.json")
     (rl_ckpts / "step_0000000256.zip").unlink()
     for name, card in (("student", distilled), ("student_rl", finetuned)):
         (out / name / "bundle" / "config.json").write_text(

@@ -77,7 +77,7 @@ def test_bad_input(setup, tmp_path):
     with pytest.raises(ValueError, match="no checkpoint"):
         student.run(make_cfg(setup, tmp_path / "y", resume=True))
     student.run(make_cfg(setup, tmp_path / "z", total_steps=8 * 2))
-    with pytest.raises(ValueError, match=r"already holds a run \(config\.json, bundle, curves\.jsonl, tb, "
+    with pytest.raises(ValueError, match=r"already holds a run \(config\.json, run\.json, bundle, curves\.jsonl, tb, "
                                          r"ckpt_000000002\.pt\); pass --resume to continue it, pass --overwrite"):
         student.run(make_cfg(setup, tmp_path / "z", total_steps=8 * 2))
     with pytest.raises(ValueError, match=r"options differ from the run's .*config\.json\): lr: 0\.0003 -> 0\.01"):
@@ -183,3 +183,23 @@ def test_signal_saves_checkpoint_and_bundle_then_exits_with_its_status(setup, tm
     card = load_bundle(out / "bundle").config.card
     assert "stopped by SIG" in card["interrupted"] and card["env_steps"] == 8 * 3
     assert [json.loads(line)["iteration"] for line in (out / "curves.jsonl").read_text().splitlines()] == [1, 2, 3]
+
+
+def test_a_checkpoint_another_run_wrote_is_refused_and_left_alone(setup, tmp_path):
+    """The newest ckpt_*.pt in --out is what --resume adopts: it must carry this run's id (run.json). Another run's
+    checkpoint (same teacher, another seed) copied in is refused in one line, and nothing changes; a run folder from
+    before run ids (no run.json) resumes as before."""
+    from envs.errors import RequestRefused
+
+    mine, other = tmp_path / "mine", tmp_path / "other"
+    student.run(make_cfg(setup, mine, total_steps=8 * 2, checkpoint_every=8 * 2))
+    student.run(make_cfg(setup, other, total_steps=8 * 4, checkpoint_every=8 * 4, seed=3))
+    assert (mine / "run.json").is_file()
+    (mine / "ckpt_000000004.pt").write_bytes((other / "ckpt_000000004.pt").read_bytes())  # newer than mine
+    before = {p: p.read_bytes() for p in mine.rglob("*") if p.is_file()}
+    with pytest.raises(RequestRefused, match=r"ckpt_000000004\.pt is not a checkpoint this run wrote"):
+        student.run(make_cfg(setup, mine, total_steps=8 * 6, checkpoint_every=8 * 2, resume=True))
+    assert {p: p.read_bytes() for p in mine.rglob("*") if p.is_file()} == before
+    (other / "run.json").unlink()  # as a folder written before run ids
+    assert student.run(make_cfg(setup, other, total_steps=8 * 6, checkpoint_every=8 * 4, seed=3,
+                                resume=True)).history

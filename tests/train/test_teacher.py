@@ -162,8 +162,8 @@ def test_existing_run_is_refused_without_resume(tmp_path):
     teacher.run(cfg)
     before = {p: p.read_bytes() for p in (cfg.out / "config.json", cfg.out / "curves.jsonl",
                                           cfg.out / "checkpoints" / "last.zip")}
-    with pytest.raises(ValueError, match=r"already holds a run \(config\.json, checkpoints, bundle, curves\.jsonl"
-                                         r".*--resume .*last\.zip to continue it, pass --overwrite"):
+    with pytest.raises(ValueError, match=r"already holds a run \(config\.json, run\.json, checkpoints, bundle, "
+                                         r"curves\.jsonl.*--resume .*last\.zip to continue it, pass --overwrite"):
         teacher.run(_cfg(tmp_path, total_steps=1024, seed=5))
     assert {p: p.read_bytes() for p in before} == before  # nothing was touched
 
@@ -387,3 +387,27 @@ def test_teacher_trains_on_either_hand(tmp_path):
         assert env.cfg.hand == "xela"
     finally:
         env.close()
+
+
+def test_a_checkpoint_another_run_wrote_is_refused_and_left_alone(tmp_path):
+    """Each run records an id (run.json) and every checkpoint it writes proves it belongs (last.zip.owner.json: the
+    id and the file's sha256). Another run's last.zip copied over this run's is refused in one line, and nothing
+    in either folder changes; a run folder from before run ids (no run.json) resumes as it always did."""
+    from envs.errors import RequestRefused
+
+    mine = _cfg(tmp_path / "mine", total_steps=1024)
+    other = _cfg(tmp_path / "other", total_steps=1024, seed=5)
+    teacher.run(mine)
+    teacher.run(other)
+    assert (mine.out / "run.json").is_file() and (mine.out / "checkpoints" / "last.zip.owner.json").is_file()
+    last = mine.out / "checkpoints" / "last.zip"
+    last.write_bytes((other.out / "checkpoints" / "last.zip").read_bytes())
+    for f in mine.out.joinpath("checkpoints").glob("step_*"):
+        f.unlink()  # no earlier checkpoint to fall back to
+    before = {p: p.read_bytes() for p in mine.out.rglob("*") if p.is_file()}
+    with pytest.raises(RequestRefused, match="last.zip is not a checkpoint this run wrote"):
+        teacher.run(_cfg(tmp_path / "mine", total_steps=2048, resume=last))
+    assert {p: p.read_bytes() for p in mine.out.rglob("*") if p.is_file()} == before
+    (other.out / "run.json").unlink()  # as a folder written before run ids
+    teacher.run(_cfg(tmp_path / "other", total_steps=2048, seed=5, resume=other.out / "checkpoints" / "last.zip"))
+    assert AdaptiveKLPPO.load(other.out / "checkpoints" / "last.zip", device="cpu").num_timesteps == 2048
