@@ -17,7 +17,7 @@ from rotation.configs import config_resuming_in_out, from_jsonable
 from rotation.tactile.models.encoders import parse_groups
 
 CHECKPOINT_GLOB = "ckpt_*.pt"
-RUN_OUTPUTS = ("config.json", "bundle", "curves.jsonl", "tb")
+RUN_OUTPUTS = ("config.json", "run.json", "bundle", "curves.jsonl", "tb")
 RESUMABLE_CHANGES = {"out", "total_steps", "epochs", "resume", "progress", "torch_threads", "nthread", "overwrite"}
 
 

@@ -31,6 +31,7 @@ from rotation.runs import (
     clear_outputs,
     config_differences,
     refuse_differences,
+    run_id,
     save_atomically,
     summary_writer,
     with_fallback,
@@ -128,6 +129,8 @@ class Job:
     tracking_norm_needed: bool = False
     """The adapter reads joint tracking whose normalization is still to be measured (a fresh one, or one started
     from an adapter without it)."""
+    owner: str | None = None
+    """The run's id (rotation.runs.run_id), carried by every checkpoint; None in a folder from before run ids."""
     t_start: float = field(default_factory=time.perf_counter)
 
     @classmethod
@@ -174,6 +177,10 @@ class Job:
         refuse_differences(diffs, str(out / "config.json"), RESUMABLE_CHANGES)
         older = sorted(out.glob(CHECKPOINT_GLOB), reverse=True)[1:]
         ckpt, path = with_fallback(path, older, _load_checkpoint)
+        self.owner = run_id(out, create=False)  # a folder from before run ids: None, its checkpoints as before
+        if self.owner is not None and ckpt.get("run_id") != self.owner:
+            raise RequestRefused(f"--resume: {path} is not a checkpoint this run wrote (another run's, or no record "
+                                 "of which); move it away, or resume the run it belongs to")
         if ckpt["student_sha256"] != self.student_sha:
             raise ValueError(f"--resume: {path} was trained for another student (weights {ckpt['student_sha256']}, "
                              f"this student {self.student_sha})")
@@ -191,6 +198,8 @@ class Job:
             if removed:
                 print(f"finetune-adapter: --overwrite deleted {', '.join(removed)} in {self.out}")
         save_config(self.cfg, self.out / "config.json")
+        if not self.cfg.resume:
+            self.owner = run_id(self.out, create=True)  # every checkpoint of this run carries it
         curves = CurveLog(self.out / "curves.jsonl", key=key)
         curves.trim(trim_to)
         return curves, summary_writer(self.out / "tb", purge_step=trim_to)
@@ -200,7 +209,8 @@ class Job:
         return self.wall_before + time.perf_counter() - self.t_start
 
     def checkpoint(self, iteration: int) -> None:
-        _save_checkpoint(self.out, self.policy.adapter, self.optim, iteration, self.student_sha, self.wall_time_s)
+        _save_checkpoint(self.out, self.policy.adapter, self.optim, iteration, self.student_sha, self.wall_time_s,
+                         self.owner)
 
     def finish(self, card: dict[str, Any], history: list[dict[str, float]], signum: int | None, done: str,
                of: str, after_stop: str = "saved the checkpoint and the bundle at {}; continue with --resume"
@@ -291,10 +301,11 @@ def errors_to_teacher(head: Any, proprio: torch.Tensor, z_adapted: torch.Tensor,
 
 
 def _save_checkpoint(out: Path, adapter: torch.nn.Module, optim: torch.optim.Optimizer, iteration: int,
-                     student_sha: str, wall_time_s: float) -> None:
+                     student_sha: str, wall_time_s: float, owner: str | None = None) -> None:
     state = {k: v.detach().cpu() for k, v in adapter.state_dict().items()}
     save_atomically(lambda tmp: torch.save({"adapter": state, "optim": optim.state_dict(), "iteration": iteration,
-                                            "student_sha256": student_sha, "wall_time_s": wall_time_s}, tmp),
+                                            "student_sha256": student_sha, "wall_time_s": wall_time_s,
+                                            "run_id": owner}, tmp),
                     out / f"ckpt_{iteration:09d}.pt")
 
 

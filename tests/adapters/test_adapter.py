@@ -300,3 +300,20 @@ def test_rollout_refuses_touch_policy_without_touch(tiny_run):
             run_episodes(load_adapter(result.bundle_dir), env, 1, 0)
     finally:
         env.close()
+
+
+def test_a_checkpoint_another_run_wrote_is_refused_and_left_alone(tmp_path):
+    """`--resume` adopts the newest ckpt_*.pt in --out only if it carries this run's id (run.json): another run's
+    checkpoint copied in is refused in one line and nothing changes."""
+    from envs.errors import RequestRefused
+
+    mine, other = tmp_path / "mine", tmp_path / "other"
+    finetune.run(_tiny_cfg(mine, total_steps=192))
+    finetune.run(_tiny_cfg(other, total_steps=192, seed=4))
+    assert (mine / "run.json").is_file()
+    foreign = sorted(other.glob("ckpt_*.pt"))[-1]
+    shutil.copy(foreign, mine / "ckpt_999999999.pt")  # the newest name in mine
+    before = {p: p.read_bytes() for p in mine.rglob("*") if p.is_file()}
+    with pytest.raises(RequestRefused, match="is not a checkpoint this run wrote"):
+        finetune.run(_tiny_cfg(mine, total_steps=384, resume=True))
+    assert {p: p.read_bytes() for p in mine.rglob("*") if p.is_file()} == before

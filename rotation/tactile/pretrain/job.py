@@ -45,13 +45,13 @@ from tqdm import tqdm
 from envs.errors import JobFailed, RequestRefused
 from rotation.configs import from_jsonable, save_config, to_jsonable
 from rotation.interrupt import Interrupted, StopSignals
-from rotation.runs import summary_writer
+from rotation.runs import run_id, summary_writer
 from rotation.tactile.loading import open_encoder_windows, session_paths, step_loader, to_device
 from rotation.tactile.models.encoders import encoder_kind
 from rotation.tactile.pretrain.config import RESUMABLE_CHANGES, Config, load_config
 from rotation.tactile.pretrain.log import StepLog, log_point
 from rotation.tactile.pretrain.objectives import OBJECTIVES, Objective, SkinObjectiveConfig
-from rotation.tactile.pretrain.state import latest_checkpoint, load_checkpoint, save_checkpoint
+from rotation.tactile.pretrain.state import checkpoint_run_id, latest_checkpoint, load_checkpoint, save_checkpoint
 from rotation.tactile.runtime import (
     Processes,
     any_true,
@@ -200,6 +200,10 @@ def _train(cfg: Config, procs: Processes) -> dict[str, Any]:
         if ckpt is None or not (out / "config.json").is_file():
             raise RequestRefused(f"--resume: no checkpoint (ckpt_*.safetensors) and config.json in {out}")
         _check_resumable(cfg, out)
+        owner = run_id(out, create=False)  # a folder from before run ids: None, its checkpoints as before
+        if owner is not None and checkpoint_run_id(ckpt) != owner:
+            raise RequestRefused(f"--resume: {ckpt} is not a checkpoint this run wrote (another run's, or no record "
+                                 "of which); move it away, or resume the run it belongs to")
     elif ckpt is not None:
         raise ValueError(f"{out} already holds checkpoints; pass --resume to continue or choose another --out")
 
@@ -243,8 +247,10 @@ def _train(cfg: Config, procs: Processes) -> dict[str, Any]:
             teacher.load_state_dict(student.state_dict())
     teacher.eval().requires_grad_(False)
     student.train()
+    owner = None
     if procs.main:
         save_config(cfg, out / "config.json")
+        owner = run_id(out, create=not cfg.resume or run_id(out, create=False) is not None)
         print(f"pretrain: {kind.describe(encoder)}, {sum(p.numel() for p in encoder.parameters()):,} parameters; "
               f"head {hidden} -> {cfg.head_bottleneck} -> {prototypes}; {len(windows)} windows; "
               f"{procs.world} process(es) x batch {cfg.batch_size} on {device}{' (bf16)' if bf16 else ''}")
@@ -257,7 +263,7 @@ def _train(cfg: Config, procs: Processes) -> dict[str, Any]:
     writer = summary_writer(out / "tb", purge_step=start) if procs.main else None
     bar = tqdm(total=total, initial=start, unit="step", desc="pretrain", disable=not (cfg.progress and procs.main),
                dynamic_ncols=True)
-    meta = {"encoder": encoder_meta, "config": to_jsonable(cfg), "world_size": procs.world}
+    meta = {"encoder": encoder_meta, "config": to_jsonable(cfg), "world_size": procs.world, "run_id": owner}
     acc = StepLog()
     history: list[dict[str, float]] = []
     step = start

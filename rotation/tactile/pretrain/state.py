@@ -86,6 +86,19 @@ def save_checkpoint(out: Path, step: int, student: nn.Module, teacher: nn.Module
     return path
 
 
+def checkpoint_run_id(path: Path) -> str | None:
+    """The run id a checkpoint records in its metadata (rotation.runs.run_id), None when it records none or cannot
+    be read (its loading reports that)."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            value = json.loads((f.metadata() or {}).get("run_id", "null"))
+    except (SafetensorError, OSError, ValueError):
+        return None
+    return value if isinstance(value, str) else None
+
+
 def read_checkpoint(path: Path) -> tuple[dict[str, Tensor], dict[str, Any]]:
     """Tensors and decoded metadata of a checkpoint (ValueError naming the file if it is not one)."""
     from safetensors import SafetensorError, safe_open

@@ -133,6 +133,22 @@ def test_resume_is_bit_identical(tmp_path, touch_sessions, touch_cache, cache_st
         pretrain.run(dataclasses.replace(cfg, out=b, resume=True, lr=2e-3))
 
 
+
+def test_a_checkpoint_another_run_wrote_is_refused(tmp_path, touch_sessions, touch_cache, cache_stride):
+    """--resume adopts the newest checkpoint in --out only if its metadata carries this run's id (run.json; a
+    copied run folder is the same run): another run's checkpoint copied in is refused, and nothing changes."""
+    from envs.errors import RequestRefused
+
+    mine = tiny(tmp_path / "a", touch_cache, touch_sessions, cache_stride, steps=2, checkpoint_every=2)
+    other = tiny(tmp_path / "c", touch_cache, touch_sessions, cache_stride, steps=4, checkpoint_every=4, seed=5)
+    pretrain.run(mine)
+    pretrain.run(other)
+    shutil.copy(other.out / "ckpt_000000004.safetensors", mine.out / "ckpt_000000004.safetensors")
+    before = {p: p.read_bytes() for p in mine.out.rglob("*") if p.is_file()}
+    with pytest.raises(RequestRefused, match="is not a checkpoint this run wrote"):
+        pretrain.run(dataclasses.replace(mine, resume=True))
+    assert {p: p.read_bytes() for p in mine.out.rglob("*") if p.is_file()} == before
+
 def test_two_processes_stay_identical(tmp_path, touch_sessions, touch_cache, cache_stride):
     cfg = tiny(tmp_path, touch_cache, touch_sessions, cache_stride, steps=3, checkpoint_every=3, batch_size=4,
                nproc_per_node=2)
