@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -67,11 +68,20 @@ class GraspCache:
         return pick_grasps(np, self.scales, self.grasps, np.asarray(scale), np.asarray(u))  # envs.task
 
     def save(self, path: str | Path) -> None:
-        """Write the cache to exactly ``path`` (through a file object: numpy would append '.npz' to a name)."""
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "wb") as f:
-            np.savez_compressed(f, object=self.object, scales=self.scales, grasps=self.grasps.astype(np.float32),
-                                seed=self.seed, hand=self.hand, hold=np.asarray(self.hold, dtype=np.float64))
+        """Write the cache to exactly ``path`` (through a file object: numpy would append '.npz' to a name), via a
+        temporary file renamed into place: a write that fails (a full disk) leaves no file behind, and an earlier
+        cache at ``path`` as it was."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".tmp_{path.name}")
+        try:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(f, object=self.object, scales=self.scales, grasps=self.grasps.astype(np.float32),
+                                    seed=self.seed, hand=self.hand, hold=np.asarray(self.hold, dtype=np.float64))
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
 
     @classmethod
     def load(cls, path: str | Path) -> GraspCache:

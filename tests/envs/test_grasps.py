@@ -274,3 +274,25 @@ def test_shipped_cup_caches_pass_the_hold_rule(obj):
     bucket = int(np.abs(cache.scales - 0.78).argmin())
     nominal = GraspCache(obj, cache.scales[bucket : bucket + 1], cache.grasps[bucket : bucket + 1])
     assert np.all(hold_check(nominal, rule) < rule.max_tilt)
+
+
+def test_a_cache_write_that_fails_leaves_nothing_behind(tmp_path, monkeypatch):
+    """A full disk while saving: the error reaches the caller, no partial cache (nor its temporary file) is left,
+    and an earlier cache at the path is kept as it was."""
+    import envs.grasp_cache as gc
+
+    cache = load_default_cache("cup")
+    path = tmp_path / "grasps_cup.npz"
+    cache.save(path)
+    before = path.read_bytes()
+
+    def full_disk(f, **arrays):
+        f.write(b"PK\x03\x04 half a zip")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(gc.np, "savez_compressed", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        cache.save(path)
+    with pytest.raises(OSError, match="No space left"):
+        cache.save(tmp_path / "new.npz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["grasps_cup.npz"] and path.read_bytes() == before
