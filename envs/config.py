@@ -146,7 +146,7 @@ class EnvConfig:
     grasp_cache: str = ""
     """Path to a grasp cache (.npz) from `rotate grasps`; empty = the cache shipped with the package."""
     tactile: bool = False
-    """Simulate the Digit 360 fingertips and add the `tactile` observation group (slower)."""
+    """Simulate the Digit 360 fingertips and add the `tactile` observation group (slower); on a Digit 360 hand."""
     hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = "digit360"
     """Hand variant: 'digit360' (Digit 360 fingertips) or 'xela' (stock-length fingertips, 18 Xela skin pads on
     fingertips, phalanges and palm; docs/skin.md), both on the physics the shipped policies trained on, or
@@ -172,8 +172,9 @@ class EnvConfig:
                 object.__setattr__(self, name, getattr(physics, name))
         if self.skin and self.hand not in ("xela", "xela_v4"):
             raise ValueError(f"skin: the Xela skin needs hand='xela' or 'xela_v4', got hand={self.hand!r}")
-        if self.tactile and self.hand != "digit360":
-            raise ValueError(f"tactile: the Digit 360 touch needs hand='digit360', got hand={self.hand!r}")
+        if self.tactile and self.hand not in ("digit360", "digit360_v4"):
+            raise ValueError(f"tactile: the Digit 360 touch needs hand='digit360' or 'digit360_v4', got "
+                             f"hand={self.hand!r}")
         if self.skin and self.physics_dt != 0.01:  # one Xela sample per physics step (envs.sensors.xela.SAMPLE_HZ)
             raise ValueError(f"skin: the Xela skin samples at 100 Hz, one sample per physics step; it needs "
                              f"physics_dt=0.01, got {self.physics_dt}")

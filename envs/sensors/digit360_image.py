@@ -9,7 +9,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from envs.sensors.digit360 import CONTACT_SLOTS, DOME_RADIUS, FIELD
+from envs.sensors.digit360 import CONTACT_SLOTS, FIELD
 from envs.sensors.digit360_model import (
     DEFAULT_MODEL,
     IMAGE_HZ,
@@ -96,27 +96,27 @@ def _indentation(row: np.ndarray, model: Digit360Model, size: int) -> np.ndarray
         if norm < 1e-9:
             continue
         c = p / norm
-        a = (3.0 * fn * DOME_RADIUS / (4.0 * e_star)) ** (1.0 / 3.0)  # Hertz contact radius (m)
-        depth = a * a / DOME_RADIUS
+        a = (3.0 * fn * model.dome_radius / (4.0 * e_star)) ** (1.0 / 3.0)  # Hertz contact radius (m)
+        depth = a * a / model.dome_radius
         # Mindlin: this contact's share of the tangential force drags the patch, at most by its radius
         f_t = (force - force.dot(c) * c) * (fn / total_fn)
         shift = min(3.0 * (2.0 - model.poisson) * np.linalg.norm(f_t) / (8.0 * shear_modulus * a), a)
         if shift > 0:
-            c = c + f_t / (np.linalg.norm(f_t) + 1e-12) * shift / DOME_RADIUS
+            c = c + f_t / (np.linalg.norm(f_t) + 1e-12) * shift / model.dome_radius
             c /= np.linalg.norm(c)
         theta = math.acos(float(np.clip(c[2], -1.0, 1.0)))
-        if theta > fov + 4.0 * a / DOME_RADIUS:
+        if theta > fov + 4.0 * a / model.dome_radius:
             continue  # behind the camera's view
         # pixel box around the patch: 4 contact radii, converted from arc length to pixels
         rho_c = theta / fov * half
         col = (size - 1) / 2.0 + rho_c * math.cos(math.atan2(c[1], c[0]))
         row_px = (size - 1) / 2.0 + rho_c * math.sin(math.atan2(c[1], c[0]))
-        reach = 4.0 * a / DOME_RADIUS / fov * half * max(1.0, theta / max(math.sin(theta), 1e-3)) + 2.0
+        reach = 4.0 * a / model.dome_radius / fov * half * max(1.0, theta / max(math.sin(theta), 1e-3)) + 2.0
         r0, r1 = max(0, int(row_px - reach)), min(size, int(row_px + reach) + 2)
         c0, c1 = max(0, int(col - reach)), min(size, int(col + reach) + 2)
         if r0 >= r1 or c0 >= c1:
             continue
-        chord = DOME_RADIUS * np.linalg.norm(rays[r0:r1, c0:c1] - c, axis=-1)  # (h, w) ~ arc distance (m)
+        chord = model.dome_radius * np.linalg.norm(rays[r0:r1, c0:c1] - c, axis=-1)  # (h, w) ~ arc distance (m)
         disp[r0:r1, c0:c1] += depth * _hertz_profile(chord / a)
     return disp
 
@@ -136,7 +136,7 @@ def render_frame(row: np.ndarray, frame_index: int, key: int, sensor: int = 0, m
     img = _background(size, model, int(sensor)).copy()  # (S, S, 3) float32
     if disp.any():
         # surface slope from the displacement field; one pixel spans this much arc on the dome (m)
-        arc_per_px = DOME_RADIUS * math.radians(model.fov_half_angle_deg) / (size / 2.0)
+        arc_per_px = model.dome_radius * math.radians(model.fov_half_angle_deg) / (size / 2.0)
         gy, gx = np.gradient(disp.astype(np.float32), np.float32(arc_per_px))  # (S, S) each, dimensionless slopes
         for ch, az in enumerate(model.light_azimuths_deg):
             a = math.radians(az)

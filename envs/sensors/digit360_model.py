@@ -43,6 +43,9 @@ _TIME_EPS = 1e-6
 class Digit360Model:
     """Parameters of the rendered streams. Values marked 'chosen' are plausible guesses, not measurements."""
 
+    dome_radius: float = 0.014
+    """Radius of the elastomer dome (m): the older hand model's 14 mm; Meta's Digit 360 on the vendor-kinematics hand
+    is 12 mm (envs.allegro_description.DIGIT360_DOME_RADIUS). Contact sizes and image arcs scale with it."""
     fov_half_angle_deg: float = 115.0
     """Half field of view of the fisheye (deg from the dome's apex); chosen so that contacts on the palmar side of
     the tip (about 90-105 deg from the apex, where grasps touch this hand's domes) stay inside the image."""

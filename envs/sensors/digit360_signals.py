@@ -9,7 +9,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from envs.sensors.digit360 import CONTACT_SLOTS, DOME_RADIUS, FIELD
+from envs.sensors.digit360 import CONTACT_SLOTS, FIELD
 from envs.sensors.digit360_model import (
     AUDIO_HZ,
     AUDIO_RING_S,
@@ -49,7 +49,7 @@ def _mic_gains(points: np.ndarray, model: Digit360Model) -> np.ndarray:
     return model.mic_distance_scale / (model.mic_distance_scale + dist)
 
 
-def _strongest_point(rows: np.ndarray) -> np.ndarray:
+def _strongest_point(rows: np.ndarray, dome_radius: float) -> np.ndarray:
     """(T, D) rows -> (T, 3) point of the strongest contact slot (the dome's apex when there is none)."""
     fn = np.stack([rows[:, FIELD[f"c{k}_fn"]] for k in range(CONTACT_SLOTS)], axis=1)  # (T, K)
     best = fn.argmax(axis=1)
@@ -57,7 +57,7 @@ def _strongest_point(rows: np.ndarray) -> np.ndarray:
                    axis=1)  # (T, K, 3)
     out = pts[np.arange(len(rows)), best]
     empty = fn.max(axis=1) <= 0
-    out[empty] = (0.0, 0.0, DOME_RADIUS)
+    out[empty] = (0.0, 0.0, dome_radius)
     return out
 
 
@@ -72,7 +72,7 @@ def render_audio(track: ContactTrack, first_sample: int, num_samples: int, key: 
     track = track.clip(t_first - AUDIO_RING_S - track.dt, t_end)
     out = np.float32(model.audio_floor) * block_read(normal_table(STREAM_FLOOR), int(key), STREAM_FLOOR, s).T
 
-    gains = _mic_gains(_strongest_point(track.rows), model)  # (T, C)
+    gains = _mic_gains(_strongest_point(track.rows, model.dome_radius), model)  # (T, C)
     fn = track.normal_force()
     # slip: frictional-power envelope at the physics rate, interpolated causally to 48 kHz, times band noise
     slip = sum(track.rows[:, FIELD[f"c{k}_fn"]] * track.rows[:, FIELD[f"c{k}_slip"]] for k in range(CONTACT_SLOTS))

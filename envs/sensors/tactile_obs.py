@@ -76,8 +76,11 @@ def contract_window(raw: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 class TouchState:
     """Ring of the last contact-field rows of N envs x 4 fingertips, fed by the batch's sensor history."""
 
-    def __init__(self, model: Any, num_envs: int, dt: float, substeps: int):
+    def __init__(self, model: Any, num_envs: int, dt: float, substeps: int,
+                 sensor: Digit360Model = DEFAULT_MODEL):
         self.readout = Digit360Readout(model)
+        self.sensor = sensor
+        """The sensor model the observation renders with (the hand's dome radius)."""
         self.dt, self.substeps = float(dt), int(substeps)
         self.capacity = int(math.ceil(HISTORY_S / self.dt)) + 2 + self.substeps  # rows kept per env and finger
         n = int(num_envs)
@@ -121,8 +124,10 @@ class TouchState:
         self.head = int((self.head + self.substeps) % self.capacity)
         self.last_times, self.last_rows = times, rows
 
-    def observe(self, model: Digit360Model = DEFAULT_MODEL) -> TactileObs:
-        """Snapshot of the rings as the `tactile` observation (rows ordered oldest first)."""
+    def observe(self, model: Digit360Model | None = None) -> TactileObs:
+        """Snapshot of the rings as the `tactile` observation (rows ordered oldest first), rendered with ``model``
+        (default: this state's sensor model)."""
+        model = self.sensor if model is None else model
         order = (self.head + np.arange(self.capacity)) % self.capacity
         now = self.times[:, order[-1]] + self.dt  # env time after the last substep
         return TactileObs(self.times[:, order], self.rows[:, :, order], self.keys.copy(), now, self.dt, model=model)

@@ -254,9 +254,11 @@ def _env_config(cfg: Config, policy: _RandomPolicy | _BundlePolicy) -> EnvConfig
         timing = dict(control_hz=policy.bundle.config.control_hz, action_scale=policy.bundle.config.action_scale)
         hand = sensors.get("hand", policy_hand(policy.bundle))
         check_policy_hand(f"--policy {cfg.policy}", policy.bundle, hand)
-        if hand not in ("digit360", "xela"):  # no simulated touch on it yet (EnvConfig would say so less plainly)
-            raise RequestRefused(f"--policy {cfg.policy} acts on the {hand} hand, which has no simulated touch yet; "
-                                 "collect touch with a policy of the digit360 hand")
+        if hand == "xela_v4" or (hand == "digit360_v4" and cfg.skin):  # (EnvConfig would say so less plainly)
+            raise RequestRefused(f"--policy {cfg.policy} acts on the {hand} hand, whose "
+                                 f"{'Xela skin' if cfg.skin else 'Digit 360 touch'} collect does not simulate yet; "
+                                 "collect with a policy of the digit360, digit360_v4 or xela hand")
+        sensors = {**sensors, "hand": hand}
     return EnvConfig(object=cfg.object, episode_steps=cfg.episode_steps, **sensors,
                      perturb=Perturbation(cfg.friction_scale, cfg.added_mass, tuple(cfg.com_shift)), **timing)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 
 import mujoco
@@ -210,3 +211,21 @@ def test_gymnasium_wrappers_accept_the_tactile_group():
     vec.reset(seed=0)
     obs, *_ = vec.step(np.zeros((2, 16), np.float32))
     assert obs["tactile"]["index"]["imu"].shape == (2, 224, 3)
+
+
+def test_the_vendor_hands_domes_render_at_their_own_radius():
+    """hand='digit360_v4' carries Meta's 12 mm domes: its touch renders with that radius (the older hand's 14 mm is
+    the default model), and the same press makes a smaller imprint on the smaller dome (Hertz: contact radius grows
+    as R^(1/3), and the image's arc per pixel with R)."""
+    env = RotateCupVec(EnvConfig(hand="digit360_v4", tactile=True), num_envs=2, seed=1, nthread=1)
+    env.reset()
+    for _ in range(3):
+        obs, *_ = env.step(np.zeros((2, 16)))
+    assert obs["tactile"].model.dome_radius == 0.012 and obs["tactile"]["index"]["image"].shape[0] == 2
+    assert RotateCupVec(EnvConfig(tactile=True), num_envs=1, seed=1, nthread=1).touch.sensor == M.DEFAULT_MODEL
+    track = _track()
+    small = dataclasses.replace(M.DEFAULT_MODEL, dome_radius=0.012)
+    frames = {m: I.render_frames(track, np.array([9, 36]), key=3, model=m).astype(int)
+              for m in (M.DEFAULT_MODEL, small)}
+    touched = {m.dome_radius: int((np.abs(f[1] - f[0]).max(axis=-1) > 10).sum()) for m, f in frames.items()}
+    assert 0 < touched[0.012] and touched[0.012] != touched[0.014], touched
