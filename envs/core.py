@@ -86,9 +86,8 @@ class EpisodeStarts:
         self.body_mass, self.body_ipos = batch.expand("body_mass"), batch.expand("body_ipos")
         self.body_inertia = batch.expand("body_inertia")
         self.gainprm, self.biasprm = batch.expand("actuator_gainprm"), batch.expand("actuator_biasprm")
-        # the hardware physics (envs.physics): tips and the rest of the hand, and the fields its draws write
-        # the skin (gel domes, Xela shells and pads) and the rest of the hand: their own frictions on the hardware's
-        # physics
+        # the hardware physics (envs.physics): the skin (gel domes, Xela shells and pads) and the rest of the hand,
+        # each with its own friction, and the model fields its other draws write
         skin = {f"{finger}_tip" for finger in C.FINGERS}
         self.tip_geoms = np.array([g for g in range(model.ngeom) if model.geom(g).name in skin
                                    or model.geom(g).name.startswith("xela_")])
@@ -97,7 +96,6 @@ class EpisodeStarts:
         self.frictionloss0 = model.dof_frictionloss.copy()
         self.solref0 = model.geom_solref.copy()
         self.noslip0 = int(model.opt.noslip_iterations)
-        self.impratio0 = float(model.opt.impratio)
         self._fields: dict[str, np.ndarray] = {}
         # live state views
         self.qpos, self.qvel, self.ctrl = batch.bind("qpos"), batch.bind("qvel"), batch.bind("ctrl")

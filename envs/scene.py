@@ -57,7 +57,7 @@ VARIANTS: dict[str, HandVariant] = {
 """Hand variants: 'digit360' (Digit 360 fingertips, the default, the model the shipped policies trained on), 'xela'
 (stock-length fingertips with Xela shells, and Xela pads on the phalanges and palm: envs.sensors.xela_hand), and
 'digit360_v4' (the vendor's published Allegro V4 kinematics with Meta's 12 mm Digit 360 domes, envs.hand_model: the
-hand the retrain of issue 72 moves to; no simulated touch yet), and 'xela_v4' (the same kinematics with the stock
+hand the retrain of issue 72 moves to; its touch renders 12 mm domes), and 'xela_v4' (the same kinematics with the stock
 tips under Xela shells and the 18 pads on its own links: envs.sensors.xela_layout.pad_mounts). digit360_v4 holds
 the cup lower and closer to the palm, around the pose `python experiments/tools/canonical_pose.py --seed 0` found
 (experiments/hand_v4); xela_v4, whose stock-length tips are 26 mm shorter, around the pose of `python

@@ -169,7 +169,7 @@ def test_the_open_and_home_poses_touch_nothing(hand):
 
 def test_the_vendor_hand_is_an_env_variant_with_its_own_grasps():
     """EnvConfig(hand='digit360_v4') builds this model, starts from its own shipped cup grasps (generated around its
-    own canonical pose and object centre), and steps; it has no simulated touch yet."""
+    own canonical pose and object centre), and steps; its Digit 360 touch works, the Xela hand's does not."""
     from envs.config import EnvConfig
     from envs.core import RotateCupVec
     from envs.grasp_cache import load_default_cache
@@ -185,8 +185,9 @@ def test_the_vendor_hand_is_an_env_variant_with_its_own_grasps():
     for _ in range(3):
         obs, *_ = env.step(np.zeros((2, 16), dtype=np.float32))
     assert all(np.all(np.isfinite(v)) for v in obs.values() if isinstance(v, np.ndarray))
+    assert EnvConfig(hand="digit360_v4", tactile=True).tactile  # its 12 mm domes render (tests/envs/test_digit360.py)
     with pytest.raises(ValueError, match="tactile"):
-        EnvConfig(hand="digit360_v4", tactile=True)
+        EnvConfig(hand="xela_v4", tactile=True)
 
 
 # ---------------------------------------------------------------------------------------- the Xela variant (xela_v4)
