@@ -73,9 +73,8 @@ def set_nominal_physics(model: mujoco.MjModel, cfg: EnvConfig) -> None:
     m.actuator_forcerange[:] = np.stack([-limits, limits], axis=1)
     if not task.uses_hardware_physics(cfg):
         return
-    nominal = replace(cfg, randomization=replace(cfg.randomization, enabled=False))
-    p = {k: v[0] for k, v in task.sample_hardware_params(np, nominal, np.zeros((1, task.PHYS_DRAWS))).items()}
-    rc = nominal.randomization
+    p = {k: v[0] for k, v in task.nominal_hardware_params(cfg, 1).items()}
+    rc = cfg.randomization
     tips = np.array([m.geom(f"{finger}_tip").id for finger in C.FINGERS])
     obj = np.flatnonzero(m.geom_bodyid == m.body(OBJECT_BODY).id)
     tip_friction = float(np.mean(rc.friction))
@@ -144,9 +143,7 @@ class HoldTest:
         steps = max(1, round(rule.seconds * cfg.control_hz))
         params = {"friction": np.full(n, rule.friction), "mass": np.full(n, rule.mass), "com": np.zeros((n, 3)),
                   "kp": np.full((n, C.NUM_JOINTS), cfg.kp), "kd": np.full((n, C.NUM_JOINTS), cfg.kd)}
-        if task.uses_hardware_physics(cfg):  # the hand's other parameters at their nominal values
-            nominal = replace(cfg, randomization=replace(cfg.randomization, enabled=False))
-            params.update(task.sample_hardware_params(np, nominal, np.zeros((n, task.PHYS_DRAWS))))
+        params.update(task.nominal_hardware_params(cfg, n))  # the hand's other parameters at their nominal values
         worst = np.zeros(len(rows))
         for first in range(0, len(rows), n):
             k = min(n, len(rows) - first)

@@ -14,6 +14,7 @@ The physics cores only move arrays in and out of their simulators.
 
 from __future__ import annotations
 
+import dataclasses
 from types import ModuleType
 from typing import Any
 
@@ -129,6 +130,15 @@ def sample_hardware_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str
     if rc.noslip_dropout > 0:
         p["noslip"] = (u[:, 21] >= rc.noslip_dropout) * 1.0 if rc.enabled else u[:, 21] * 0.0 + 1.0
     return p
+
+
+def nominal_hardware_params(cfg: EnvConfig, n: int) -> dict[str, np.ndarray]:
+    """The hardware physics' parameters of ``n`` episodes at the middles of their ranges (sample_hardware_params
+    without randomization; numpy); {} on the shipped physics."""
+    if not uses_hardware_physics(cfg):
+        return {}
+    nominal = dataclasses.replace(cfg, randomization=dataclasses.replace(cfg.randomization, enabled=False))
+    return sample_hardware_params(np, nominal, np.zeros((n, PHYS_DRAWS)))
 
 
 def object_inertia(xp: ModuleType, kind: str, radius: float, length: float, scale: Array, mass: Array) -> Array:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
@@ -110,9 +110,8 @@ def hold(setting: dict, object_name: str, seconds: float, hand: str = "digit360"
     params = {"friction": np.full(n, float(np.mean(rc.friction))), "mass": np.full(n, float(np.mean(rc.mass))),
               "com": np.zeros((n, 3)), "kp": np.full((n, C.NUM_JOINTS), cfg.kp),
               "kd": np.full((n, C.NUM_JOINTS), cfg.kd), "scale": np.full(n, float(cache.scales[bucket]))}
-    if not setting and task.uses_hardware_physics(cfg):  # its other parameters at the middle of their ranges
-        nominal_cfg = replace(cfg, randomization=replace(rc, enabled=False))
-        params.update(task.sample_hardware_params(np, nominal_cfg, np.zeros((n, task.PHYS_DRAWS))))
+    if not setting:  # its other parameters at the middle of their ranges
+        params.update(task.nominal_hardware_params(cfg, n))
     ids = np.arange(n)
     starts.start(ids, params, rows[:, : C.NUM_JOINTS], rows[:, C.NUM_JOINTS :])
     o = starts.obj_qpos
