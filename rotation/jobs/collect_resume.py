@@ -7,14 +7,14 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from envs.errors import RequestRefused
 from rotation.configs import to_jsonable
 from rotation.data.session_reader import SessionReader
 
-if TYPE_CHECKING:  # the job's config, for annotations only (the job imports this module)
-    from rotation.jobs.collect import Config
+Config = Any
+"""rotation.jobs.collect.Config (that module imports this one; the annotations name it without importing it)."""
 
 MANIFEST = "collect.json"
 SETTINGS = ("policy", "object", "seed", "num_envs", "friction_scale", "added_mass", "com_shift", "episode_steps",
