@@ -115,6 +115,7 @@ def run(cfg: Config) -> PolicyBundle:
             differences = config_differences(checkpoint_options(model), {k: record[k] for k in PPO_OPTIONS}, ())
             refuse_differences(differences, f"recorded in {resumed_from}", RESUMABLE_CHANGES)
             env.seed(cfg.seed + model.num_timesteps)  # fresh, reproducible episodes after a resume
+            model.tensorboard_log = str(cfg.out / "tb")  # the checkpoint remembers the folder it was saved from
         else:
             model = build_model(cfg, env)
         model.overlap = cfg.overlap

@@ -411,3 +411,14 @@ def test_a_checkpoint_another_run_wrote_is_refused_and_left_alone(tmp_path):
     (other.out / "run.json").unlink()  # as a folder written before run ids
     teacher.run(_cfg(tmp_path / "other", total_steps=2048, seed=5, resume=other.out / "checkpoints" / "last.zip"))
     assert AdaptiveKLPPO.load(other.out / "checkpoints" / "last.zip", device="cpu").num_timesteps == 2048
+
+
+def test_a_resume_into_another_folder_logs_there(tmp_path):
+    """A checkpoint remembers the TensorBoard folder of the run that saved it; continuing it into another --out
+    writes its TensorBoard events there, and adds nothing to the first run's folder."""
+    first = _cfg(tmp_path / "a", total_steps=1024)
+    teacher.run(first)
+    events = sorted(p.name for p in (first.out / "tb").rglob("events.*"))
+    teacher.run(_cfg(tmp_path / "b", total_steps=2048, resume=first.out / "checkpoints" / "last.zip"))
+    assert sorted(p.name for p in (first.out / "tb").rglob("events.*")) == events
+    assert list((tmp_path / "b" / "run" / "tb").rglob("events.*"))
