@@ -19,7 +19,7 @@ import numpy as np
 
 from envs import constants as C
 from envs import task
-from envs.config import EnvConfig
+from envs.config import ContactConfig, EnvConfig
 from envs.geometry import angular_velocity  # noqa: F401 (re-exported for rotation.deploy)
 from envs.grasp_cache import GraspCache, load_default_cache
 from envs.objects import ObjectSpec, get_object
@@ -39,6 +39,33 @@ PUSH_DECAY_PERIOD = task.PUSH_DECAY_PERIOD
 """Hora decays pushes by `push_decay` every 0.08 s."""
 
 
+def set_contact(m: mujoco.MjModel, contact: ContactConfig) -> None:
+    """Write a contact model (envs.physics.ContactConfig) into ``m`` in place: cone, impratio, noslip iterations and,
+    where set, every geom's time constant and impedance."""
+    m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if contact.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
+    m.opt.impratio = contact.impratio
+    m.opt.noslip_iterations = contact.noslip_iterations
+    if contact.timeconst is not None:
+        m.geom_solref[:, 0] = contact.timeconst
+    if contact.solimp is not None:
+        m.geom_solimp[:, :3] = contact.solimp
+
+
+def set_torque_limits(m: mujoco.MjModel, cfg: EnvConfig) -> None:
+    """The config's torque limits on every actuator: the vendor's per joint, or ``torque_limit`` on all."""
+    if cfg.joint_torque_limits == "vendor":
+        m.actuator_forcerange[:] = np.stack([-C.TORQUE_LIMITS, C.TORQUE_LIMITS], axis=1)
+    else:
+        m.actuator_forcerange[:] = [-cfg.torque_limit, cfg.torque_limit]
+
+
+def skin_geoms(m: mujoco.MjModel) -> np.ndarray:
+    """The geoms that are skin (the gel domes ``<finger>_tip``, the Xela shells and pads ``xela_*``): on the
+    hardware's physics they take the fingertips' friction, the rest of the hand the links' one."""
+    skin = {f"{finger}_tip" for finger in C.FINGERS}
+    return np.array([g for g in range(m.ngeom) if m.geom(g).name in skin or m.geom(g).name.startswith("xela_")])
+
+
 def task_model(cfg: EnvConfig, edit=None) -> tuple[mujoco.MjModel, ObjectSpec, float]:
     """The task's compiled model, shared by both physics backends: the hand and ``cfg.object`` at the largest scale
     the randomization may pick (smaller ones shrink geoms per simulation), the contact model's settings, the torque
@@ -48,17 +75,8 @@ def task_model(cfg: EnvConfig, edit=None) -> tuple[mujoco.MjModel, ObjectSpec, f
     rc = cfg.randomization
     max_scale = (max(rc.scales) + rc.scale_jitter) if rc.enabled else float(rc.scales[len(rc.scales) // 2])
     m = build_model(obj, max_scale, cfg.physics_dt, edit=edit, hand=cfg.hand)
-    m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.contact.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
-    m.opt.impratio = cfg.contact.impratio
-    m.opt.noslip_iterations = cfg.contact.noslip_iterations
-    if cfg.contact.timeconst is not None:
-        m.geom_solref[:, 0] = cfg.contact.timeconst
-    if cfg.contact.solimp is not None:
-        m.geom_solimp[:, :3] = cfg.contact.solimp
-    if cfg.joint_torque_limits == "vendor":
-        m.actuator_forcerange[:] = np.stack([-C.TORQUE_LIMITS, C.TORQUE_LIMITS], axis=1)
-    else:
-        m.actuator_forcerange[:] = [-cfg.torque_limit, cfg.torque_limit]
+    set_contact(m, cfg.contact)
+    set_torque_limits(m, cfg)
     task.set_gains(m.actuator_gainprm[None], m.actuator_biasprm[None], np.full((1, C.NUM_JOINTS), cfg.kp),
                    np.full((1, C.NUM_JOINTS), cfg.kd))
     return m, obj, max_scale
@@ -86,11 +104,9 @@ class EpisodeStarts:
         self.body_mass, self.body_ipos = batch.expand("body_mass"), batch.expand("body_ipos")
         self.body_inertia = batch.expand("body_inertia")
         self.gainprm, self.biasprm = batch.expand("actuator_gainprm"), batch.expand("actuator_biasprm")
-        # the hardware physics (envs.physics): the skin (gel domes, Xela shells and pads) and the rest of the hand,
-        # each with its own friction, and the model fields its other draws write
-        skin = {f"{finger}_tip" for finger in C.FINGERS}
-        self.tip_geoms = np.array([g for g in range(model.ngeom) if model.geom(g).name in skin
-                                   or model.geom(g).name.startswith("xela_")])
+        # the hardware physics (envs.physics): the skin and the rest of the hand, each with its own friction, and the
+        # model fields its other draws write
+        self.tip_geoms = skin_geoms(model)
         self.link_geoms = np.setdiff1d(np.flatnonzero(model.geom_contype > 0), np.r_[self.tip_geoms, self.obj_geoms])
         self.forcerange0 = model.actuator_forcerange.copy()
         self.frictionloss0 = model.dof_frictionloss.copy()

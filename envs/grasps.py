@@ -18,7 +18,7 @@ import numpy as np
 from envs import constants as C
 from envs import task
 from envs.config import EnvConfig, RandomizationConfig, default_randomization
-from envs.core import EpisodeStarts, task_model
+from envs.core import EpisodeStarts, set_contact, set_torque_limits, skin_geoms, task_model
 from envs.errors import RequestRefused
 from envs.geometry import tilt_angle
 from envs.grasp_cache import GRASP_DIM, GraspCache
@@ -66,16 +66,13 @@ def set_nominal_physics(model: mujoco.MjModel, cfg: EnvConfig) -> None:
     friction, torque scale and contact ranges into ``model`` itself (in place): what a grasp is settled under, so
     that an episode starting from it does not first settle again."""
     m = model
-    m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if cfg.contact.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
-    m.opt.impratio = cfg.contact.impratio
-    m.opt.noslip_iterations = cfg.contact.noslip_iterations
-    limits = C.TORQUE_LIMITS if cfg.joint_torque_limits == "vendor" else np.full(C.NUM_JOINTS, cfg.torque_limit)
-    m.actuator_forcerange[:] = np.stack([-limits, limits], axis=1)
+    set_contact(m, cfg.contact)
+    set_torque_limits(m, cfg)
     if not task.uses_hardware_physics(cfg):
         return
     p = {k: v[0] for k, v in task.nominal_hardware_params(cfg, 1).items()}
     rc = cfg.randomization
-    tips = np.array([m.geom(f"{finger}_tip").id for finger in C.FINGERS])
+    tips = skin_geoms(m)  # the env's own split (envs.core.EpisodeStarts): the Xela pads are skin too
     obj = np.flatnonzero(m.geom_bodyid == m.body(OBJECT_BODY).id)
     tip_friction = float(np.mean(rc.friction))
     if "link_friction" in p:

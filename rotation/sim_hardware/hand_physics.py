@@ -31,6 +31,7 @@ import numpy as np
 
 from envs.config import default_randomization
 from envs.constants import HOME_POSE, JOINT_NAMES, NUM_JOINTS
+from envs.core import set_contact
 from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
 from envs.physics import hand_physics as physics_of
@@ -57,11 +58,7 @@ class HandPhysics:
         """Grasp cache row the scene started from (set by :meth:`at_grasp`), None otherwise."""
         self.model = build_model(get_object(object_name), scale=scale, timestep=TIMESTEP,
                                  edit=partial(add_digit360_sensors, history=1), hand=hand)
-        contact = physics_of(hand).contact
-        self.model.opt.cone = (mujoco.mjtCone.mjCONE_ELLIPTIC if contact.cone == "elliptic"
-                               else mujoco.mjtCone.mjCONE_PYRAMIDAL)
-        self.model.opt.impratio = contact.impratio
-        self.model.opt.noslip_iterations = contact.noslip_iterations
+        set_contact(self.model, physics_of(hand).contact)  # the hand's contact model
         self.model.actuator_gainprm[:, 0] = 0.0  # position actuators off: torque comes from qfrc_applied
         self.model.actuator_biasprm[:, :3] = 0.0
         self.data = mujoco.MjData(self.model)
