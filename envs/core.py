@@ -25,9 +25,8 @@ from envs.grasp_cache import GraspCache, load_default_cache
 from envs.objects import ObjectSpec, get_object
 from envs.observation import ProprioHistory
 from envs.rng import CounterRNG, env_keys
-from envs.scene import OBJECT_BODY, build_model, hand_variant
+from envs.scene import OBJECT_BODY, build_model, touch_model
 from envs.sensors.digit360 import add_digit360_sensors
-from envs.sensors.digit360_model import Digit360Model
 from envs.sensors.skin_obs import SkinState, skin_space
 from envs.sensors.tactile_obs import TouchState, tactile_space
 from envs.sensors.xela_hand import add_xela_sensors
@@ -224,7 +223,7 @@ class RotateCupVec:
         self.batch = mujoco.batch.Batch(m, n, self.nthread, persistent=True)
         # touch: per-env contact history feeding obs["tactile"]; None keeps the plain path as it was
         self.touch = (TouchState(m, n, cfg.physics_dt, cfg.substeps,
-                                 Digit360Model(dome_radius=hand_variant(cfg.hand).tip_radius)) if cfg.tactile else None)
+                                 touch_model(cfg.hand)) if cfg.tactile else None)
         # skin: per-env Xela readings feeding obs["skin"] and the pad force labels; None when off
         self.skin = SkinState(m, n, cfg.physics_dt, cfg.substeps) if cfg.skin else None
 

@@ -14,6 +14,7 @@ import mujoco
 import numpy as np
 
 from envs.objects import ObjectSpec
+from envs.sensors.digit360_model import Digit360Model
 
 OBJECT_BODY = "object"
 OBJECT_JOINT = "object_free"
@@ -38,6 +39,8 @@ class HandVariant:
     """The 16 joint angles (rad) grasps are sampled around."""
     tip_radius: float
     """Fingertip dome radius (m): a fingertip within it (and a few mm) of the object touches it."""
+    touch_generation: int = 1
+    """The simulated Digit 360's model generation (envs.sensors.digit360_model.Digit360Model.generation)."""
 
 
 VARIANTS: dict[str, HandVariant] = {
@@ -47,12 +50,12 @@ VARIANTS: dict[str, HandVariant] = {
         np.array([0.04, 0.0, 0.08]),
         np.array([-0.354, 0.187, 0.459, 1.341, 0.0, 0.212, 0.215, 1.534, 0.356, 0.287, 0.216, 1.515, 1.396, 0.473,
                   0.112, 1.682]),
-        0.012),
+        0.012, touch_generation=2),
     "xela_v4": HandVariant(
         np.array([0.05, 0.0, 0.08]),
         np.array([-0.332, 0.516, 0.394, 0.418, 0.0, 0.571, 0.079, 0.66, 0.332, 0.599, 0.147, 0.664, 1.089, 0.712, 1.422,
                   -0.106]),
-        0.0145),
+        0.0145, touch_generation=2),
 }
 """Hand variants: 'digit360' (Digit 360 fingertips, the default, the model the shipped policies trained on), 'xela'
 (stock-length fingertips with Xela shells, and Xela pads on the phalanges and palm: envs.sensors.xela_hand), and
@@ -71,6 +74,13 @@ def hand_variant(hand: str = "digit360") -> HandVariant:
     if hand not in VARIANTS:
         raise ValueError(f"unknown hand {hand!r}; hands: {', '.join(HANDS)}")
     return VARIANTS[hand]
+
+
+def touch_model(hand: str = "digit360") -> Digit360Model:
+    """The simulated Digit 360 of a hand variant: its dome radius and model generation ('digit360' renders the
+    shipped generation-1 streams bit for bit, the vendor-kinematics hands generation 2)."""
+    v = hand_variant(hand)
+    return Digit360Model(dome_radius=v.tip_radius, generation=v.touch_generation)
 
 
 def hand_xml_path() -> str:

@@ -10,6 +10,7 @@ from functools import lru_cache
 import numpy as np
 
 from envs.sensors.digit360 import CONTACT_SLOTS, FIELD
+from envs.sensors.digit360_markers import marker_layer, pixel_rays
 from envs.sensors.digit360_model import (
     DEFAULT_MODEL,
     IMAGE_HZ,
@@ -24,38 +25,26 @@ from envs.sensors.digit360_model import (
 
 
 # ---------------------------------------------------------------------------------------------------- image
-@lru_cache(maxsize=4)
-def _pixel_rays(size: int, fov_half_angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """Unit view direction of every pixel in the sensor frame (size, size, 3) and the in-circle mask.
-
-    Equidistant fisheye around the sensor z axis: the distance from the image centre is proportional to the angle
-    from the axis, the image circle (radius size/2) at ``fov_half_angle_deg``; column ~ sensor x, row ~ sensor y.
-    """
-    c = (size - 1) / 2.0
-    j, i = np.meshgrid(np.arange(size), np.arange(size))  # (S, S) column, row
-    x, y = (j - c) / (size / 2.0), (i - c) / (size / 2.0)
-    rho = np.hypot(x, y)
-    theta = rho * math.radians(fov_half_angle_deg)
-    phi = np.arctan2(y, x)
-    rays = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=-1)
-    return rays, rho <= 1.0
-
-
 @lru_cache(maxsize=16)
 def _background(size: int, model: Digit360Model, sensor: int) -> np.ndarray:
     """Static illuminated background (size, size, 3) in [0, 1]: vignetting, one-sided light gradients, a fixed grain
     texture of this physical sensor (``sensor``: the fingertip index), dark outside the image circle; scaled so the
     mean color is ``model.background_mean``."""
-    rays, inside = _pixel_rays(size, model.fov_half_angle_deg)
+    rays, inside = pixel_rays(size, model.fov_half_angle_deg)
     c = (size - 1) / 2.0
     j, i = np.meshgrid(np.arange(size), np.arange(size))
     x, y = (j - c) / (size / 2.0), (i - c) / (size / 2.0)
     rho = np.hypot(x, y)
-    vignette = np.clip(1.0 - 0.55 * rho**2, 0.0, None)  # (S, S) brighter centre
+    gains, strength = np.ones(3), 0.55
+    if model.generation >= 2:  # this physical sensor's own LEDs and lens: fixed per sensor, not per session
+        u = seeded_uniform(np.uint64(sensor + 1), STREAM_PARAMS, np.arange(10, 14))
+        gains = 1.0 + model.light_spread * (2.0 * u[:3] - 1.0)
+        strength = 0.55 * (1.0 + model.vignette_spread * (2.0 * u[3] - 1.0))
+    vignette = np.clip(1.0 - strength * rho**2, 0.0, None)  # (S, S) brighter centre
     bg = np.empty((size, size, 3))
     for ch, az in enumerate(model.light_azimuths_deg):
         a = math.radians(az)
-        bg[..., ch] = vignette * (1.0 + 0.35 * (x * math.cos(a) + y * math.sin(a)))  # brighter toward each light
+        bg[..., ch] = gains[ch] * vignette * (1.0 + 0.35 * (x * math.cos(a) + y * math.sin(a)))  # toward each light
     grain = seeded_uniform(np.uint64(sensor + 1), STREAM_PARAMS, np.arange(size * size)).reshape(size, size)
     bg *= (1.0 + 0.06 * (grain - 0.5))[..., None]
     bg[~inside] = 0.05 * bg[~inside]
@@ -78,7 +67,7 @@ def _hertz_profile(rho: np.ndarray) -> np.ndarray:
 
 def _indentation(row: np.ndarray, model: Digit360Model, size: int) -> np.ndarray:
     """Elastomer indentation (m, (size, size)) of one frame's contact-field row: Hertz patches, shifted by shear."""
-    rays, _ = _pixel_rays(size, model.fov_half_angle_deg)
+    rays, _ = pixel_rays(size, model.fov_half_angle_deg)
     disp = np.zeros((size, size))
     fns = [float(row[FIELD[f"c{k}_fn"]]) for k in range(CONTACT_SLOTS)]
     total_fn = sum(fns)
@@ -98,10 +87,11 @@ def _indentation(row: np.ndarray, model: Digit360Model, size: int) -> np.ndarray
         c = p / norm
         a = (3.0 * fn * model.dome_radius / (4.0 * e_star)) ** (1.0 / 3.0)  # Hertz contact radius (m)
         depth = a * a / model.dome_radius
-        # Mindlin: this contact's share of the tangential force drags the patch, at most by its radius
+        # Mindlin: this contact's share of the tangential force drags the patch, at most by its radius (generation
+        # 2 draws that displacement on the gel's markers instead: envs.sensors.digit360_markers)
         f_t = (force - force.dot(c) * c) * (fn / total_fn)
         shift = min(3.0 * (2.0 - model.poisson) * np.linalg.norm(f_t) / (8.0 * shear_modulus * a), a)
-        if shift > 0:
+        if shift > 0 and model.generation < 2:
             c = c + f_t / (np.linalg.norm(f_t) + 1e-12) * shift / model.dome_radius
             c /= np.linalg.norm(c)
         theta = math.acos(float(np.clip(c[2], -1.0, 1.0)))
@@ -143,6 +133,8 @@ def render_frame(row: np.ndarray, frame_index: int, key: int, sensor: int = 0, m
             slope = np.float32(math.cos(a)) * gx + np.float32(math.sin(a)) * gy  # (S, S) along light ch
             img[..., ch] += np.float32(model.shading_gain) * slope
         img += np.float32(model.depth_gain) * disp[..., None].astype(np.float32)
+    if model.generation >= 2:
+        img *= marker_layer(row, model, size)[..., None]
     # read noise: a slice of this sensor's noise table at a pseudo-random offset per frame
     n = size * size
     offset = int(seeded_hash(np.uint64(key), STREAM_IMAGE, np.array([frame_index]))[0] % np.uint64(3 * n))

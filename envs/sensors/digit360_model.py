@@ -34,6 +34,7 @@ IMU_LSB_PER_G = 4096.0
 INT16_MAX = 32767.0
 
 STREAM_IMAGE, STREAM_FLOOR, STREAM_SLIP, STREAM_IMU, STREAM_PRESSURE, STREAM_PARAMS = 11, 12, 13, 14, 15, 16
+STREAM_IMU_SLIP = 17
 """Stream numbers of the per-finger deterministic noise (finger_key), one per thing that draws noise."""
 _TIME_EPS = 1e-6
 """Tolerance (s) when comparing float simulation times with grid times (0.01 s steps accumulate rounding)."""
@@ -41,7 +42,16 @@ _TIME_EPS = 1e-6
 
 @dataclass(frozen=True)
 class Digit360Model:
-    """Parameters of the rendered streams. Values marked 'chosen' are plausible guesses, not measurements."""
+    """Parameters of the rendered streams. Values marked 'chosen' are plausible guesses, not measurements.
+
+    ``generation`` picks the model: 1 is the one the shipped encoder and adapter were trained on (the older hand,
+    'digit360', keeps it bit for bit); 2 (:data:`CONTACT_MODEL`, the vendor-kinematics hand 'digit360_v4') makes
+    each stream carry what the contact holds: the gel's printed markers move with the tangential displacement of
+    its surface (a sticking contact translates them rigidly, a sliding one drags them in the full-slip pattern), the
+    slip noise of audio and IMU follows the frictional power (tangential force x slip speed), impacts and slip
+    shake the accelerometer above the physics rate, and the pressure follows the normal force through the gel's
+    lag. The fields below the ``generation`` line are read by generation 2 only.
+    """
 
     dome_radius: float = 0.014
     """Radius of the elastomer dome (m): the older hand model's 14 mm; Meta's Digit 360 on the vendor-kinematics hand
@@ -99,15 +109,62 @@ class Digit360Model:
     pressure_drift_period: float = 120.0
     """Period of the drift (s); chosen."""
 
+    generation: int = 1
+    """1: the shipped model; 2: the contact-carrying streams (see the class docstring)."""
+    marker_pitch: float = 0.0016
+    """Spacing of the printed marker dots on the gel (m of arc at the dome); chosen (vision-based fingertips with
+    markers print them 1-2 mm apart)."""
+    marker_size: float = 0.00028
+    """Gaussian radius (std, m) of a marker dot; chosen."""
+    marker_darkness: float = 0.55
+    """Fraction of the light a marker's centre absorbs; chosen."""
+    slip_threshold: float = 0.002
+    """Slip speed (m/s) above which a contact slides (full slip) rather than sticks; chosen, above the creep of a
+    held contact under MuJoCo's soft constraints (experiments/sim_v4: 0.01 mm in 5 s)."""
+    light_spread: float = 0.12
+    """Per-sensor spread of each light's brightness (a gain uniform in 1 +- this, fixed per physical sensor)."""
+    vignette_spread: float = 0.15
+    """Per-sensor spread of the vignetting strength (uniform in 0.55 x (1 +- this))."""
+    friction_sound_gain: float = 4.0e4
+    """Slip noise std per watt of frictional power (tangential force N x slip speed m/s), counts; chosen."""
+    gel_time_constant: float = 0.04
+    """Lag (s) of the gel cavity's pressure behind the normal force (first order); chosen, viscoelastic silicone
+    gels relax over tens of milliseconds."""
+    imu_mode: tuple[float, float] = (110.0, 0.012)
+    """The fingertip's vibration mode seen by the accelerometer: frequency (Hz, below the 200 Hz Nyquist limit of
+    the 400 Hz samples) and decay time constant (s); chosen."""
+    imu_effective_mass: float = 0.05
+    """Mass (kg) an impact's force rise accelerates at the sensor: the fingertip with its sensor (the Digit 360
+    body and the distal link are tens of grams); chosen."""
+    imu_slip_gain: float = 20.0
+    """Vibration (m/s^2 std) per watt of frictional power, band 30-190 Hz; chosen."""
+
+    def __post_init__(self) -> None:
+        if self.generation not in (1, 2):
+            raise ValueError(f"Digit360Model: generation must be 1 or 2, got {self.generation!r}")
+        for name in ("dome_radius", "elastomer_modulus", "marker_pitch", "marker_size", "gel_time_constant",
+                     "imu_effective_mass"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"Digit360Model: {name} must be > 0, got {getattr(self, name)!r}")
+        if not 0 < self.imu_mode[0] < IMU_HZ / 2:
+            raise ValueError(f"Digit360Model: the imu_mode frequency must be in (0, {IMU_HZ / 2:g}) Hz, got "
+                             f"{self.imu_mode[0]}")
+
 
 DEFAULT_MODEL = Digit360Model()
+CONTACT_MODEL = Digit360Model(dome_radius=0.012, generation=2)
+"""The generation-2 model on Meta's 12 mm domes: what 'digit360_v4' renders (envs.scene.touch_model)."""
 AUDIO_RING_S = 5.0 * max(decay for _, decay, _ in DEFAULT_MODEL.modes)
 """How far back an impact still rings (s): five decay times of the default model's slowest mode (a model with
 slower modes is cut there)."""
-HISTORY_S = (PRESSURE_SAMPLES - 1) / PRESSURE_HZ + 1.0 / IMAGE_HZ + AUDIO_RING_S
+LOOKBACK_S = max(AUDIO_RING_S, 5.0 * CONTACT_MODEL.gel_time_constant, 5.0 * CONTACT_MODEL.imu_mode[1])
+"""How far before a stream sample its rows reach (s): the ring-down of impacts and five time constants of the
+gel's pressure lag (0.2 s; a model with slower constants is cut there)."""
+HISTORY_S = (PRESSURE_SAMPLES - 1) / PRESSURE_HZ + 1.0 / IMAGE_HZ + LOOKBACK_S
 """Contact history (s) a window ending at the latest image frame needs behind the current time: the pressure
-window (the longest, 1.115 s), the latest frame's lag behind the current time (< 1/30 s) and the ring-down of
-impacts just before the window; add two physics steps for the interpolation lag and the row held at the start."""
+window (the longest, 1.115 s), the latest frame's lag behind the current time (< 1/30 s) and the look-back of its
+first samples; add two physics steps for the interpolation lag and the row held at the start."""
+
 
 
 # ---------------------------------------------------------------------------------------------------- randomness

@@ -45,7 +45,6 @@ import numpy as np
 from envs.sensors.digit360_image import render_frames
 from envs.sensors.digit360_model import (
     AUDIO_HZ,
-    AUDIO_RING_S,
     AUDIO_SAMPLES,
     DEFAULT_MODEL,
     FRAME_GAP,
@@ -53,6 +52,7 @@ from envs.sensors.digit360_model import (
     IMAGE_SIZE,
     IMU_HZ,
     IMU_SAMPLES,
+    LOOKBACK_S,
     PRESSURE_HZ,
     PRESSURE_SAMPLES,
     ContactTrack,
@@ -107,7 +107,7 @@ def render_window(track: ContactTrack, frame: int, key: int, sensor: int = 0, mo
     Uses only contact rows at or before the frame time; before the track starts, its first row is held.
     """
     w = WindowIndex(int(frame))
-    track = track.clip(w.start_time - AUDIO_RING_S - 2 * track.dt, w.time)  # the rows this window can use
+    track = track.clip(w.start_time - LOOKBACK_S - 2 * track.dt, w.time)  # the rows this window can use
     return {
         "image": render_frames(track, w.frames, key, sensor, model, size),
         "audio": render_audio(track, w.audio_first, AUDIO_SAMPLES, key, model),

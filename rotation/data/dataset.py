@@ -35,10 +35,10 @@ from torch.utils.data import Dataset
 from envs.constants import FINGERS
 from envs.errors import RequestRefused
 from envs.rng import splitmix64
+from envs.scene import HANDS, touch_model
 from envs.sensors.digit360_image import pack_image
 from envs.sensors.digit360_model import (
     AUDIO_SAMPLES,
-    DEFAULT_MODEL,
     FRAME_GAP,
     IMAGE_HZ,
     IMAGE_SIZE,
@@ -123,6 +123,16 @@ def _resample_linear(t_src: np.ndarray, x_src: np.ndarray, t_grid: np.ndarray, t
     return np.stack([np.interp(t_grid, t, x[:, c]) for c in range(x.shape[1])], axis=1).astype(np.float32)
 
 
+def _session_sensor(r: SessionReader) -> Digit360Model:
+    """The simulated sensor a session was collected with: its hand's (``extra["sim_hand"]``, written by `rotate
+    collect`; 'digit360' when unnamed, as in collections before the vendor-kinematics hand)."""
+    hand = str(r.meta.extra.get("sim_hand", "digit360"))
+    if hand not in HANDS:
+        raise SessionError(f"session {r.path}: extra['sim_hand'] = {hand!r} is not a simulated hand "
+                           f"({', '.join(HANDS)})")
+    return touch_model(hand)
+
+
 class TouchWindows(Dataset):
     """Sparsh-X windows of every fingertip and image timestamp of a set of sessions (see the module docstring).
 
@@ -132,12 +142,14 @@ class TouchWindows(Dataset):
         labels: label names to return (see ``LABELS``); None = those present in every session.
         stride: index every ``stride``-th image timestamp.
         audio_features: return the log-mel ``audio`` (True) or the raw ``audio_wave`` (False).
-        model: the simulated sensor's parameters (for sessions from simulation).
+        model: the simulated sensor's parameters for sessions from simulation; None (the default): each session's
+            own, the sensor of the hand it was collected on (``extra["sim_hand"]``, envs.scene.touch_model; sessions
+            that name none are from the 'digit360' hand).
     """
 
     def __init__(self, paths: Sequence[str | Path], fingers: Sequence[str] = FINGERS,
                  labels: Sequence[str] | None = None, stride: int = 1, audio_features: bool = True,
-                 model: Digit360Model = DEFAULT_MODEL):
+                 model: Digit360Model | None = None):
         self.paths = [Path(p) for p in paths]
         if not self.paths:
             raise RequestRefused("TouchWindows: no session files given")
@@ -152,6 +164,7 @@ class TouchWindows(Dataset):
         index: list[np.ndarray] = []
         times: list[np.ndarray] = []
         self._kind: list[dict[str, str]] = []
+        self._models: list[Digit360Model] = []
         for s, path in enumerate(self.paths):
             with SessionReader(path) as r:
                 have = {n.split("/", 1)[1] for n in r.names if n.startswith("labels/")}
@@ -167,6 +180,7 @@ class TouchWindows(Dataset):
                     else:
                         times.append(r.stream(f"digit360/{f}/image", lazy=True).timestamps[ends])
                 self._kind.append(kinds)
+                self._models.append(model if model is not None else _session_sensor(r))
         self.labels = tuple(sorted(present or ())) if labels is None else tuple(labels)
         bad = [n for n in self.labels if n not in LABELS]
         if bad:
@@ -231,6 +245,33 @@ class TouchWindows(Dataset):
             self._readers[s] = SessionReader(self.paths[s])
         return self._readers[s]
 
+    def contact_track(self, s: int, finger: str) -> ContactTrack:
+        """The simulated contact fields of session ``s``'s fingertip ``finger`` (a simulated session's)."""
+        if self._kind[s][finger] != "sim":
+            raise SessionError(f"session {self.paths[s]}: fingertip {finger!r} is recorded, not simulated: it has "
+                               "no contact fields")
+        return self._track(s, finger)
+
+    def sensor_model(self, s: int) -> Digit360Model:
+        """The simulated sensor session ``s`` renders with."""
+        return self._models[s]
+
+    def labels_at(self, rows: np.ndarray, name: str) -> np.ndarray:
+        """Label ``name`` of windows ``rows`` (indices into this dataset), read without rendering: (len(rows), ...),
+        a per-fingertip label at the window's own fingertip."""
+        rows = np.asarray(rows, np.int64)
+        out: list[np.ndarray | None] = [None] * len(rows)
+        for s in np.unique(self.index[rows, 0]):
+            mine = np.flatnonzero(self.index[rows, 0] == s)
+            st = self._reader(int(s)).stream(f"labels/{name}")
+            j = np.searchsorted(st.timestamps, self.end_times[rows[mine]] + _TIME_EPS, side="right") - 1
+            value = np.asarray(st.data)[np.maximum(j, 0)]
+            if name in PER_FINGERTIP:
+                value = value[np.arange(len(mine)), self.index[rows[mine], 1]]
+            for k, m in enumerate(mine):
+                out[m] = value[k]
+        return np.asarray(out, np.float32)
+
     def _track(self, s: int, finger: str) -> ContactTrack:
         key = (s, FINGERS.index(finger))
         if key not in self._tracks:
@@ -245,7 +286,7 @@ class TouchWindows(Dataset):
         r = self._reader(s)
         if self._kind[s][finger] == "sim":
             key = finger_key(session_key(r), fi)
-            raw = render_window(self._track(s, finger), end, int(key), fi, self.model)
+            raw = render_window(self._track(s, finger), end, int(key), fi, self._models[s])
             t_end = end / IMAGE_HZ
             frames, wave, imu, pressure = raw["image"], raw["audio"], raw["imu"], raw["pressure"][:, None]
         else:

@@ -86,6 +86,10 @@ class Config:
     skin: bool = False
     """Record the simulated Xela skin on the Xela hand (stock fingertips, 18 pads; docs/skin.md) instead of the
     Digit 360 fingertips: streams skin/xela, skin/taxel_pos, labels/skin_force at 100 Hz."""
+    hand: Literal["auto", "digit360", "digit360_v4"] = "auto"
+    """The Digit 360 hand: 'auto' is a policy bundle's own hand, and 'digit360' for the scripted policies (the
+    Xela hand with --skin); 'digit360_v4' (the vendor's kinematics, generation-2 touch: envs.scene.touch_model) for
+    the scripted policies, or to check a bundle's hand."""
     task: Literal["cup", "joystick"] = "cup"
     """'cup': the RotateCup env with the object; 'joystick': the Xela hand presses and pushes the spring-returned
     joystick fixture (needs --skin and policy 'play' or 'random'; adds labels/joystick; the object and
@@ -108,19 +112,23 @@ class Config:
             raise ValueError(f"com_shift needs 3 values (X Y Z, m), got {self.com_shift!r}")
         check_number("flush_interval_s", self.flush_interval_s, 0.0, 3600.0, low_open=True, unit="s")
         check_output_dir("out", self.out)
+        if self.hand != "auto" and self.skin:
+            raise ValueError(f"hand: --skin records the Xela hand; leave --hand at auto, got {self.hand!r}")
         if self.task == "joystick" and not self.skin:
             raise ValueError("task: the joystick task records the Xela skin; add --skin")
         if self.task == "joystick" and self.policy not in ("play", "random"):
             raise ValueError(f"policy: the joystick task moves the hand by script: 'play' or 'random', got "
                              f"{self.policy!r}")
         # the object, the episode length and the perturbation as the env will see them (physical limits included)
-        EnvConfig(object=self.object, episode_steps=self.episode_steps, **_sensors(self.skin),
+        EnvConfig(object=self.object, episode_steps=self.episode_steps, **_sensors(self.skin, self.hand),
                   perturb=Perturbation(self.friction_scale, self.added_mass, tuple(self.com_shift)))
 
 
-def _sensors(skin: bool) -> dict[str, Any]:
-    """The env's touch settings: Digit 360 fingertips, or the Xela hand with its skin."""
-    return dict(hand="xela", skin=True, tactile=False) if skin else dict(tactile=True)
+def _sensors(skin: bool, hand: str = "auto") -> dict[str, Any]:
+    """The env's touch settings: Digit 360 fingertips (on ``hand`` unless 'auto'), or the Xela hand with its skin."""
+    if skin:
+        return dict(hand="xela", skin=True, tactile=False)
+    return dict(tactile=True) if hand == "auto" else dict(tactile=True, hand=hand)
 
 
 def episode_path(out: Path, episode: int) -> Path:
@@ -216,7 +224,9 @@ class _Recorder:
             extra={"episode": episode, "slot": slot, "physics_dt": env.cfg.physics_dt, "collect": to_jsonable(cfg),
                    SETTINGS_KEY: digest,
                    **({"hand": "xela", "skin_key": int(env.skin.skin.keys[slot]), "skin": skin_metadata()}
-                      if env.skin is not None else {"touch_key": int(env.touch.episode_keys[slot])})},
+                      if env.skin is not None else {"touch_key": int(env.touch.episode_keys[slot]),
+                                                    "sim_hand": env.cfg.hand,
+                                                    "touch_generation": env.touch.sensor.generation})},
         )
         streams = _streams(env.cfg.control_hz, 1.0 / env.cfg.physics_dt, with_z, env.skin is not None)
         self.writer = SessionWriter(self.path, meta, streams, flush_interval_s=cfg.flush_interval_s, overwrite=True)
@@ -247,7 +257,7 @@ class _Recorder:
 def _env_config(cfg: Config, policy: _RandomPolicy | _BundlePolicy) -> EnvConfig:
     """The collection's env; with a bundle, at the control rate and action scale it was trained at."""
     timing = {}
-    sensors = _sensors(cfg.skin)
+    sensors = _sensors(cfg.skin, cfg.hand)
     if isinstance(policy, _BundlePolicy):
         from rotation.bundles import check_policy_hand, policy_hand
 
@@ -266,6 +276,8 @@ def _env_config(cfg: Config, policy: _RandomPolicy | _BundlePolicy) -> EnvConfig
 def _settings(cfg: Config, env_cfg: EnvConfig, policy: Any) -> dict[str, Any]:
     settings = {k: to_jsonable(getattr(cfg, k)) for k in (*SETTINGS, *SKIN_SETTINGS)}
     settings.update(control_hz=env_cfg.control_hz, action_scale=env_cfg.action_scale)
+    if cfg.hand != "auto":  # recorded only when chosen, so that the digest of earlier collections stays theirs
+        settings["hand"] = cfg.hand
     if isinstance(policy, _BundlePolicy):
         settings["policy_weights_sha256"] = policy.digest
     return settings

@@ -85,8 +85,8 @@ def check_manifest(cfg: Config, settings: dict[str, Any]) -> None:
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as err:
         raise RequestRefused(f"{path} is not a readable collect manifest ({type(err).__name__}: {err}); use another "
                              "--out, or remove the file if the sessions beside it are yours to replace") from None
-    old = {**SKIN_SETTINGS, **old}
-    diff = {k: (old.get(k), v) for k, v in settings.items()
+    old = {**SKIN_SETTINGS, "hand": "auto", **old}
+    diff = {k: (old.get(k), v) for k, v in {"hand": "auto", **settings}.items()
             if old.get(k) != v and (k not in LATER_SETTINGS or k in old)}
     if not diff:
         return

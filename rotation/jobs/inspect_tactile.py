@@ -1,7 +1,9 @@
 """Plot every touch modality of one session window for a human check (PNG, headless).
 
-    rotate inspect-tactile data/touch/shard_000/episode_000000.h5 --out window.png
-    rotate inspect-tactile SESSION --finger thumb --time 4.2 --out thumb.png
+    rotate inspect-touch data/touch/shard_000/episode_000000.h5 --out window.png
+    rotate inspect-touch SESSION --finger thumb --time 4.2 --out thumb.png
+
+(`rotate inspect-tactile` is the same command under its earlier name.)
 
 One row per fingertip: the two frames of the image window (t-5 and t), both microphones' waveforms, the log-mel
 features the encoder sees (224 frames x 2 x 128 bins), the accelerometer (g) and the pressure (hPa), all ending at

@@ -25,8 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from cobs import cobs
 
-from envs.scene import hand_variant
-from envs.sensors.digit360_model import Digit360Model
+from envs.scene import touch_model
 from rotation.hardware.digit360.reader import ACC_PER_G, SENSOR, messages
 from rotation.sim_hardware.digit360_touch import FingertipTouch
 from rotation.sim_hardware.hand_physics import HandPhysics
@@ -86,8 +85,8 @@ class Digit360Emulator(EmulatorThread):
         self.source = source
         self.version = version
         self.epoch = epoch
-        # the dome of the emulated hand's model (the vendor-kinematics hand's is 12 mm, the older one's 14 mm)
-        sensor = Digit360Model(dome_radius=hand_variant(physics.hand).tip_radius) if physics is not None else None
+        # the emulated hand's own sensor model (dome radius and generation: envs.scene.touch_model)
+        sensor = touch_model(physics.hand) if physics is not None else None
         self.touch = FingertipTouch(physics, finger, seed, sensor) if physics is not None else None
         """The sensed fingertip of ``physics`` (None with a ``source``)."""
         self.faults = Digit360Faults()

@@ -49,6 +49,7 @@ from envs.sensors.digit360_model import (
     IMAGE_HZ,
     IMU_HZ,
     INT16_MAX,
+    LOOKBACK_S,
     PRESSURE_HZ,
     ContactTrack,
     Digit360Model,
@@ -100,6 +101,9 @@ class FingertipTouch:
         self._t0: float | None = None
         self._lock = threading.Lock()
         self._recent: tuple[int, ContactTrack] | None = None  # (row_count, the newest rows) for the serial streams
+        self._serial_rows = 3 if model.generation < 2 else 3 + int(math.ceil(LOOKBACK_S / self.dt))
+        """Rows a serial sample reads: the two it interpolates between (and one held), plus the look-back of the
+        generation-2 model's gel lag and vibration."""
         self._imu = _SerialStream(self, IMU_HZ, render_imu, imu_terms, lambda t, a, b: (t[0], t[1][a:b]))
         self._pressure = _SerialStream(self, PRESSURE_HZ, render_pressure, pressure_terms,
                                        lambda t, a, b: (t[0][a:b], t[1][a:b]))
@@ -155,7 +159,7 @@ class FingertipTouch:
         """The newest rows, as many as a causal serial sample needs (it interpolates between the two newest), built
         once per new row (the emulator thread's view)."""
         if self._recent is None or self._recent[0] != self._count:
-            self._recent = (self._count, self.track(last=3))
+            self._recent = (self._count, self.track(last=self._serial_rows))
         return self._recent[1]
 
     # ------------------------------------------------------------------------------------------ serial streams

@@ -54,9 +54,10 @@ def scripted_rows(count: int) -> np.ndarray:
     return rows
 
 
-def test_emulated_fingertip_streams_equal_the_env_windows():
+@pytest.mark.parametrize("model", [M.DEFAULT_MODEL, M.CONTACT_MODEL], ids=["generation1", "generation2"])
+def test_emulated_fingertip_streams_equal_the_env_windows(model):
     rows = scripted_rows(160)  # 1.6 s
-    touch = FingertipTouch(ScriptedHand(rows), FINGER, seed=SEED)
+    touch = FingertipTouch(ScriptedHand(rows), FINGER, seed=SEED, model=model)
     touch.start(T0)
     with pytest.raises(WindowNotReady):
         touch.media_window()  # no row taken yet
@@ -75,7 +76,8 @@ def test_emulated_fingertip_streams_equal_the_env_windows():
     keys[0, fi] = M.finger_key(SEED, fi)
     env_rows = np.zeros((1, len(FINGERS), len(track.rows), NUM_FIELDS), np.float32)
     env_rows[0, fi] = track.rows
-    env = TactileObs(track.times[None], env_rows, keys, np.array([1.5 + 0.005]), 0.01).window(0, FINGER)
+    env = TactileObs(track.times[None], env_rows, keys, np.array([1.5 + 0.005]), 0.01,
+                     model=model).window(0, FINGER)
 
     touch.media_window(T0 + 40 / 30)  # frame 40 is rendered (and kept) first: it is frame 45's t-5 frame
     image, audio, t_frame = touch.media_window(T0 + 1.5 + 0.001)
@@ -83,7 +85,7 @@ def test_emulated_fingertip_streams_equal_the_env_windows():
     assert image.shape == (6, 224, 224) and image.dtype == np.uint8
     assert audio.shape == (2, 27000) and audio.dtype == np.int16
     np.testing.assert_array_equal(image.astype(np.float32) / 255.0, env["image"])
-    raw = R.render_window(track, 45, int(keys[0, fi]), fi)
+    raw = R.render_window(track, 45, int(keys[0, fi]), fi, model)
     np.testing.assert_array_equal(audio, audio_counts(raw["audio"]))  # the env's audio as int16 counts
     assert np.abs(audio).max() > 500  # the knock and the sliding are heard
     # the env's log-mels are of unrounded counts: rounding to int16, as a microphone delivers, moves them little

@@ -1,0 +1,134 @@
+"""The ladder's readers: ridge probes on standardized features, one per (stage, feature set, target, label budget).
+
+One simple reader for every stage, so that what differs between rungs is the features, not the learner: ridge
+regression (closed form; through the Gram matrix when features outnumber samples) on features standardized with
+the training samples' statistics; a classification target is read by ridge on its one-hot code (argmax) or on
+its 0/1 value (the threshold that maximizes F1 on the training sessions' out-of-fold predictions: a linear read of
+slip speed needs its own cut, not 0.5). The ridge strength is picked from a fixed grid by cross-validation over the
+training sessions (folds by session, so that no fold scores windows of a session it trained on).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+LAMBDAS = (1e-3, 1e-2, 1e-1, 1.0, 1e1, 1e2, 1e3, 1e4)
+"""Ridge strengths tried (in units of the standardized features' sum of squares per sample)."""
+
+
+def _ridge(x: np.ndarray, y: np.ndarray, lam: float) -> np.ndarray:
+    """Weights (P, K) minimizing |x w - y|^2 + lam n |w|^2 (x, y centred)."""
+    n, p = x.shape
+    reg = lam * n
+    if p <= n:
+        return np.linalg.solve(x.T @ x + reg * np.eye(p), x.T @ y)
+    return x.T @ np.linalg.solve(x @ x.T + reg * np.eye(n), y)
+
+
+class Reader:
+    """A fitted ridge reader: standardization, weights and the target's coding."""
+
+    def __init__(self, kind: str, classes: int = 0):
+        self.kind, self.classes = kind, classes  # kind: 'r2' | 'accuracy' | 'f1'
+        self.threshold = 0.5
+
+    def _code(self, y: np.ndarray) -> np.ndarray:
+        if self.kind == "accuracy":
+            return np.eye(self.classes)[y[:, 0].astype(int)]
+        return y.astype(np.float64)
+
+    def fit(self, x: np.ndarray, y: np.ndarray, lam: float) -> Reader:
+        self.mx, sx = x.mean(0), x.std(0)
+        # a feature that does not vary over the training samples carries nothing the reader could learn: it is
+        # dropped (an infinite scale), not blown up wherever it differs later
+        self.sx = np.where(sx > 1e-9 * (1.0 + np.abs(self.mx)), sx, np.inf)
+        code = self._code(y)
+        self.my = code.mean(0)
+        self.sy = np.maximum(code.std(0), 1e-8) if self.kind == "r2" else np.ones(code.shape[1])
+        self.w = _ridge((x - self.mx) / self.sx, (code - self.my) / self.sy, lam)
+        return self
+
+    def raw(self, x: np.ndarray) -> np.ndarray:
+        return ((x - self.mx) / self.sx) @ self.w * self.sy + self.my
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        out = self.raw(x)
+        if self.kind == "accuracy":
+            return out.argmax(1)[:, None].astype(np.float64)
+        if self.kind == "f1":
+            return (out > self.threshold).astype(np.float64)
+        return out
+
+
+def score(kind: str, pred: np.ndarray, y: np.ndarray) -> float:
+    """R^2 (mean over outputs that vary in the test set), accuracy, or F1 pooled over all outputs."""
+    if kind == "accuracy":
+        return float((pred[:, 0] == y[:, 0]).mean())
+    if kind == "f1":
+        tp = float(((pred > 0.5) & (y > 0.5)).sum())
+        fp, fn = float(((pred > 0.5) & (y <= 0.5)).sum()), float(((pred <= 0.5) & (y > 0.5)).sum())
+        return 2 * tp / max(2 * tp + fp + fn, 1.0)
+    var = y.var(0)
+    keep = var > 1e-12
+    if not keep.any():
+        return float("nan")
+    r2 = 1.0 - ((pred - y) ** 2).mean(0)[keep] / var[keep]
+    return float(r2.mean())
+
+
+def chance(kind: str, y_train: np.ndarray, y_test: np.ndarray, classes: int = 0) -> float:
+    """What a reader that ignores the features scores: the training mean (R^2 <= 0), the majority class, or
+    every output predicted positive where positives are rare and negative otherwise (the better F1 of the two)."""
+    if kind == "accuracy":
+        major = np.bincount(y_train[:, 0].astype(int), minlength=classes).argmax()
+        return score(kind, np.full_like(y_test, major), y_test)
+    if kind == "f1":
+        return max(score(kind, np.ones_like(y_test), y_test), score(kind, np.zeros_like(y_test), y_test))
+    return score(kind, np.broadcast_to(y_train.mean(0), y_test.shape), y_test)
+
+
+def _folds(groups: np.ndarray, folds: int) -> np.ndarray:
+    sessions = np.unique(groups)
+    fold_of = {g: i % folds for i, g in enumerate(sessions)}
+    return np.asarray([fold_of[g] for g in groups])
+
+
+def fit_and_score(kind: str, x_train: np.ndarray, y_train: np.ndarray, groups: np.ndarray, x_test: np.ndarray,
+                  y_test: np.ndarray, classes: int = 0, folds: int = 3) -> tuple[float, float]:
+    """Fit a reader on the training samples (ridge strength, and a binary target's threshold, by session-grouped
+    cross-validation) and score it on the test samples; returns (score, the chosen strength)."""
+    lam, threshold = 10.0, 0.5
+    if len(np.unique(groups)) >= 3:
+        f = _folds(groups, folds)
+        best = -np.inf
+        for cand in LAMBDAS:
+            oof = np.zeros((len(y_train), y_train.shape[1] if kind != "accuracy" else classes))
+            for k in range(folds):
+                tr, va = f != k, f == k
+                if tr.any() and va.any():
+                    oof[va] = Reader(kind, classes).fit(x_train[tr], y_train[tr], cand).raw(x_train[va])
+            cut = _best_threshold(oof, y_train) if kind == "f1" else 0.5
+            pred = (oof.argmax(1)[:, None].astype(np.float64) if kind == "accuracy" else
+                    (oof > cut).astype(np.float64) if kind == "f1" else oof)
+            v = np.mean([score(kind, pred[f == k], y_train[f == k]) for k in range(folds) if (f == k).any()])
+            v = v if np.isfinite(v) else -np.inf
+            if v > best:
+                best, lam, threshold = float(v), cand, cut
+    reader = Reader(kind, classes).fit(x_train, y_train, lam)
+    reader.threshold = threshold
+    return score(kind, reader.predict(x_test), y_test), lam
+
+
+def _best_threshold(raw: np.ndarray, y: np.ndarray) -> float:
+    """The cut of continuous predictions that maximizes the pooled F1 against 0/1 targets."""
+    cuts = np.unique(np.quantile(raw, np.linspace(0.5, 0.995, 60)))
+    if not len(cuts):
+        return 0.5
+    f1 = [score("f1", (raw > c).astype(np.float64), y) for c in cuts]
+    return float(cuts[int(np.argmax(f1))])
+
+
+def budget_sessions(train_sessions: np.ndarray, budget: float, seed: int) -> np.ndarray:
+    """The first max(1, round(budget n)) of the n training sessions in a seeded order (nested budgets)."""
+    order = np.random.default_rng([seed, 0x6C6164]).permutation(np.sort(train_sessions))
+    return order[: max(1, round(budget * len(order)))]

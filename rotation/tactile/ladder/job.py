@@ -1,0 +1,219 @@
+"""The information ladder: how much of the object's friction, mass and centre of mass, and of each fingertip's normal
+force and slip, each stage of the touch path still holds, on sessions whose conditions the encoder never saw.
+
+    rotate touch-report --sessions data/touch_report --checkpoint sparshx-tinier-sim --out runs/touch_report
+    rotate touch-report --sessions data/touch_report --stages 1 2 --out runs/ladder_physics   # no encoder needed
+
+Samples are moments of the sessions: the four fingertips' windows ending at one image frame (every ``stride``-th).
+Sessions are split into training and test sessions (``test_fraction``, by file); a label budget b trains on the
+first max(1, round(b n)) of the n training sessions in a seeded order. Every rung is read by the same ridge reader
+(rotation.tactile.ladder.fit), so what differs is what the rung keeps:
+
+1. ``contact``: the simulated contact fields over the window (forces, slip, contact points, accelerometer: the
+   physics' ceiling);
+2. ``streams``: the rendered streams through simple fixed features, each modality alone and all together;
+3. ``tokens``: the frozen encoder's tokens, mean-pooled per modality, each alone and all together (``--checkpoint``);
+4. ``e2e``: the encoder's structure trained from random weights on the same targets end to end (all modalities),
+   the baseline frozen tokens should beat with few labels.
+
+Targets (rotation.tactile.ladder.samples): friction_tercile (accuracy), friction, mass, com, normal_force (R^2)
+and slip (F1). OUT: results.json (rows of stage, features, target, budget, metric, value; the chance rows; the
+checks), results.md, ladder.png (each target's score per rung at the largest budget), budgets.png (scores against
+the label budget), frames.png (one test session's four streams at moments across it beside the contact force),
+features_*.npz (reused by a rerun with the same sessions, stride and checkpoint). Ctrl-C stops after the current
+piece and keeps what is done.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from envs.errors import RequestRefused
+from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
+from rotation.configs import save_config
+from rotation.data.dataset import check_session_sources, split_sessions
+from rotation.interrupt import StopSignals
+from rotation.tactile.ladder.fit import budget_sessions, chance, fit_and_score, score
+from rotation.tactile.ladder.report import TARGET_CHECKS, checks, write_report
+from rotation.tactile.ladder.samples import CLASSIFY, MODALITIES, TARGETS, contact_features, open_samples, targets
+from rotation.tactile.loading import session_paths
+
+
+@dataclass(frozen=True)
+class Config:
+    """The information ladder over labeled simulated sessions (`rotate touch-report`)."""
+
+    sessions: tuple[Path, ...] = (Path("touch_sessions"),)
+    """Simulated session files or directories from `rotate collect` (randomized friction, mass and centre of mass;
+    conditions the encoder was not pretrained on)."""
+    out: Path = Path("runs/touch_report")
+    """Output directory (created; a rerun reuses its computed features)."""
+    checkpoint: Path | None = Path("sparshx-tinier-sim")
+    """Sparsh-X encoder for stages 3 and 4: a shipped name, a `rotate pretrain` run or a .safetensors file (the
+    shipped encoder by default)."""
+    stages: tuple[int, ...] = (1, 2, 3, 4)
+    """Rungs to compute (3 and 4 need --checkpoint)."""
+    budgets: tuple[float, ...] = (0.1, 0.33, 1.0)
+    """Label budgets: shares of the training sessions whose labels the readers see."""
+    test_fraction: float = 0.25
+    """Share of the sessions held out for scoring (by file)."""
+    stride: int = 10
+    """Take every stride-th image frame (30 fps) as a sample."""
+    e2e_steps: int = 300
+    """Adam steps of each end-to-end training (stage 4), one per budget."""
+    e2e_batch: int = 4
+    """Samples (each four fingertip windows) per end-to-end step."""
+    e2e_lr: float = 3e-4
+    """Learning rate of the end-to-end training."""
+    seed: int = 0
+    """Seed of the session split, the budgets' order and the end-to-end training."""
+    progress: bool = True
+    """Show progress bars."""
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        object.__setattr__(self, "sessions", check_session_sources(self.sessions))
+        bad = [s for s in self.stages if s not in (1, 2, 3, 4)]
+        if bad or not self.stages:
+            raise ValueError(f"stages: choose among 1 2 3 4, got {list(self.stages)}")
+        if any(s in (3, 4) for s in self.stages) and self.checkpoint is None:
+            raise ValueError("stages 3 and 4 read a touch encoder: give --checkpoint (or --stages 1 2)")
+        if not self.budgets or any(not 0 < b <= 1 for b in self.budgets):
+            raise ValueError(f"budgets: each in (0, 1], got {list(self.budgets)}")
+        check_number("test_fraction", self.test_fraction, 0.0, 1.0, low_open=True, high_open=True)
+        check_int("stride", self.stride, 1, 3000)
+        check_int("e2e_steps", self.e2e_steps, 1, 10**6)
+        check_int("e2e_batch", self.e2e_batch, 1, 1024)
+        check_number("e2e_lr", self.e2e_lr, 0.0, 1.0, low_open=True)
+        check_seed("seed", self.seed)
+        check_output_dir("out", self.out)
+
+
+def _digest(cfg: Config, paths: list[Path]) -> str:
+    h = hashlib.sha256(json.dumps([sorted(str(p) for p in paths), cfg.stride, str(cfg.checkpoint)]).encode())
+    return h.hexdigest()[:16]
+
+
+def _cached(path: Path, digest: str, compute) -> dict[str, np.ndarray]:
+    """Features from ``path`` when it was computed for ``digest``, else computed and saved (atomically)."""
+    if path.exists():
+        with np.load(path) as z:
+            if str(z["digest"]) == digest:
+                return {k: z[k] for k in z.files if k != "digest"}
+    feats = compute()
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, digest=np.asarray(digest), **feats)
+    tmp.replace(path)
+    return feats
+
+
+def run(cfg: Config) -> dict[str, Any]:
+    paths = session_paths(cfg.sessions)
+    if len(paths) < 2:
+        raise RequestRefused(f"touch-report: the ladder needs at least 2 session files (training and test), found "
+                             f"{len(paths)}")
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, cfg.out / "config.json")
+    with StopSignals() as stop:
+        return _run(cfg, paths, stop)
+
+
+def _run(cfg: Config, paths: list[Path], stop: StopSignals) -> dict[str, Any]:
+    train_paths, test_paths = split_sessions(paths, cfg.test_fraction, cfg.seed)
+    samples = open_samples(sorted(paths), cfg.stride)
+    order = [Path(p) for p in samples.paths]
+    test_ids = np.asarray([order.index(p) for p in test_paths])
+    train_ids = np.asarray([order.index(p) for p in train_paths])
+    train_friction = samples.friction[train_ids]
+    edges = np.quantile(train_friction, [1 / 3, 2 / 3])
+    y = targets(samples, edges)
+    kinds = {t: CLASSIFY.get(t, "r2") for t in TARGETS}
+    is_test = np.isin(samples.session, test_ids)
+    digest = _digest(cfg, paths)
+    print(f"touch-report: {len(samples)} samples of {len(paths)} sessions ({len(train_paths)} training, "
+          f"{len(test_paths)} test); friction terciles at {edges[0]:.3f} and {edges[1]:.3f}")
+
+    feats: dict[str, np.ndarray] = {}
+    if 1 in cfg.stages:
+        feats.update({"contact/fields": _cached(cfg.out / "features_contact.npz", digest,
+                                                lambda: {"fields": contact_features(samples)})["fields"]})
+    encoder = None
+    if cfg.checkpoint is not None and ({3, 4} & set(cfg.stages)):
+        from rotation.tactile.models.encoders import load_encoder
+
+        encoder = load_encoder(cfg.checkpoint)
+    if {2, 3} & set(cfg.stages) and not stop.requested:
+        from rotation.tactile.ladder.encode import rendered_features
+
+        def compute() -> dict[str, np.ndarray]:
+            with tqdm(total=len(samples), desc="render", disable=not cfg.progress) as bar:
+                return rendered_features(samples, encoder if 3 in cfg.stages else None, progress=bar.update)
+
+        feats.update(_cached(cfg.out / "features_rendered.npz", digest, compute))
+    for stage in ("stream", "tokens"):
+        parts = [feats[f"{stage}/{m}"] for m in MODALITIES if f"{stage}/{m}" in feats]
+        if len(parts) > 1:
+            feats[f"{stage}/all"] = np.concatenate(parts, 1)
+    feats = {k.replace("stream/", "streams/"): v for k, v in feats.items()}
+
+    rows: list[dict[str, Any]] = []
+    chance_rows = []
+    for t in TARGETS:
+        tr = np.isin(samples.session, train_ids)
+        chance_rows.append({"target": t, "metric": kinds[t],
+                            "value": chance(kinds[t], y[t][tr], y[t][is_test], classes=3)})
+    pieces = [(name, t, b) for name in feats for t in TARGETS for b in cfg.budgets]
+    with tqdm(total=len(pieces), desc="readers", disable=not cfg.progress) as bar:
+        for name, t, b in pieces:
+            if stop.requested:
+                break
+            chosen = budget_sessions(train_ids, b, cfg.seed)
+            tr = np.isin(samples.session, chosen)
+            value, lam = fit_and_score(kinds[t], feats[name][tr], y[t][tr], samples.session[tr], feats[name][is_test],
+                                       y[t][is_test], classes=3)
+            stage, fset = name.split("/")
+            rows.append({"stage": stage, "features": fset, "target": t, "budget": b, "metric": kinds[t],
+                         "value": value, "ridge": lam, "train_sessions": int(len(chosen))})
+            bar.update(1)
+    if 4 in cfg.stages and encoder is not None and not stop.requested:
+        rows += _end_to_end(cfg, encoder, samples, y, kinds, train_ids, is_test, stop)
+    result = {"rows": rows, "chance": chance_rows, "samples": len(samples), "sessions": len(paths),
+              "train_sessions": [str(p) for p in train_paths], "test_sessions": [str(p) for p in test_paths],
+              "friction_tercile_edges": edges.tolist(), "checkpoint": str(cfg.checkpoint) if cfg.checkpoint else None,
+              "complete": not stop.requested}
+    result["checks"] = checks(result, max(cfg.budgets), min(cfg.budgets))
+    write_report(cfg.out, result, samples, test_ids[0] if len(test_ids) else 0)
+    print(f"touch-report: {cfg.out / 'results.md'}")
+    for c in result["checks"]:
+        print(f"  {'ok  ' if c['ok'] else 'FAIL' if c['ok'] is False else 'n/a '} {c['check']}: {c['detail']}")
+    return result
+
+
+def _end_to_end(cfg: Config, encoder, samples, y, kinds, train_ids, is_test, stop) -> list[dict[str, Any]]:
+    from rotation.tactile.ladder.encode import predict_end_to_end, train_end_to_end
+
+    rows = []
+    test_rows = np.flatnonzero(is_test)
+    with tqdm(total=cfg.e2e_steps * len(cfg.budgets), desc="e2e", disable=not cfg.progress) as bar:
+        for b in cfg.budgets:
+            if stop.requested:
+                break
+            chosen = budget_sessions(train_ids, b, cfg.seed)
+            train_rows = np.flatnonzero(np.isin(samples.session, chosen))
+            model = train_end_to_end(encoder, samples, train_rows, y, kinds, 3, cfg.e2e_steps, cfg.e2e_batch,
+                                     cfg.e2e_lr, cfg.seed, progress=bar.update)
+            pred = predict_end_to_end(model, samples, test_rows, kinds)
+            for t in TARGETS:
+                rows.append({"stage": "e2e", "features": "all", "target": t, "budget": b, "metric": kinds[t],
+                             "value": score(kinds[t], pred[t], y[t][test_rows]), "train_sessions": int(len(chosen))})
+    return rows
+
+
+__all__ = ["Config", "run", "TARGET_CHECKS"]

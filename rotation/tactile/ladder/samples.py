@@ -1,0 +1,186 @@
+"""The samples of the information ladder (`rotate touch-report`): hand-level windows, their targets, and the
+features of the two stages below the encoder.
+
+A *sample* is one moment of one session: the four fingertips' Sparsh-X windows ending at the same image frame
+(rotation.data.dataset.TouchWindows). Its targets:
+
+- ``friction_tercile``: the session's friction coefficient in the lower, middle or upper third of the report's
+  sessions (accuracy; chance 1/3); ``friction``: the coefficient itself (R^2);
+- ``mass`` (kg) and ``com`` (the centre-of-mass shift, m, 3 values) of the session's object (R^2);
+- ``normal_force``: each fingertip's normal force at its strongest contact at the window's end (N, 4 values, R^2;
+  labels/contact_force);
+- ``slip``: whether each fingertip slides faster than ``SLIP_THRESHOLD`` at the window's end (F1 over the four).
+
+Stage 1 reads the simulated contact fields of the window's span (envs.sensors.digit360.CONTACT_FIELDS: what MuJoCo
+gives the sensor, the ceiling); stage 2 the rendered streams through simple fixed features (the ceiling a renderer
+leaves); both per fingertip, concatenated over the four.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from envs.constants import FINGERS
+from envs.errors import RequestRefused
+from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, contact_frame_force
+from envs.sensors.digit360_model import IMAGE_HZ
+from envs.sensors.digit360_render import WindowIndex
+from rotation.data.dataset import TouchWindows
+from rotation.data.session_reader import SessionReader
+
+SLIP_THRESHOLD = 0.005
+"""Slip speed (m/s) above which a fingertip counts as sliding (the probes' default)."""
+TARGETS = ("friction_tercile", "friction", "mass", "com", "normal_force", "slip")
+"""What the ladder reads, in report order."""
+CLASSIFY = {"friction_tercile": "accuracy", "slip": "f1"}
+"""Classification targets and their metric; the others are regressions scored by R^2."""
+MODALITIES = ("image", "audio", "imu", "pressure")
+
+
+@dataclass
+class HandSamples:
+    """Hand-level samples of a set of sessions: ``items`` (M, 4) indices into ``windows`` (one per fingertip),
+    ``session`` (M,) and ``frame`` (M,) of each; per-session ``properties`` (friction, mass, com)."""
+
+    windows: TouchWindows
+    items: np.ndarray
+    session: np.ndarray
+    frame: np.ndarray
+    friction: np.ndarray
+    mass: np.ndarray
+    com: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    @property
+    def paths(self) -> list[Path]:
+        return self.windows.paths
+
+
+def open_samples(paths: Sequence[Path], stride: int) -> HandSamples:
+    """Every ``stride``-th image frame at which all four fingertips of a session have a whole window."""
+    ds = TouchWindows(paths, fingers=FINGERS, labels=("contact_force", "slip"), stride=1)
+    props = []
+    for p in ds.paths:
+        with SessionReader(p) as r:
+            meta = r.meta.properties
+            missing = [k for k in ("friction", "mass", "com") if k not in meta]
+            if missing:
+                raise RequestRefused(f"touch-report: session {p} lacks the object properties {', '.join(missing)}; "
+                                     "simulated sessions from `rotate collect` carry them")
+            props.append((float(meta["friction"]), float(meta["mass"]), np.asarray(meta["com"], float)))
+    lookup = {(int(s), int(f), int(e)): i for i, (s, f, e) in enumerate(ds.index)}
+    items, sessions, frames = [], [], []
+    for s in range(len(ds.paths)):
+        ends = sorted({int(e) for (ss, f, e) in lookup if ss == s and f == 0})
+        for e in ends[::stride]:
+            row = [lookup.get((s, f, e)) for f in range(len(FINGERS))]
+            if all(i is not None for i in row):
+                items.append(row)
+                sessions.append(s)
+                frames.append(e)
+    if not items:
+        raise RequestRefused("touch-report: the sessions hold no whole window (each needs 1.12 s of touch)")
+    fr, ma, co = (np.asarray([p[i] for p in props]) for i in range(3))
+    return HandSamples(ds, np.asarray(items, np.int64), np.asarray(sessions), np.asarray(frames), fr, ma, co)
+
+
+def targets(samples: HandSamples, tercile_edges: np.ndarray) -> dict[str, np.ndarray]:
+    """Target name -> (M, k) float array (classes as integers)."""
+    s = samples.session
+    friction = samples.friction[s]
+    out = {
+        "friction_tercile": np.searchsorted(tercile_edges, friction, side="right")[:, None].astype(np.float64),
+        "friction": friction[:, None],
+        "mass": samples.mass[s][:, None],
+        "com": samples.com[s],
+    }
+    force, slip = [], []
+    for f in range(len(FINGERS)):
+        rows = samples.items[:, f]
+        force.append(samples.windows.labels_at(rows, "contact_force")[:, 0])
+        slip.append(samples.windows.labels_at(rows, "slip") > SLIP_THRESHOLD)
+    out["normal_force"] = np.stack(force, 1).astype(np.float64)
+    out["slip"] = np.stack(slip, 1).astype(np.float64)
+    return out
+
+
+# ------------------------------------------------------------------------------------------ stage 1: contact fields
+CONTACT_FEATURES = ("fn", "ft", "slip", "ratio_sliding", "sliding", "vn", "acc", "force", "point", "vertical_shear")
+
+
+def contact_features(samples: HandSamples) -> np.ndarray:
+    """(M, F) physical features of each sample's window span, per fingertip: mean, spread and last value of the
+    normal and tangential force at the contact, slip speed, the shear-to-normal ratio while sliding (the friction
+    coefficient when it slides), the sliding fraction, normal velocity, accelerometer, net force, contact point,
+    and the shear along gravity (the accelerometer's mean direction: what carries the weight)."""
+    ds, out = samples.windows, []
+    for m in range(len(samples)):
+        s, frame = int(samples.session[m]), int(samples.frame[m])
+        w = WindowIndex(frame)
+        per_finger = []
+        for finger in FINGERS:
+            track = ds.contact_track(s, finger)
+            lo = int(np.searchsorted(track.times, w.start_time - 1e-6))
+            hi = int(np.searchsorted(track.times, frame / IMAGE_HZ + 1e-6, side="right"))
+            per_finger.append(_track_features(track.rows[lo:max(hi, lo + 1)]))
+        out.append(np.concatenate(per_finger))
+    return np.asarray(out, np.float64)
+
+
+def _track_features(rows: np.ndarray) -> np.ndarray:
+    rows = np.asarray(rows, np.float64)
+    cf = contact_frame_force(rows).astype(np.float64)  # (T, 2) normal, tangential at the strongest contact
+    fn, ft = cf[:, 0], cf[:, 1]
+    weights = np.stack([rows[:, FIELD[f"c{k}_fn"]] for k in range(CONTACT_SLOTS)], 1)
+    slip = (weights * np.stack([rows[:, FIELD[f"c{k}_slip"]] for k in range(CONTACT_SLOTS)], 1)).sum(1) / np.maximum(
+        weights.sum(1), 1e-9)
+    sliding = slip > SLIP_THRESHOLD
+    ratio = float((ft[sliding] / np.maximum(fn[sliding], 1e-3)).mean()) if sliding.any() else 0.0
+    vn = rows[:, FIELD["c0_vn"]]
+    acc = rows[:, FIELD["acc_x"]:FIELD["acc_z"] + 1]
+    force = rows[:, [FIELD["force_x"], FIELD["force_y"], FIELD["force_n"]]]
+    point = rows[:, [FIELD["c0_x"], FIELD["c0_y"], FIELD["c0_z"]]]
+    down = -acc.mean(0) / max(np.linalg.norm(acc.mean(0)), 1e-6)  # gravity's direction in the sensor frame
+    on_dome = np.stack([force[:, 0], force[:, 1], -force[:, 2]], 1)  # the force on the dome, sensor frame
+    vertical = on_dome @ -down  # what the dome pushes up with
+    stats = lambda x: [x.mean(), x.std(), x[-1]]  # noqa: E731
+    return np.asarray([*stats(fn), *stats(ft), *stats(slip), ratio, sliding.mean(), vn.std(), *acc.mean(0),
+                       *acc.std(0), *force.mean(0), *point.mean(0), *stats(vertical)], np.float64)
+
+
+# ------------------------------------------------------------------------------------------ stage 2: rendered streams
+def stream_features(window: dict, reference: np.ndarray) -> dict[str, np.ndarray]:
+    """Simple features of one fingertip's contract window (rotation.data.dataset item) per modality.
+
+    image: 7 x 7 average pools of the frame at t minus the sensor's no-contact reference (signed and absolute) and
+    of the change from t-5 to t; audio: mean, spread and maximum over time of 16 mel bands per microphone; IMU:
+    mean, spread, the spread of its first difference (the high band) and the last sample; pressure (high-passed as
+    the encoder sees it): spread, range, the end's offset from the window mean and the linear trend.
+    """
+    img = np.asarray(window["image"], np.float32)  # (6, H, W): [R(t-5), R(t), G(t-5), G(t), B(t-5), B(t)]
+    now, before = img[1::2], img[0::2]
+    pool = lambda x: _pool(x, 7).ravel()  # noqa: E731
+    image = np.concatenate([pool(now - reference), pool(np.abs(now - reference)), pool(now - before)])
+    mel = np.asarray(window["audio"], np.float32)  # (224, 256): two microphones x 128 bins
+    bands = mel.reshape(len(mel), 2, 16, 8).mean(-1).reshape(len(mel), 32)
+    audio = np.concatenate([bands.mean(0), bands.std(0), bands.max(0)])
+    imu = np.asarray(window["imu"], np.float64)
+    imu_f = np.concatenate([imu.mean(0), imu.std(0), np.diff(imu, axis=0).std(0), imu[-1]])
+    p = np.asarray(window["pressure"], np.float64)[:, 0]
+    hp = p - p.mean()
+    slope = np.polyfit(np.arange(len(hp)), hp, 1)[0]
+    pressure = np.asarray([hp.std(), hp.max() - hp.min(), hp[-1], slope * len(hp)])
+    return {"image": image, "audio": audio, "imu": imu_f, "pressure": pressure}
+
+
+def _pool(x: np.ndarray, n: int) -> np.ndarray:
+    """(C, H, W) -> (C, n, n) block means (H and W cropped to a multiple of n)."""
+    c, h, w = x.shape
+    h2, w2 = h // n * n, w // n * n
+    return x[:, :h2, :w2].reshape(c, n, h2 // n, n, w2 // n).mean((2, 4))
