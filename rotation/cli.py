@@ -35,7 +35,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "hand-info": ("rotation.jobs.hand_info", "print a hand's firmware, serial, temperatures and joint positions"),
     "collect": ("rotation.jobs.collect", "record simulated touch sessions (Digit 360 on) with a policy"),
     "inspect-touch": ("rotation.jobs.inspect_tactile", "plot the four touch streams of a session window (PNG)"),
-    "inspect-tactile": ("rotation.jobs.inspect_tactile", "the earlier name of inspect-touch"),
     "deploy": ("rotation.deploy.job", "run a policy on a real or emulated hand with safety limits and recording"),
     "encoder-info": ("rotation.tactile.encoder_info", "describe a touch encoder; check that a checkpoint loads"),
     "cache-touch": ("rotation.data.window_cache", "pre-render touch windows of sessions into shards for fast training"),
@@ -47,6 +46,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "ensemble-adapters": ("adapters.ensemble_job", "combine tactile adapters of one student into one policy"),
 }
 """Subcommand registry; later issues add their jobs here."""
+RENAMED = {"inspect-tactile": "inspect-touch"}
+"""Earlier command names that still work (old name -> the command)."""
 
 
 def _load(name: str):
@@ -100,6 +101,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     # headless rendering unless the user chose a backend (must be set before mujoco creates a GL context)
     os.environ.setdefault("MUJOCO_GL", "egl")
     command = next((a for a in argv if not a.startswith("-")), None)
+    if command in RENAMED:
+        argv[argv.index(command)] = command = RENAMED[command]
     if command is not None and command not in COMMANDS:
         print(f"rotate: unknown command {command!r}; choose one of: {', '.join(COMMANDS)}", file=sys.stderr)
         return 2

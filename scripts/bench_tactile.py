@@ -9,6 +9,7 @@ one loader process renders per second from those sessions; ``obs_windows_per_s``
 
     python scripts/bench_tactile.py
     python scripts/bench_tactile.py --num-envs 32 --env-steps 8192 --reader-windows 256
+    python scripts/bench_tactile.py --hand digit360_v4       # the vendor-kinematics hand, generation-2 touch
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ class Config:
     """Windows read from the collected sessions for the reader rate."""
     object: str = "cup"
     """Object (envs.objects)."""
+    hand: str = "digit360"
+    """Digit 360 hand: 'digit360' (generation-1 touch) or 'digit360_v4' (the vendor's kinematics, generation 2)."""
     nthread: int = 0
     """MuJoCo threads (0 = one per CPU core, at most num_envs)."""
     seed: int = 0
@@ -54,8 +57,8 @@ class Config:
 
 def bench_env(cfg: Config, tactile: bool, steps: int) -> float:
     """Env transitions per second of the batched core (uniform random actions, done envs reset)."""
-    env = RotateCupVec(EnvConfig(object=cfg.object, tactile=tactile), num_envs=cfg.num_envs, seed=cfg.seed,
-                       nthread=cfg.nthread or None)
+    env = RotateCupVec(EnvConfig(object=cfg.object, tactile=tactile, hand=cfg.hand), num_envs=cfg.num_envs,
+                       seed=cfg.seed, nthread=cfg.nthread or None)
     try:
         return random_steps_per_s(env, steps, cfg.seed)
     finally:
@@ -64,7 +67,7 @@ def bench_env(cfg: Config, tactile: bool, steps: int) -> float:
 
 def bench_obs_render(cfg: Config) -> float:
     """Windows per second when the env's `tactile` observation is rendered (all fingertips of all envs)."""
-    env = RotateCupVec(EnvConfig(object=cfg.object, tactile=True), num_envs=cfg.num_envs, seed=cfg.seed,
+    env = RotateCupVec(EnvConfig(object=cfg.object, tactile=True, hand=cfg.hand), num_envs=cfg.num_envs, seed=cfg.seed,
                        nthread=cfg.nthread or None)
     env.reset()
     obs, *_ = env.step(np.zeros((cfg.num_envs, 16)))
@@ -102,10 +105,12 @@ def run(cfg: Config) -> dict:
     obs_wps = bench_obs_render(cfg)
     with tempfile.TemporaryDirectory() as tmp:
         ccfg = collect.Config(episodes=cfg.num_envs, out=Path(tmp), num_envs=cfg.num_envs, seed=cfg.seed,
-                              object=cfg.object, episode_steps=cfg.collect_steps, progress=False)
+                              object=cfg.object, episode_steps=cfg.collect_steps, progress=False,
+                              hand=cfg.hand if cfg.hand != "digit360" else "auto")
         stats = collect.run(ccfg)
         reader_wps, available = bench_reader(find_sessions(tmp), cfg.reader_windows, cfg.seed)
     result = {
+        "hand": cfg.hand,
         "num_envs": cfg.num_envs,
         "plain_steps_per_s": round(plain, 1),
         "tactile_steps_per_s": round(touch, 1),

@@ -27,7 +27,7 @@ from rotation import cli
 REQUIRED_ARGS: dict[str, list[str]] = {
     # command: arguments it cannot run without (a required option or a positional argument)
     "deploy": ["--hand", "sim-allegro", "--policy", "student"],
-    "inspect-tactile": ["session.h5"],
+    "inspect-touch": ["session.h5"],
     "ensemble-adapters": ["--members", "adapter"],
 }
 
@@ -55,7 +55,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "finetune-adapter:action_weight": {"zero": "0 = the latent MSE alone (the default)"},
     "deploy:rt_priority": {"zero": "0 leaves the scheduling alone"},
     "deploy:grasp": {"zero": "row 0 of the grasp cache"},
-    "inspect-tactile:time": {"negative": "< 0 picks the middle of the session (documented)",
+    "inspect-touch:time": {"negative": "< 0 picks the middle of the session (documented)",
                              "zero": "the start of the session"},
     "demo:deploy_seconds": {"zero": "0 skips the deploy dry run (documented)"},
     "train-student:env.kd": {"zero": "no joint damping is a valid nominal gain"},
@@ -279,7 +279,7 @@ def test_the_registry_of_exceptions_names_real_fields():
 
 
 def _defaults_needed(command: str) -> dict[str, Any]:
-    return {"deploy": {"policy": "student"}, "inspect-tactile": {"session": Path("session.h5")},
+    return {"deploy": {"policy": "student"}, "inspect-touch": {"session": Path("session.h5")},
             "ensemble-adapters": {"members": ("adapter",)}}.get(command, {})
 
 

@@ -10,7 +10,7 @@ from functools import lru_cache
 import numpy as np
 
 from envs.sensors.digit360 import CONTACT_SLOTS, FIELD
-from envs.sensors.digit360_markers import marker_layer, pixel_rays
+from envs.sensors.digit360_markers import marker_layer, pixel_rays, rest_layer
 from envs.sensors.digit360_model import (
     DEFAULT_MODEL,
     IMAGE_HZ,
@@ -48,7 +48,8 @@ def _background(size: int, model: Digit360Model, sensor: int) -> np.ndarray:
     grain = seeded_uniform(np.uint64(sensor + 1), STREAM_PARAMS, np.arange(size * size)).reshape(size, size)
     bg *= (1.0 + 0.06 * (grain - 0.5))[..., None]
     bg[~inside] = 0.05 * bg[~inside]
-    bg *= np.asarray(model.background_mean) / bg.reshape(-1, 3).mean(axis=0)
+    seen = bg * rest_layer(size, model)[..., None] if model.generation >= 2 else bg  # what the camera sees at rest
+    bg *= np.asarray(model.background_mean) / seen.reshape(-1, 3).mean(axis=0)
     return bg.astype(np.float32)
 
 

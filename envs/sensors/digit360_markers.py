@@ -71,12 +71,18 @@ def _projection(size: int, fov_half_angle_deg: float) -> tuple[np.ndarray, np.nd
 
 def surface_shift(row: np.ndarray, model: Digit360Model, size: int) -> np.ndarray:
     """(S, S, 2) float32 image displacement (pixels: column, row) of the gel's surface under one frame's contacts."""
+    return _shift_and_box(row, model, size)[0]
+
+
+def _shift_and_box(row: np.ndarray, model: Digit360Model, size: int) -> tuple[np.ndarray, list[int] | None]:
+    """:func:`surface_shift` and the pixel box [r0, r1, c0, c1] outside which it is zero (None: zero everywhere)."""
     row = np.asarray(row, dtype=np.float64)
     shift = np.zeros((size, size, 2), np.float32)
+    box: list[int] | None = None
     fns = [float(row[FIELD[f"c{k}_fn"]]) for k in range(CONTACT_SLOTS)]
     total_fn = sum(fns)
     if total_fn <= 0.0:
-        return shift
+        return shift, box
     rays, _ = pixel_rays(size, model.fov_half_angle_deg)
     jac, px_per_rad = _projection(size, model.fov_half_angle_deg)
     nu, e_star = model.poisson, model.elastomer_modulus
@@ -123,10 +129,14 @@ def surface_shift(row: np.ndarray, model: Digit360Model, size: int) -> np.ndarra
             uy = np.zeros_like(x)
         outside = np.where(r > 1.0, (2.0 / math.pi) * np.arcsin(1.0 / np.maximum(r, 1.0)), 1.0)
         taper = np.clip((4.0 - r) / 1.5, 0.0, 1.0) ** 2
-        u = (ux[..., None] * ex + uy[..., None] * ey) * (outside * taper)[..., None]  # (h, w, 3) m
-        # a move of u on the dome is u / R radians; the Jacobian turns it into pixels
-        shift[r0:r1, c0:c1] += np.einsum("hwij,hwj->hwi", jac[r0:r1, c0:c1], u / model.dome_radius).astype(np.float32)
-    return shift
+        weight = outside * taper / model.dome_radius  # a move of u on the dome is u / R radians
+        u = [(ux * ex[a] + uy * ey[a]) * weight for a in range(3)]  # (h, w) m / R per sensor axis
+        j = jac[r0:r1, c0:c1]  # the Jacobian turns radians into pixels
+        for i in range(2):
+            shift[r0:r1, c0:c1, i] += j[..., i, 0] * u[0] + j[..., i, 1] * u[1] + j[..., i, 2] * u[2]
+        box = [r0, r1, c0, c1] if box is None else [min(box[0], r0), max(box[1], r1), min(box[2], c0),
+                                                      max(box[3], c1)]
+    return shift, box
 
 
 @lru_cache(maxsize=4)
@@ -139,10 +149,26 @@ def _marker_grid(size: int, model: Digit360Model) -> tuple[float, float]:
 def marker_layer(row: np.ndarray, model: Digit360Model, size: int) -> np.ndarray:
     """(S, S) float32 transmission of the marker layer (1 between markers, 1 - darkness at a marker's centre),
     each marker moved with the gel's surface under the frame's contacts."""
+    shift, box = _shift_and_box(row, model, size)
+    layer = rest_layer(size, model).copy()
+    if box is not None:
+        r0, r1, c0, c1 = box
+        layer[r0:r1, c0:c1] = _dots(np.arange(c0, c1, dtype=np.float32)[None, :] - shift[r0:r1, c0:c1, 0],
+                                    np.arange(r0, r1, dtype=np.float32)[:, None] - shift[r0:r1, c0:c1, 1],
+                                    size, model)
+    return layer
+
+
+@lru_cache(maxsize=4)
+def rest_layer(size: int, model: Digit360Model) -> np.ndarray:
+    """The marker layer without contact."""
+    j = np.arange(size, dtype=np.float32)
+    return _dots(j[None, :], j[:, None], size, model)
+
+
+def _dots(u: np.ndarray, v: np.ndarray, size: int, model: Digit360Model) -> np.ndarray:
+    """Transmission at rest-frame pixel coordinates (u column, v row): Gaussian dots on the grid."""
     pitch, sigma = _marker_grid(size, model)
-    j, i = np.meshgrid(np.arange(size, dtype=np.float32), np.arange(size, dtype=np.float32))
-    shift = surface_shift(row, model, size)
-    u, v = j - shift[..., 0], i - shift[..., 1]  # where the gel now at this pixel was at rest
     du = (u - (size - 1) / 2.0) / pitch
     dv = (v - (size - 1) / 2.0) / pitch
     du, dv = (du - np.round(du)) * pitch, (dv - np.round(dv)) * pitch  # offset to the nearest grid point (px)

@@ -36,7 +36,7 @@ from envs.config import Perturbation
 from envs.constants import FINGERS
 from envs.core import RotateCupVec
 from envs.rotate_cup import config_from_kwargs
-from rotation.bundles import load_bundle
+from rotation.bundles import load_bundle, policy_hand
 from rotation.configs import script_main
 from rotation.evaluate.suites import condition_name
 
@@ -101,7 +101,8 @@ def object_forces(model: mujoco.MjModel, data: mujoco.MjData, obj: int, domes: s
 
 def measure(cfg: Config, bundle, perturb: Perturbation) -> dict[str, float]:
     """One condition's mean forces over the counted steps of every episode."""
-    env = RotateCupVec(config_from_kwargs(perturb=perturb), num_envs=cfg.envs, seed=cfg.seed)
+    env = RotateCupVec(config_from_kwargs(perturb=perturb, hand=policy_hand(bundle)), num_envs=cfg.envs,
+                       seed=cfg.seed)  # the policy's own hand (and that hand's physics)
     try:
         model, _ = env.get_data(0)
         obj = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "object")

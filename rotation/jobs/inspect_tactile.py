@@ -128,5 +128,5 @@ def run(cfg: Config) -> Path:
     cfg.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(cfg.out, dpi=cfg.dpi)
     plt.close(fig)
-    print(f"inspect-tactile: wrote {cfg.out}")
+    print(f"inspect-touch: wrote {cfg.out}")
     return cfg.out

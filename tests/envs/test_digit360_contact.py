@@ -45,6 +45,16 @@ def test_hands_pick_their_generation():
         M.Digit360Model(imu_mode=(250.0, 0.01))  # above the 400 Hz samples' Nyquist limit
 
 
+def test_the_resting_image_keeps_the_released_mean_and_each_sensor_its_own_lighting():
+    rest = np.zeros(NUM_FIELDS, np.float32)
+    frames = [I.render_frame(rest, 3, key=1, sensor=f, model=GEN2) for f in range(4)]
+    for img in frames:  # markers included, the mean colour is the released Sparsh-X image mean
+        assert np.allclose(img.reshape(-1, 3).mean(0) / 255, GEN2.background_mean, atol=0.01)
+    assert np.abs(frames[0].astype(int) - frames[1].astype(int)).mean() > 2  # lights and lens differ per sensor
+    dark = frames[0].min(-1)[100:124, 100:124]  # the marker grid near the centre: dark dots between bright gel
+    assert dark.max() - dark.min() > 15
+
+
 def test_sliding_and_sticking_contacts_of_the_same_force_look_different():
     stick = I.render_frame(contact_row(2.0, 0.8, 0.0), 5, key=3, model=GEN2).astype(int)
     slide = I.render_frame(contact_row(2.0, 0.8, 0.02), 5, key=3, model=GEN2).astype(int)

@@ -1,4 +1,4 @@
-"""`rotate collect` (sharded, resumable, deterministic sessions) and `rotate inspect-tactile`."""
+"""`rotate collect` (sharded, resumable, deterministic sessions) and `rotate inspect-touch` (or inspect-tactile)."""
 
 from __future__ import annotations
 
@@ -101,7 +101,7 @@ def test_cli_collect_and_inspect(tmp_path, collected):
     with SessionReader(collect.episode_path(tmp_path / "c", 0)) as r:
         assert r.meta.extra["collect"]["com_shift"] == [0.0, 0.0, 0.01]
     png = tmp_path / "w.png"
-    assert main(["inspect-tactile", str(collect.episode_path(collected, 0)), "--out", str(png)]) == 0
+    assert main(["inspect-touch", str(collect.episode_path(collected, 0)), "--out", str(png)]) == 0
     assert png.stat().st_size > 10_000
     assert main(["inspect-tactile", str(collect.episode_path(tmp_path / "c", 0)), "--out", str(png)]) == 2  # too short
 

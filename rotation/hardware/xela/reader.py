@@ -18,7 +18,7 @@ vendor numbers boards in the order they are chained on the CAN bus, which the pu
 ``XelaConfig.sensor_pads`` names our pad for each vendor sensor number. The default (``VENDOR_SENSOR_PADS``)
 assumes a chain in our pad order; a sensor whose taxel count does not fit its pad (a 16-taxel board mapped to a
 fingertip) is refused as malformed, but two boards of one kind swapped are not detectable from the stream: press
-each pad once after installing and check which taxels move (rotate inspect-tactile on the recording). Inside a
+each pad once after installing and check which taxels move (rotate inspect-touch on the recording). Inside a
 pad the vendor's taxel k is our taxel ``VENDOR_TAXEL_ORDER[kind][k]`` (the identity until a press test says
 otherwise).
 

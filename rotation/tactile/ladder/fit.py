@@ -2,10 +2,12 @@
 
 One simple reader for every stage, so that what differs between rungs is the features, not the learner: ridge
 regression (closed form; through the Gram matrix when features outnumber samples) on features standardized with
-the training samples' statistics; a classification target is read by ridge on its one-hot code (argmax) or on
-its 0/1 value (the threshold that maximizes F1 on the training sessions' out-of-fold predictions: a linear read of
-slip speed needs its own cut, not 0.5). The ridge strength is picked from a fixed grid by cross-validation over the
-training sessions (folds by session, so that no fold scores windows of a session it trained on).
+the training samples' statistics. Features are first squashed by ``asinh`` around their training median in units
+of their interquartile spread (at least a twentieth of their standard deviation), so that heavy tails (a dropped
+cup's slip speed) do not decide the fit. A classification target is read by ridge on its one-hot code (argmax) or
+on its 0/1 value, cut per output where F1 is best on the training samples (a rare event needs its own cut, not
+0.5). The ridge strength is picked from a fixed grid by cross-validation over the training sessions (folds by
+session, so that no fold scores windows of a session it trained on; a binary target's folds cut the same way).
 """
 
 from __future__ import annotations
@@ -37,11 +39,19 @@ class Reader:
             return np.eye(self.classes)[y[:, 0].astype(int)]
         return y.astype(np.float64)
 
+    def _squash(self, x: np.ndarray) -> np.ndarray:
+        return np.arcsinh((x - self.med) / self.spread)
+
     def fit(self, x: np.ndarray, y: np.ndarray, lam: float) -> Reader:
+        q1, self.med, q3 = np.quantile(x, [0.25, 0.5, 0.75], axis=0)
+        std = x.std(0)
+        spread = np.maximum((q3 - q1) / 1.349, 0.05 * std)  # the floor: a feature constant but for its tail
+        # a feature whose spread is float noise (below a millionth of its unit) carries nothing a reader could learn:
+        # it is dropped (an infinite scale), not blown up wherever it differs later
+        self.spread = np.where(spread > 1e-6 * (1.0 + np.abs(self.med)), spread, np.inf)
+        x = self._squash(x)
         self.mx, sx = x.mean(0), x.std(0)
-        # a feature that does not vary over the training samples carries nothing the reader could learn: it is
-        # dropped (an infinite scale), not blown up wherever it differs later
-        self.sx = np.where(sx > 1e-9 * (1.0 + np.abs(self.mx)), sx, np.inf)
+        self.sx = np.where(sx > 1e-9, sx, np.inf)
         code = self._code(y)
         self.my = code.mean(0)
         self.sy = np.maximum(code.std(0), 1e-8) if self.kind == "r2" else np.ones(code.shape[1])
@@ -49,7 +59,7 @@ class Reader:
         return self
 
     def raw(self, x: np.ndarray) -> np.ndarray:
-        return ((x - self.mx) / self.sx) @ self.w * self.sy + self.my
+        return ((self._squash(x) - self.mx) / self.sx) @ self.w * self.sy + self.my
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         out = self.raw(x)
@@ -76,15 +86,15 @@ def score(kind: str, pred: np.ndarray, y: np.ndarray) -> float:
     return float(r2.mean())
 
 
-def chance(kind: str, y_train: np.ndarray, y_test: np.ndarray, classes: int = 0) -> float:
-    """What a reader that ignores the features scores: the training mean (R^2 <= 0), the majority class, or
-    every output predicted positive where positives are rare and negative otherwise (the better F1 of the two)."""
+def chance(kind: str, y_test: np.ndarray) -> float:
+    """The best any reader that ignores the features can score on the test samples: R^2 0 (the test mean), the
+    share of the test's most common class, or the better F1 of calling every output positive or every one negative.
+    (Strict: such a constant could not know the test set; it bounds what ignoring the features achieves.)"""
     if kind == "accuracy":
-        major = np.bincount(y_train[:, 0].astype(int), minlength=classes).argmax()
-        return score(kind, np.full_like(y_test, major), y_test)
+        return float(np.bincount(y_test[:, 0].astype(int)).max() / len(y_test))
     if kind == "f1":
         return max(score(kind, np.ones_like(y_test), y_test), score(kind, np.zeros_like(y_test), y_test))
-    return score(kind, np.broadcast_to(y_train.mean(0), y_test.shape), y_test)
+    return 0.0
 
 
 def _folds(groups: np.ndarray, folds: int) -> np.ndarray:
@@ -97,7 +107,7 @@ def fit_and_score(kind: str, x_train: np.ndarray, y_train: np.ndarray, groups: n
                   y_test: np.ndarray, classes: int = 0, folds: int = 3) -> tuple[float, float]:
     """Fit a reader on the training samples (ridge strength, and a binary target's threshold, by session-grouped
     cross-validation) and score it on the test samples; returns (score, the chosen strength)."""
-    lam, threshold = 10.0, 0.5
+    lam = 10.0
     if len(np.unique(groups)) >= 3:
         f = _folds(groups, folds)
         best = -np.inf
@@ -113,19 +123,22 @@ def fit_and_score(kind: str, x_train: np.ndarray, y_train: np.ndarray, groups: n
             v = np.mean([score(kind, pred[f == k], y_train[f == k]) for k in range(folds) if (f == k).any()])
             v = v if np.isfinite(v) else -np.inf
             if v > best:
-                best, lam, threshold = float(v), cand, cut
+                best, lam = float(v), cand
     reader = Reader(kind, classes).fit(x_train, y_train, lam)
-    reader.threshold = threshold
+    if kind == "f1":  # the cut of the final reader's own outputs (a linear reader barely overfits its cut)
+        reader.threshold = _best_threshold(reader.raw(x_train), y_train)
     return score(kind, reader.predict(x_test), y_test), lam
 
 
-def _best_threshold(raw: np.ndarray, y: np.ndarray) -> float:
-    """The cut of continuous predictions that maximizes the pooled F1 against 0/1 targets."""
-    cuts = np.unique(np.quantile(raw, np.linspace(0.5, 0.995, 60)))
-    if not len(cuts):
-        return 0.5
-    f1 = [score("f1", (raw > c).astype(np.float64), y) for c in cuts]
-    return float(cuts[int(np.argmax(f1))])
+def _best_threshold(raw: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Per output, the cut of its continuous predictions that maximizes its F1 against the 0/1 targets."""
+    out = np.full(raw.shape[1], 0.5)
+    for k in range(raw.shape[1]):
+        cuts = np.unique(np.quantile(raw[:, k], np.linspace(0.5, 0.998, 80)))
+        if len(cuts):
+            f1 = [score("f1", (raw[:, k:k + 1] > c).astype(np.float64), y[:, k:k + 1]) for c in cuts]
+            out[k] = cuts[int(np.argmax(f1))]
+    return out
 
 
 def budget_sessions(train_sessions: np.ndarray, budget: float, seed: int) -> np.ndarray:

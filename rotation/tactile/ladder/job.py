@@ -20,8 +20,8 @@ Targets (rotation.tactile.ladder.samples): friction_tercile (accuracy), friction
 and slip (F1). OUT: results.json (rows of stage, features, target, budget, metric, value; the chance rows; the
 checks), results.md, ladder.png (each target's score per rung at the largest budget), budgets.png (scores against
 the label budget), frames.png (one test session's four streams at moments across it beside the contact force),
-features_*.npz (reused by a rerun with the same sessions, stride and checkpoint). Ctrl-C stops after the current
-piece and keeps what is done.
+features_*.npz (reused by a rerun with the same sessions, stride and checkpoint; an OUT holding the report of
+others is refused unless --overwrite). Ctrl-C stops after the current piece and keeps what is done.
 """
 
 from __future__ import annotations
@@ -42,7 +42,15 @@ from rotation.data.dataset import check_session_sources, split_sessions
 from rotation.interrupt import StopSignals
 from rotation.tactile.ladder.fit import budget_sessions, chance, fit_and_score, score
 from rotation.tactile.ladder.report import TARGET_CHECKS, checks, write_report
-from rotation.tactile.ladder.samples import CLASSIFY, MODALITIES, TARGETS, contact_features, open_samples, targets
+from rotation.tactile.ladder.samples import (
+    CLASSIFY,
+    FEATURE_VERSION,
+    MODALITIES,
+    TARGETS,
+    contact_features,
+    open_samples,
+    targets,
+)
 from rotation.tactile.loading import session_paths
 
 
@@ -74,6 +82,8 @@ class Config:
     """Learning rate of the end-to-end training."""
     seed: int = 0
     """Seed of the session split, the budgets' order and the end-to-end training."""
+    overwrite: bool = False
+    """Replace the report of other sessions, stride or encoder that OUT holds (refused otherwise)."""
     progress: bool = True
     """Show progress bars."""
 
@@ -97,8 +107,23 @@ class Config:
 
 
 def _digest(cfg: Config, paths: list[Path]) -> str:
-    h = hashlib.sha256(json.dumps([sorted(str(p) for p in paths), cfg.stride, str(cfg.checkpoint)]).encode())
+    h = hashlib.sha256(json.dumps([sorted(str(p) for p in paths), cfg.stride, str(cfg.checkpoint),
+                                   FEATURE_VERSION]).encode())
     return h.hexdigest()[:16]
+
+
+def _check_out(cfg: Config, digest: str) -> None:
+    """Refuse an OUT that holds the report of other sessions, stride or encoder, unless --overwrite."""
+    old = cfg.out / "results.json"
+    if not old.exists() or cfg.overwrite:
+        return
+    try:
+        theirs = json.loads(old.read_text()).get("digest")
+    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        theirs = None
+    if theirs != digest:
+        raise RequestRefused(f"touch-report: {cfg.out} holds the report of other sessions, stride or encoder; use "
+                             "another --out, or --overwrite to replace it")
 
 
 def _cached(path: Path, digest: str, compute) -> dict[str, np.ndarray]:
@@ -119,6 +144,7 @@ def run(cfg: Config) -> dict[str, Any]:
     if len(paths) < 2:
         raise RequestRefused(f"touch-report: the ladder needs at least 2 session files (training and test), found "
                              f"{len(paths)}")
+    _check_out(cfg, _digest(cfg, paths))
     cfg.out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, cfg.out / "config.json")
     with StopSignals() as stop:
@@ -166,9 +192,7 @@ def _run(cfg: Config, paths: list[Path], stop: StopSignals) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     chance_rows = []
     for t in TARGETS:
-        tr = np.isin(samples.session, train_ids)
-        chance_rows.append({"target": t, "metric": kinds[t],
-                            "value": chance(kinds[t], y[t][tr], y[t][is_test], classes=3)})
+        chance_rows.append({"target": t, "metric": kinds[t], "value": chance(kinds[t], y[t][is_test])})
     pieces = [(name, t, b) for name in feats for t in TARGETS for b in cfg.budgets]
     with tqdm(total=len(pieces), desc="readers", disable=not cfg.progress) as bar:
         for name, t, b in pieces:
@@ -187,7 +211,7 @@ def _run(cfg: Config, paths: list[Path], stop: StopSignals) -> dict[str, Any]:
     result = {"rows": rows, "chance": chance_rows, "samples": len(samples), "sessions": len(paths),
               "train_sessions": [str(p) for p in train_paths], "test_sessions": [str(p) for p in test_paths],
               "friction_tercile_edges": edges.tolist(), "checkpoint": str(cfg.checkpoint) if cfg.checkpoint else None,
-              "complete": not stop.requested}
+              "complete": not stop.requested, "digest": digest}
     result["checks"] = checks(result, max(cfg.budgets), min(cfg.budgets))
     write_report(cfg.out, result, samples, test_ids[0] if len(test_ids) else 0)
     print(f"touch-report: {cfg.out / 'results.md'}")

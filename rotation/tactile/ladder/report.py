@@ -34,11 +34,11 @@ def _value(rows: list[dict], stage: str, features: str, target: str, budget: flo
     return None
 
 
-def _held(value: float | None, metric: str, base: float) -> float | None:
-    """What a score holds above what ignoring the features scores (R^2 above 0; accuracy or F1 above chance)."""
+def _held(value: float | None, base: float) -> float | None:
+    """What a score holds above what ignoring the features scores (rotation.tactile.ladder.fit.chance)."""
     if value is None or not np.isfinite(value):
         return None
-    return max(value - (0.0 if metric == "r2" else base), 0.0)
+    return max(value - base, 0.0)
 
 
 def checks(result: dict[str, Any], top: float, low: float) -> list[dict[str, Any]]:
@@ -65,10 +65,9 @@ def checks(result: dict[str, Any], top: float, low: float) -> list[dict[str, Any
                 "detail": f"wins on {', '.join(wins) or 'none'} ({done} compared)"})
     for below, above in zip(RUNGS, RUNGS[1:], strict=False):
         for target in TARGETS:
-            metric = "r2" if target not in ("friction_tercile", "slip") else ("accuracy" if target != "slip" else "f1")
-            lo = _held(_value(rows, below, "fields" if below == "contact" else "all", target, top), metric,
+            lo = _held(_value(rows, below, "fields" if below == "contact" else "all", target, top),
                        base[target]["value"])
-            hi = _held(_value(rows, above, "all", target, top), metric, base[target]["value"])
+            hi = _held(_value(rows, above, "all", target, top), base[target]["value"])
             if lo is None or hi is None or lo < 0.05:
                 continue  # nothing to lose (or not computed)
             out.append({"check": f"{above} keep at least two thirds of what {below} holds on {target}",
@@ -158,8 +157,9 @@ def _budget_plot(path: Path, result: dict[str, Any]) -> None:
 
 
 def _frames_plot(path: Path, samples: HandSamples, session: int) -> None:
-    """Six moments across one session of its most-touching fingertip: the image at t, the audio, the
-    accelerometer and the pressure windows, under the contact force at the strongest contact over the session."""
+    """Six moments of one session's most-touching fingertip, spread over the moments it touches: the image at t,
+    the audio, the accelerometer and the pressure windows, under the contact force at the strongest contact over the
+    session."""
     import matplotlib.pyplot as plt
 
     mine = np.flatnonzero(samples.session == session)
@@ -170,7 +170,10 @@ def _frames_plot(path: Path, samples: HandSamples, session: int) -> None:
     finger = max(FINGERS, key=lambda f: float(force[f][:, 0].mean()))
     fi = FINGERS.index(finger)
     track = ds.contact_track(session, finger)
-    picks = mine[np.linspace(0, len(mine) - 1, 6).round().astype(int)]
+    at = track.last_row(samples.frame[mine] / IMAGE_HZ)
+    touching = mine[force[finger][at, 0] > 0]  # moments the fingertip touches, spread over the ones there are
+    pool = touching if len(touching) >= 6 else mine
+    picks = pool[np.linspace(0, len(pool) - 1, 6).round().astype(int)]
     fig = plt.figure(figsize=(15, 9))
     top = fig.add_subplot(5, 1, 1)
     top.plot(track.times, force[finger][:, 0], label="normal (N)")

@@ -7,9 +7,11 @@ A *sample* is one moment of one session: the four fingertips' Sparsh-X windows e
 - ``friction_tercile``: the session's friction coefficient in the lower, middle or upper third of the report's
   sessions (accuracy; chance 1/3); ``friction``: the coefficient itself (R^2);
 - ``mass`` (kg) and ``com`` (the centre-of-mass shift, m, 3 values) of the session's object (R^2);
-- ``normal_force``: each fingertip's normal force at its strongest contact at the window's end (N, 4 values, R^2;
-  labels/contact_force);
-- ``slip``: whether each fingertip slides faster than ``SLIP_THRESHOLD`` at the window's end (F1 over the four).
+- ``normal_force``: each fingertip's normal force at its strongest contact in the last contact row of the window
+  (N, 4 values, R^2; the per-step labels lag the window's end by up to a control step, the rows by under one physics
+  step);
+- ``slip``: whether a contact of each fingertip slides faster than ``SLIP_THRESHOLD`` in that row (F1 over the
+  four).
 
 Stage 1 reads the simulated contact fields of the window's span (envs.sensors.digit360.CONTACT_FIELDS: what MuJoCo
 gives the sensor, the ceiling); stage 2 the rendered streams through simple fixed features (the ceiling a renderer
@@ -39,6 +41,11 @@ TARGETS = ("friction_tercile", "friction", "mass", "com", "normal_force", "slip"
 CLASSIFY = {"friction_tercile": "accuracy", "slip": "f1"}
 """Classification targets and their metric; the others are regressions scored by R^2."""
 MODALITIES = ("image", "audio", "imu", "pressure")
+FEATURE_VERSION = 3
+END_AUDIO, END_SERIAL = 20, 20
+"""Audio feature frames (2.5 ms each) and IMU samples (400 Hz) in the window's last 50 ms."""
+"""Version of the stage-1 and stage-2 feature definitions: a report's saved features are reused only when it
+matches (raise it when a feature changes)."""
 
 
 @dataclass
@@ -64,7 +71,7 @@ class HandSamples:
 
 def open_samples(paths: Sequence[Path], stride: int) -> HandSamples:
     """Every ``stride``-th image frame at which all four fingertips of a session have a whole window."""
-    ds = TouchWindows(paths, fingers=FINGERS, labels=("contact_force", "slip"), stride=1)
+    ds = TouchWindows(paths, fingers=FINGERS, labels=(), stride=1)
     props = []
     for p in ds.paths:
         with SessionReader(p) as r:
@@ -100,13 +107,17 @@ def targets(samples: HandSamples, tercile_edges: np.ndarray) -> dict[str, np.nda
         "mass": samples.mass[s][:, None],
         "com": samples.com[s],
     }
-    force, slip = [], []
-    for f in range(len(FINGERS)):
-        rows = samples.items[:, f]
-        force.append(samples.windows.labels_at(rows, "contact_force")[:, 0])
-        slip.append(samples.windows.labels_at(rows, "slip") > SLIP_THRESHOLD)
-    out["normal_force"] = np.stack(force, 1).astype(np.float64)
-    out["slip"] = np.stack(slip, 1).astype(np.float64)
+    force, slip = np.zeros((len(samples), len(FINGERS))), np.zeros((len(samples), len(FINGERS)))
+    for f, finger in enumerate(FINGERS):
+        for sess in np.unique(s):
+            mine = np.flatnonzero(s == sess)
+            track = samples.windows.contact_track(int(sess), finger)
+            rows = track.rows[track.last_row(samples.frame[mine] / IMAGE_HZ)].astype(np.float64)  # (k, D)
+            force[mine, f] = contact_frame_force(rows)[:, 0]
+            fn = np.stack([rows[:, FIELD[f"c{k}_fn"]] for k in range(CONTACT_SLOTS)], 1)
+            speed = np.stack([rows[:, FIELD[f"c{k}_slip"]] for k in range(CONTACT_SLOTS)], 1)
+            slip[mine, f] = (np.where(fn > 0, speed, 0.0).max(1) > SLIP_THRESHOLD)
+    out["normal_force"], out["slip"] = force, slip
     return out
 
 
@@ -158,25 +169,58 @@ def _track_features(rows: np.ndarray) -> np.ndarray:
 def stream_features(window: dict, reference: np.ndarray) -> dict[str, np.ndarray]:
     """Simple features of one fingertip's contract window (rotation.data.dataset item) per modality.
 
-    image: 7 x 7 average pools of the frame at t minus the sensor's no-contact reference (signed and absolute) and
-    of the change from t-5 to t; audio: mean, spread and maximum over time of 16 mel bands per microphone; IMU:
-    mean, spread, the spread of its first difference (the high band) and the last sample; pressure (high-passed as
-    the encoder sees it): spread, range, the end's offset from the window mean and the linear trend.
+    image: 7 x 7 average pools of the frame at t minus the sensor's no-contact reference (signed and absolute)
+    and of the change from t-5 to t, and the markers' motion (:func:`marker_flow`) from the reference to t and from
+    t-5 to t; audio: mean, spread and maximum over time of 16 mel bands per microphone; IMU: mean, spread, the
+    spread of its first difference (the high band) and the last sample; pressure (high-passed as the encoder sees
+    it): spread, range, the end's offset from the window mean and the linear trend. The window's end is where the
+    per-fingertip targets are read, so audio, IMU and pressure also keep its last 50 ms apart (the mel bands' mean
+    over the last 20 frames, the accelerometer's spread and jerk over its last 20 samples, the pressure's change
+    over the last 10).
     """
     img = np.asarray(window["image"], np.float32)  # (6, H, W): [R(t-5), R(t), G(t-5), G(t), B(t-5), B(t)]
     now, before = img[1::2], img[0::2]
     pool = lambda x: _pool(x, 7).ravel()  # noqa: E731
-    image = np.concatenate([pool(now - reference), pool(np.abs(now - reference)), pool(now - before)])
+    image = np.concatenate([pool(now - reference), pool(np.abs(now - reference)), pool(now - before),
+                            marker_flow(reference, now).ravel(), marker_flow(before, now).ravel()])
     mel = np.asarray(window["audio"], np.float32)  # (224, 256): two microphones x 128 bins
     bands = mel.reshape(len(mel), 2, 16, 8).mean(-1).reshape(len(mel), 32)
-    audio = np.concatenate([bands.mean(0), bands.std(0), bands.max(0)])
+    audio = np.concatenate([bands.mean(0), bands.std(0), bands.max(0), bands[-END_AUDIO:].mean(0)])
     imu = np.asarray(window["imu"], np.float64)
-    imu_f = np.concatenate([imu.mean(0), imu.std(0), np.diff(imu, axis=0).std(0), imu[-1]])
+    end = imu[-END_SERIAL:]
+    imu_f = np.concatenate([imu.mean(0), imu.std(0), np.diff(imu, axis=0).std(0), imu[-1], end.std(0),
+                            np.diff(end, axis=0).std(0)])
     p = np.asarray(window["pressure"], np.float64)[:, 0]
     hp = p - p.mean()
     slope = np.polyfit(np.arange(len(hp)), hp, 1)[0]
-    pressure = np.asarray([hp.std(), hp.max() - hp.min(), hp[-1], slope * len(hp)])
+    pressure = np.asarray([hp.std(), hp.max() - hp.min(), hp[-1], slope * len(hp), hp[-1] - hp[-END_SERIAL // 2]])
     return {"image": image, "audio": audio, "imu": imu_f, "pressure": pressure}
+
+
+def marker_flow(a: np.ndarray, b: np.ndarray, n: int = 7) -> np.ndarray:
+    """(n, n, 2) motion (pixels: column, row) of the fine texture from image ``a`` to ``b`` ((3, H, W) each) in
+    n x n blocks: Lucas-Kanade on the gray images high-passed (minus a 5 x 5 box blur), which keeps the markers and
+    drops the imprint's smooth shading. Fixed, not learnt: what a lab's marker tracker reports."""
+    ga, gb = (_highpass(np.asarray(x, np.float64).mean(0)) for x in (a, b))
+    gy, gx = np.gradient(0.5 * (ga + gb))
+    gt = gb - ga
+    terms = [gx * gx, gx * gy, gy * gy, gx * gt, gy * gt]
+    sums = [_pool(t[None], n)[0] for t in terms]  # (n, n) block means
+    sxx, sxy, syy, sxt, syt = sums
+    det = sxx * syy - sxy * sxy
+    ok = det > 1e-12
+    u = np.where(ok, -(syy * sxt - sxy * syt) / np.where(ok, det, 1.0), 0.0)
+    v = np.where(ok, -(sxx * syt - sxy * sxt) / np.where(ok, det, 1.0), 0.0)
+    return np.stack([u, v], -1)
+
+
+def _highpass(g: np.ndarray, k: int = 5) -> np.ndarray:
+    """``g`` minus its k x k box blur (edges padded by reflection)."""
+    pad = k // 2
+    p = np.pad(g, pad, mode="reflect")
+    c = np.cumsum(np.cumsum(np.pad(p, ((1, 0), (1, 0))), 0), 1)
+    blur = (c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]) / (k * k)
+    return g - blur
 
 
 def _pool(x: np.ndarray, n: int) -> np.ndarray:

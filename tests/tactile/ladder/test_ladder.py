@@ -96,7 +96,7 @@ def test_readers_read_what_is_there_and_nothing_else():
     slip = (speed > 0.005).astype(float)
     f1, _ = fit.fit_and_score("f1", speed[~test], slip[~test], groups[~test], speed[test], slip[test])
     assert 0.02 < slip.mean() < 0.2 and f1 > 0.8
-    assert fit.chance("f1", slip[~test], slip[test]) < 0.4
+    assert fit.chance("f1", slip[test]) < 0.4 and fit.chance("r2", y[test]) == 0.0
     # nested budgets
     small, large = fit.budget_sessions(np.arange(9), 0.33, 0), fit.budget_sessions(np.arange(9), 1.0, 0)
     assert len(small) == 3 and set(small) <= set(large) and len(large) == 9
@@ -156,6 +156,13 @@ def test_bad_input_is_a_clear_error(tmp_path, v4_sessions, capsys):
         ladder.Config(sessions=(v4_sessions,), out=tmp_path / "r", checkpoint=None)  # stages 3, 4 need an encoder
     with pytest.raises(ValueError, match="stages"):
         ladder.Config(sessions=(v4_sessions,), out=tmp_path / "r", stages=(5,))
-    one = sorted(v4_sessions.rglob("*.h5"))[0]
+    one, two = sorted(v4_sessions.rglob("*.h5"))[:2]
+    out = tmp_path / "mine"
+    assert main(["touch-report", "--sessions", str(one), str(two), "--stages", "1", "--out", str(out),
+                 "--no-progress"]) == 0
+    before = (out / "results.json").read_bytes()
+    assert main(["touch-report", "--sessions", str(v4_sessions), "--stages", "1", "--out", str(out)]) == 1
+    assert "holds the report of other sessions" in capsys.readouterr().err
+    assert (out / "results.json").read_bytes() == before  # kept
     assert main(["touch-report", "--sessions", str(one), "--stages", "1", "--out", str(tmp_path / "r")]) == 1
     assert "at least 2 session files" in capsys.readouterr().err
