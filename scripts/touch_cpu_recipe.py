@@ -1,0 +1,163 @@
+"""The touch encoder on the generation-2 streams on a CPU alone: collect pretraining sessions on the vendor-kinematics
+hand, pretrain a tinier Sparsh-X on them, then the information ladder on held-out sessions (docs/tactile.md).
+
+Steps (each a `rotate` command; a finished one is skipped, a stopped one resumes):
+
+1. six collections on the policy's hand, the shipped encoder's data mix (rotation/tactile/pretrained/
+   sparshx-tinier-sim/MODEL_CARD.md) moved to the v4 hand's limits: the policy at nominal randomization, with
+   friction x0.5, +0.1 kg, both, friction x0.3, and the gentle random policy;
+2. `rotate pretrain` (tinier, on the fly, no window cache: on 2 cores the encoder's step, not rendering, is the
+   cost), checkpoints every ``checkpoint_every`` steps, resumed with --resume;
+3. `scripts/export_encoder.py` of the pretraining run into OUT/encoder;
+4. the report's own sessions (other seeds: randomization draws the encoder never saw) and `rotate touch-report`
+   with all four rungs into OUT/touch_report.
+
+    python scripts/touch_cpu_recipe.py --policy runs/sim_v4/teacher/stage5/bundle --out runs/touch_cpu
+    python scripts/touch_cpu_recipe.py --policy ... --out runs/touch_cpu --dry-run     # the commands, run nothing
+
+Budget on 2 CPU cores: the collections take minutes; pretraining runs at about 12.7 windows/s (tinier, batch 32,
+rendering on the fly: measured on v4 sessions), so the default 3,000 steps (96,000 windows, a quarter of what the
+shipped encoder saw) take about 2.1 h; the ladder's rendering, tokens and three end-to-end trainings about 40 min.
+On a GPU machine pass --device cuda and a larger --batch-size (the shipped encoder: 256, 1,800 steps, 7.5 min on
+one H200 from a window cache; see its model card).
+"""
+
+from __future__ import annotations
+
+import shlex
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from rotation.configs import script_main
+
+COLLECTIONS: tuple[tuple[str, bool, int, list[str]], ...] = (
+    ("policy", True, 0, []),
+    ("policy_mu05", True, 1, ["--friction-scale", "0.5"]),
+    ("policy_m01", True, 2, ["--added-mass", "0.1"]),
+    ("policy_mu05_m01", True, 3, ["--friction-scale", "0.5", "--added-mass", "0.1"]),
+    ("policy_mu03", True, 5, ["--friction-scale", "0.3"]),
+    ("random", False, 4, ["--random-scale", "0.15"]),
+)
+"""(folder under OUT/sessions, whether the policy acts (else the random policy), seed, options)."""
+REPORT_SEED = 200
+"""Seed of the report's sessions (the pretraining collections use 0-5)."""
+
+
+@dataclass
+class Config:
+    policy: str = ""
+    """A policy bundle of the touch hand (the retrained digit360_v4 teacher or student) that collects the sessions."""
+    out: Path = Path("runs/touch_cpu")
+    """Folder of the recipe: sessions/, pretrain/, encoder/, report_sessions/, touch_report/."""
+    hand: str = "digit360_v4"
+    """The Digit 360 hand (its touch generation: envs.scene.touch_model); the policy must act on it."""
+    episodes: int = 32
+    """Episodes per pretraining collection (six collections)."""
+    report_episodes: int = 96
+    """Episodes of the report's held-out sessions."""
+    episode_steps: int = 400
+    """Policy steps per episode (20 s)."""
+    size: str = "tinier"
+    """Encoder size (rotate pretrain --size)."""
+    steps: int = 3000
+    """Pretraining steps."""
+    batch_size: int = 32
+    """Pretraining batch (windows)."""
+    lr: float = 5e-4
+    """Peak learning rate."""
+    checkpoint_every: int = 100
+    """Steps between pretraining checkpoints (what a stop loses at most)."""
+    device: str = "cpu"
+    """torch device of the pretraining (cpu, cuda)."""
+    num_workers: int = 1
+    """DataLoader workers of the pretraining (rendering windows on the fly)."""
+    progress: bool = True
+    """Progress bars."""
+    dry_run: bool = False
+    """Print the commands without running them."""
+
+    def __post_init__(self) -> None:
+        self.out = Path(self.out)
+        if not self.policy:
+            raise ValueError("policy: give the policy bundle that collects the sessions (a digit360_v4 teacher or "
+                             "student)")
+        for name in ("episodes", "report_episodes", "episode_steps", "steps", "batch_size", "checkpoint_every"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+
+def _progress(cfg: Config) -> list[str]:
+    return [] if cfg.progress else ["--no-progress"]
+
+
+def commands(cfg: Config) -> list[tuple[str, list[str]]]:
+    """(what, command) still to run, in order; `rotate` commands start with their subcommand, the export with
+    'python'. Collections are always listed: `rotate collect` itself keeps what is complete and records the rest."""
+    out, todo = cfg.out, []
+    common = ["--episode-steps", str(cfg.episode_steps), "--num-envs", "16", "--hand", cfg.hand, *_progress(cfg)]
+    for name, acts, seed, options in COLLECTIONS:
+        todo.append((f"collect {name}", ["collect", "--policy", cfg.policy if acts else "random", "--episodes",
+                                         str(cfg.episodes), "--seed", str(seed), "--out", str(out / "sessions" / name),
+                                         *options, *common]))
+    pretrain = out / "pretrain"
+    if not _pretrained(pretrain, cfg.steps):
+        resume = ["--resume"] if any(pretrain.glob("ckpt_*.safetensors")) else []
+        todo.append((f"pretrain: {cfg.steps} steps of {cfg.batch_size} windows{' (resumed)' if resume else ''}",
+                     ["pretrain", "--sessions", str(out / "sessions"), "--out", str(pretrain), "--size", cfg.size,
+                      "--stride", "10", "--steps", str(cfg.steps), "--batch-size", str(cfg.batch_size), "--lr",
+                      str(cfg.lr), "--warmup-fraction", "0.1", "--checkpoint-every", str(cfg.checkpoint_every),
+                      "--keep-checkpoints", "2", "--log-every", "25", "--num-workers", str(cfg.num_workers),
+                      "--device", cfg.device, *resume, *_progress(cfg)]))
+    encoder = out / "encoder" / "encoder.safetensors"
+    if not encoder.is_file() or (pretrain / "encoder.safetensors").is_file() and \
+            (pretrain / "encoder.safetensors").stat().st_mtime > encoder.stat().st_mtime:
+        todo.append(("export the encoder", ["python", str(Path(__file__).resolve().parent / "export_encoder.py"),
+                                            "--checkpoint", str(pretrain), "--out", str(out / "encoder")]))
+    todo.append(("collect the report's sessions",
+                 ["collect", "--policy", cfg.policy, "--episodes", str(cfg.report_episodes), "--seed",
+                  str(REPORT_SEED), "--out", str(out / "report_sessions"), *common]))
+    if not (out / "touch_report" / "results.md").is_file():
+        todo.append(("the information ladder", ["touch-report", "--sessions", str(out / "report_sessions"),
+                                                "--checkpoint", str(out / "encoder"), "--stride", "15", "--out",
+                                                str(out / "touch_report"), *_progress(cfg)]))
+    return todo
+
+
+def _pretrained(run: Path, steps: int) -> bool:
+    """Whether the pretraining run holds its last step's checkpoint."""
+    ckpts = sorted(run.glob("ckpt_*.safetensors"))
+    try:
+        return bool(ckpts) and int(ckpts[-1].stem.split("_")[1]) >= steps
+    except (IndexError, ValueError):
+        return False
+
+
+def run(cfg: Config) -> int:
+    from rotation import cli
+
+    for what, args in commands(cfg):
+        shown = shlex.join(args) if args[0] == "python" else f"rotate {shlex.join(args)}"
+        print(f"touch_cpu_recipe: {what}\n  {shown}", flush=True)
+        if cfg.dry_run:
+            continue
+        status = subprocess.call([sys.executable, *args[1:]]) if args[0] == "python" else cli.main(args)
+        if status != 0:
+            print(f"touch_cpu_recipe: stopped ({what} ended with status {status}); run the script again to continue",
+                  file=sys.stderr)
+            return status
+    if not cfg.dry_run:
+        print(f"touch_cpu_recipe: done; the encoder is {cfg.out / 'encoder'}, the ladder "
+              f"{cfg.out / 'touch_report' / 'results.md'}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    status: list[int] = []
+    code = script_main(Config, lambda cfg: status.append(run(cfg)), __doc__, argv)
+    return code or (status[0] if status else 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
