@@ -132,7 +132,7 @@ def test_collect_on_the_vendor_hand_records_its_sensor(v4_sessions):
 def test_a_tiny_touch_report_runs_end_to_end(tmp_path, v4_sessions, encoder):
     out = tmp_path / "report"
     argv = ["touch-report", "--sessions", str(v4_sessions), "--checkpoint", str(encoder), "--out", str(out),
-            "--stride", "6", "--e2e-steps", "2", "--e2e-batch", "1", "--test-fraction", "0.5", "--no-progress"]
+            "--stride", "10", "--e2e-steps", "1", "--e2e-batch", "1", "--test-fraction", "0.5", "--no-progress"]
     assert main(argv) == 0
     result = json.loads((out / "results.json").read_text())
     assert result["complete"] and result["samples"] > 0
