@@ -16,8 +16,10 @@ Under a contact of radius ``a`` (Hertz) carrying a tangential force ``Q`` the ge
 So the same normal and tangential force look different sticking (the markers in the patch shift together) and
 sliding (they fan out, the centre ahead of the rim). Outside the contact both fields fall off as a point force's
 1/r, joined to the edge value by ``(2 / pi) asin(a / r)`` (a stand-in for the exact far fields), tapered to zero
-between 2.5 and 4 contact radii like the indentation. The markers are printed on a square grid in the image (pitch
-``marker_pitch`` of arc at the dome's apex); a marker seen at pixel p came from ``p - shift(p)``. Not modelled: the
+between 2.5 and 4 contact radii like the indentation. The markers are a square grid in the image (pitch
+``marker_pitch`` of arc at the dome's apex); a marker seen at pixel p came from ``p - shift(p)``. A real Digit 360's
+gel carries no printed marker grid (vision-based fingertips such as GelSight's often do): here the dots stand for
+whatever texture of the gel the camera can follow, so that the surface's motion is visible at all. Not modelled: the
 gel's finite thickness (a half-space is more compliant), the contact's ellipticity against a curved object, partial
 slip (a contact is sticking or sliding), and hysteresis.
 """
