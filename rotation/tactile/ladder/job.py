@@ -126,11 +126,12 @@ def _check_out(cfg: Config, digest: str) -> None:
                              "another --out, or --overwrite to replace it")
 
 
-def _cached(path: Path, digest: str, compute) -> dict[str, np.ndarray]:
-    """Features from ``path`` when it was computed for ``digest``, else computed and saved (atomically)."""
+def _cached(path: Path, digest: str, compute, need: str = "") -> dict[str, np.ndarray]:
+    """Features from ``path`` when it was computed for ``digest`` (and holds a key starting with ``need``), else
+    computed and saved (atomically)."""
     if path.exists():
         with np.load(path) as z:
-            if str(z["digest"]) == digest:
+            if str(z["digest"]) == digest and any(k.startswith(need) for k in z.files if k != "digest"):
                 return {k: z[k] for k in z.files if k != "digest"}
     feats = compute()
     tmp = path.with_suffix(".tmp.npz")
@@ -162,6 +163,9 @@ def _run(cfg: Config, paths: list[Path], stop: StopSignals) -> dict[str, Any]:
     y = targets(samples, edges)
     kinds = {t: CLASSIFY.get(t, "r2") for t in TARGETS}
     is_test = np.isin(samples.session, test_ids)
+    if not is_test.any() or is_test.all():
+        raise RequestRefused("touch-report: the test or the training sessions hold no whole window (each session "
+                             "needs 1.12 s of touch); give more or longer sessions")
     digest = _digest(cfg, paths)
     print(f"touch-report: {len(samples)} samples of {len(paths)} sessions ({len(train_paths)} training, "
           f"{len(test_paths)} test); friction terciles at {edges[0]:.3f} and {edges[1]:.3f}")
@@ -182,7 +186,8 @@ def _run(cfg: Config, paths: list[Path], stop: StopSignals) -> dict[str, Any]:
             with tqdm(total=len(samples), desc="render", disable=not cfg.progress) as bar:
                 return rendered_features(samples, encoder if 3 in cfg.stages else None, progress=bar.update)
 
-        feats.update(_cached(cfg.out / "features_rendered.npz", digest, compute))
+        feats.update(_cached(cfg.out / "features_rendered.npz", digest, compute,
+                             need="tokens/" if 3 in cfg.stages else "stream/"))
     for stage in ("stream", "tokens"):
         parts = [feats[f"{stage}/{m}"] for m in MODALITIES if f"{stage}/{m}" in feats]
         if len(parts) > 1:

@@ -149,6 +149,13 @@ def test_a_tiny_touch_report_runs_end_to_end(tmp_path, v4_sessions, encoder):
     before = (out / "features_rendered.npz").stat().st_mtime_ns
     assert main([*argv[:-7], "--stages", "1", "2", "--no-progress"]) == 0  # reuses the rendered features
     assert (out / "features_rendered.npz").stat().st_mtime_ns == before
+    fresh = tmp_path / "fresh"  # features without tokens are not reused by a run that needs them
+    again = ["touch-report", "--sessions", str(v4_sessions), "--checkpoint", str(encoder), "--out", str(fresh),
+             "--stride", "10", "--no-progress", "--stages"]
+    assert main([*again, "2"]) == 0
+    assert not any(k.startswith("tokens/") for k in np.load(fresh / "features_rendered.npz").files)
+    assert main([*again, "3"]) == 0
+    assert any(k.startswith("tokens/") for k in np.load(fresh / "features_rendered.npz").files)
 
 
 def test_bad_input_is_a_clear_error(tmp_path, v4_sessions, capsys):
