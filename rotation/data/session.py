@@ -55,7 +55,9 @@ that names the rate it had, as is every stream of an incomplete session (a run t
 fingertip is stored either as its recorded streams (real hand) or as its contact fields (simulation), from which the
 loader renders the four modalities (envs.sensors.digit360_render). A session with skin streams carries the static
 taxel facts in ``extra["skin"]`` (envs.sensors.xela.skin_metadata: pad names, taxels per pad, taxel type ids and
-names). The object's properties (``properties``) are the simulated parameters in sim (scale, mass kg, friction, com
+names). A simulated Digit 360 session names its hand in ``extra["sim_hand"]`` (the loader renders its contact
+fields with that hand's sensor, envs.scene.touch_model; without the key: 'digit360'). The object's properties
+(``properties``) are the simulated parameters in sim (scale, mass kg, friction, com
 m) and whatever was measured on the real object.
 
 Crash safety: the writer keeps the file in HDF5's single-writer/multiple-reader mode (SWMR, ``libver="latest"``),
