@@ -2,7 +2,8 @@
 
     allegro/   Allegro Hand V4/V5 over CAN: can_bus, protocol (tables), control (host PD), driver
     leap/      LEAP hand over Dynamixel Protocol 2.0: dynamixel_protocol (tables), dynamixel_bus, driver
-    digit360/  Digit 360 fingertip: proto_schema + digit360.proto (the serial stream), window, reader
+    digit360/  Digit 360 fingertip: proto_schema + digit360.proto + protocol (the device's serial wire schema, units,
+               commands), window, reader
     xela/      Xela uSkin: reader of the xela_server stream
     hand.py    the hand contract both drivers implement; safety.py, the one layer every command passes through;
                realtime.py, scheduling for the control threads

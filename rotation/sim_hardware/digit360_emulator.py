@@ -1,8 +1,10 @@
-"""A Digit 360 data channel on a pseudo-terminal: COBS-framed protobuf ``DigitMessage`` frames.
+"""A Digit 360 data channel on a pseudo-terminal: COBS-framed protobuf ``Digit360Message`` frames of the device's
+wire schema (rotation/hardware/digit360/digit360.proto).
 
-Streams (docs/reference/hardware.md section 4, rates from docs/reference/sparsh.md): a ``system`` message at start and
-every second, raw accelerometer IMU frames at 400 Hz (counts, 4096 per g) and pressure frames at 200 Hz (hPa,
-about 1000 at rest, rising with contact force). ``ts`` fields are emulated device time in microseconds.
+Streams (docs/reference/hardware.md section 4, rates from docs/reference/sparsh.md): a ``system_data`` message at
+start and every second (firmware version major, minor), raw accelerometer ``imu_data`` frames at 400 Hz (float
+counts, 4096 per g: rotation.hardware.digit360.protocol) and ``pressure_data`` frames at 200 Hz (hPa, about 1000 at
+rest, rising with contact force). ``ts`` fields are emulated device time in milliseconds, as the device's.
 
 Beside an emulated hand (``physics=``, ``finger=``) the sensor senses that hand's fingertip with the env's simulated
 Digit 360 (rotation.sim_hardware.digit360_touch.FingertipTouch): IMU and pressure rendered from the fingertip's
@@ -26,7 +28,7 @@ import numpy as np
 from cobs import cobs
 
 from envs.scene import touch_model
-from rotation.hardware.digit360.reader import ACC_PER_G, SENSOR, messages
+from rotation.hardware.digit360.protocol import ACC_LSB_PER_G, IMU_TYPE, TS_HZ, messages
 from rotation.sim_hardware.digit360_touch import FingertipTouch
 from rotation.sim_hardware.hand_physics import HandPhysics
 from rotation.sim_hardware.pty_link import PtyLink
@@ -68,7 +70,7 @@ class Digit360Emulator(EmulatorThread):
 
     Args:
         source: readings without a hand, ``source(t) -> (force_N, accel_g (3,))`` (see the module docstring).
-        version: the firmware version the ``system`` messages report.
+        version: the firmware version (major, minor) the ``system_data`` messages report.
         physics: an emulated hand: sense its fingertip ``finger`` instead of ``source`` (and provide ``media``).
         finger: the fingertip of ``physics`` (envs.sensors.digit360.FINGERS).
         seed: noise key of the emulated session (the fingertip's key is derived from it, as in the env).
@@ -78,7 +80,7 @@ class Digit360Emulator(EmulatorThread):
     """
 
     def __init__(self, source: Callable[[float], tuple[float, np.ndarray]] = synthetic_source,
-                 version: str = "emulated-1.0", *, physics: HandPhysics | None = None, finger: str = "index",
+                 version: tuple[int, int] = (1, 22), *, physics: HandPhysics | None = None, finger: str = "index",
                  seed: int = 0, epoch: float | None = None) -> None:
         if physics is not None and source is not synthetic_source:
             raise ValueError("Digit360Emulator: give a source or a hand's physics, not both")
@@ -92,7 +94,7 @@ class Digit360Emulator(EmulatorThread):
         self.faults = Digit360Faults()
         self.link = PtyLink()
         self.path = self.link.path
-        self._msg = messages()["DigitMessage"]
+        self._msg = messages()["Digit360Message"]
         self._init_worker("digit360-emulator")
         self.frames_out = 0
 
@@ -119,7 +121,7 @@ class Digit360Emulator(EmulatorThread):
 
     def _system(self) -> None:
         m = self._msg()
-        m.system.version = self.version
+        m.system_data.version_major, m.system_data.version_minor = self.version
         self._emit(m)
 
     def _readings(self, k: int) -> tuple[np.ndarray, float | None]:
@@ -152,22 +154,23 @@ class Digit360Emulator(EmulatorThread):
     def _tick(self, k: int) -> None:
         """Write IMU tick ``k`` (and its pressure sample, and every 400th tick a ``system`` message)."""
         t = k * IMU_PERIOD_S
-        ts = int(t * 1e6) & 0xFFFFFFFF
+        ts = int(t * TS_HZ) & 0xFFFFFFFF  # the device's millisecond clock
         try:
             accel, pressure = self._readings(k)
         except Exception:  # a broken source must not kill the stream silently
             log.exception("digit360 emulator: source failed at t=%.3f s", t)
             return
         m = self._msg()
-        m.imu.ts = ts
-        m.imu.raw.sensor = SENSOR["ACC"]
-        m.imu.raw.x, m.imu.raw.y, m.imu.raw.z = (int(round(float(a) * ACC_PER_G)) for a in accel)
+        m.imu_data.ts = ts
+        m.imu_data.raw.sensor = IMU_TYPE["ACC"]
+        m.imu_data.raw.ts_ght = k
+        m.imu_data.raw.x, m.imu_data.raw.y, m.imu_data.raw.z = (float(a) * ACC_LSB_PER_G for a in accel)
         self._emit(m)
         if pressure is not None:
             p = self._msg()
-            p.pressure.ts = ts
-            p.pressure.pressure = pressure
-            p.pressure.temperature = 30.0
+            p.pressure_data.ts = ts
+            p.pressure_data.pressure = pressure
+            p.pressure_data.temperature = 30.0
             self._emit(p)
         if k % 400 == 0:
             self._system()

@@ -10,7 +10,8 @@ import pytest
 import serial
 from cobs import cobs
 
-from rotation.hardware.digit360.reader import ACC_PER_G, SENSOR, Digit360, Digit360Config, SensorStale, messages
+from rotation.hardware.digit360.protocol import ACC_LSB_PER_G, IMU_TYPE, messages
+from rotation.hardware.digit360.reader import Digit360, Digit360Config, SensorStale
 from rotation.hardware.digit360.window import WindowNotReady
 from rotation.sim_hardware.digit360_emulator import HPA_PER_N, REST_HPA, Digit360Emulator
 
@@ -30,8 +31,8 @@ def test_emulator_frames_are_cobs_protobuf(digit_emu):
     with serial.Serial(digit_emu.path, timeout=0.5) as port:
         data = port.read(400)
     frames = [f for f in data.split(b"\x00")[1:-1] if f]
-    kinds = {messages()["DigitMessage"].FromString(cobs.decode(f)).WhichOneof("payload") for f in frames}
-    assert {"imu", "pressure"} <= kinds
+    kinds = {messages()["Digit360Message"].FromString(cobs.decode(f)).WhichOneof("type") for f in frames}
+    assert {"imu_data", "pressure_data"} <= kinds
 
 
 def test_windows_from_the_stream(digit_emu):
@@ -41,7 +42,7 @@ def test_windows_from_the_stream(digit_emu):
         assert np.allclose(w["imu"][:, 2], 1.0, atol=1e-3)  # gravity on z, in g
         assert REST_HPA <= w["pressure"].min() and w["pressure"].max() <= REST_HPA + HPA_PER_N + 1e-3
         assert w["t_end"] <= time.monotonic()
-        assert d.version == "emulated-1.0" and d.counters["bad_frames"] == 0
+        assert d.version == "1.22" and d.counters["bad_frames"] == 0
 
 
 def test_callback_source_drives_pressure():
@@ -88,12 +89,12 @@ class _Backlog:
 def test_a_late_read_keeps_every_frame_and_drops_only_bytes_without_a_delimiter(monkeypatch, caplog):
     """A host that reads late gets many frames in one read (here 4,000 IMU frames, 10 s, over 64 KiB): every one
     is kept. Only 64 KiB that hold no frame delimiter at all are dropped, with an error."""
-    msg = messages()["DigitMessage"]
+    msg = messages()["Digit360Message"]
     frames = []
     for k in range(4000):
         m = msg()
-        m.imu.ts, m.imu.raw.sensor = 2500 * k, SENSOR["ACC"]
-        m.imu.raw.x, m.imu.raw.y, m.imu.raw.z = k % 7, -(k % 5), int(ACC_PER_G)
+        m.imu_data.ts, m.imu_data.raw.sensor = 5 * k // 2, IMU_TYPE["ACC"]  # the device's milliseconds
+        m.imu_data.raw.x, m.imu_data.raw.y, m.imu_data.raw.z = k % 7, -(k % 5), ACC_LSB_PER_G
         frames.append(cobs.encode(m.SerializeToString()) + b"\x00")
     data = b"".join(frames)
     assert len(data) > 1 << 16
@@ -112,7 +113,7 @@ def test_a_late_read_keeps_every_frame_and_drops_only_bytes_without_a_delimiter(
     # all arrived at once, before any sample set the device clock's offset: stamped at their arrival, in order
     assert np.all(np.diff(t) >= 0)
     k = np.arange(4000 - len(v), 4000)
-    want = np.stack([k % 7, -(k % 5), np.full(len(k), ACC_PER_G)], 1) / ACC_PER_G
+    want = np.stack([k % 7, -(k % 5), np.full(len(k), ACC_LSB_PER_G)], 1) / ACC_LSB_PER_G
     assert np.array_equal(v, want.astype(np.float32))
     assert "bytes without a frame delimiter dropped" in caplog.text
 

@@ -8,9 +8,12 @@ Usage::
 
 Interfaces (docs/reference/hardware.md section 4): the data tty is a USB CDC device (vendor 0x2833, product 0x4001),
 found by its USB serial number with pyserial's ``list_ports``; each device -> host message is a protobuf
-``DigitMessage`` (schema: ``digit360.proto`` beside this file, loaded at run time) COBS-encoded and terminated
-by 0x00. Audio (48 kHz, 2 microphones, int16) comes through ``sounddevice`` and the camera (UVC) through OpenCV;
-both are imported only when enabled (extra ``[hardware]``).
+``Digit360Message`` of the device's wire schema (``digit360.proto`` beside this file, loaded at run time; units:
+rotation.hardware.digit360.protocol) COBS-encoded and terminated by 0x00. The accelerometer feeds the windows; every
+other message kind (gyroscope, linear acceleration, fused orientation, gas / humidity / temperature, the high-rate
+pressure channels, system status) is decoded into :attr:`Digit360.latest`; a kind the schema does not know is
+counted and skipped. Audio (48 kHz, 2 microphones, int16) comes through ``sounddevice`` and the camera (UVC)
+through OpenCV; both are imported only when enabled (extra ``[hardware]``).
 
 Emulated sensors have no camera or microphone device: ``Digit360(cfg, media=...)`` takes a :class:`Digit360Media`
 instead, which renders the two frames and the audio of a window when :meth:`Digit360.window` asks for them (the
@@ -18,7 +21,7 @@ emulated fingertips of rotation.sim_hardware render them from their contact hist
 rendering every frame at 30 fps would cost more than the control loop can spare). Configs stay plain data: the
 media object is a constructor argument, not a config field, and with it OpenCV and sounddevice are never imported.
 
-Timestamps are host ``time.monotonic()`` seconds. Serial samples carry the device's microsecond clock; it is
+Timestamps are host ``time.monotonic()`` seconds. Serial samples carry the device's millisecond clock; it is
 mapped to host time by the smallest observed (receive time - device time) offset (USB delivers in bursts, the
 minimum is the least-delayed sample), allowed to drift by 100 ppm and re-anchored when a sample would map more
 than 50 ms before its arrival.
@@ -34,7 +37,6 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -43,24 +45,17 @@ from cobs import cobs
 
 from rotation.hardware.digit360 import discovery
 from rotation.hardware.digit360 import window as dw
-from rotation.hardware.digit360.proto_schema import enum_values, load_proto
+from rotation.hardware.digit360.protocol import IMU_TYPE, TS_HZ, messages, pressure_hpa, raw_imu_physical
 
 log = logging.getLogger("rotation.hardware.digit360")  # the device's logger (messages name the device)
 
-PROTO = str(Path(__file__).with_name("digit360.proto"))
 IMAGE_BUFFER_FRAMES = 45
 """Camera frames a reader keeps (1.5 s at 30 fps): a window needs the newest and the one 5 before it, and a deploy
 recording drains the frames every 0.25 s, so a late drain still finds every frame since the last one."""
-ACC_PER_G = 4096.0
-"""Raw accelerometer counts per g (docs/reference/sparsh.md: linear acceleration / 4096)."""
 
 
-def messages() -> dict[str, type]:
-    """The Digit 360 protobuf classes, built from ``digit360.proto``."""
-    return load_proto(PROTO)
-
-
-SENSOR = enum_values(PROTO, "SensorType")
+_IMU_NAMES = {IMU_TYPE["ACC"]: "imu/acc", IMU_TYPE["GYRO"]: "imu/gyro", IMU_TYPE["MAG"]: "imu/mag",
+              IMU_TYPE["AUX_IMU"]: "imu/linacc"}
 
 
 class SensorStale(RuntimeError):
@@ -79,8 +74,8 @@ class Digit360Config:
     """OpenCV capture index or device path; None disables the image stream."""
     audio_device: int | str | None = None
     """sounddevice input device (index or name substring); None disables audio."""
-    device_clock_hz: float = 1e6
-    """Tick rate of the device's ``ts`` fields (microseconds)."""
+    device_clock_hz: float = TS_HZ
+    """Tick rate of the device's ``ts`` fields (milliseconds: rotation.hardware.digit360.protocol)."""
     stale_timeout_s: float = 0.1
     """Newest serial sample older than this (s) -> SensorStale from window()."""
     media_stale_timeout_s: float = 0.5
@@ -190,8 +185,11 @@ class Digit360:
         self.image = dw.RingBuffer(IMAGE_BUFFER_FRAMES, (dw.IMAGE_SIZE, dw.IMAGE_SIZE, 3), np.uint8) \
             if cfg.camera is not None else None
         self.version = ""
-        self.counters = {"frames": 0, "bad_frames": 0, "disconnects": 0}
-        self._msg = messages()["DigitMessage"]
+        self.counters = {"frames": 0, "bad_frames": 0, "disconnects": 0, "unknown": 0}
+        self.latest: dict[str, tuple[float, object]] = {}
+        """Stream -> (host time, newest decoded sample in physical units) of every message kind the device sent
+        (``imu/acc``, ``imu/gyro``, ``imu/linacc``, ``pressure``, ``gasht``, ``euler``, ``quat``, ...)."""
+        self._msg = messages()["Digit360Message"]
         self._clock = _ClockMap(cfg.device_clock_hz)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -326,14 +324,48 @@ class Digit360:
                 log.warning("%s: dropped an undecodable frame (%d so far): %s", self.name, n, err)
             return
         self.counters["frames"] += 1
-        kind = msg.WhichOneof("payload")
-        if kind == "pressure":
-            self.pressure.append(self._clock(msg.pressure.ts, t_recv), msg.pressure.pressure)
-        elif kind == "imu" and msg.imu.WhichOneof("data") == "raw" and msg.imu.raw.sensor == SENSOR["ACC"]:
-            r = msg.imu.raw
-            self.imu.append(self._clock(msg.imu.ts, t_recv), (r.x / ACC_PER_G, r.y / ACC_PER_G, r.z / ACC_PER_G))
-        elif kind == "system":
-            self.version = msg.system.version
+        kind = msg.WhichOneof("type")
+        if kind == "pressure_data":
+            p = msg.pressure_data
+            t = self._clock(p.ts, t_recv)
+            hpa = pressure_hpa(p.pressure)
+            self.pressure.append(t, hpa)
+            self.latest["pressure"] = (t, {"hPa": hpa, "temperature_C": p.temperature})
+        elif kind == "imu_data":
+            imu = msg.imu_data
+            part = imu.WhichOneof("imu_type")
+            t = self._clock(imu.ts, t_recv)
+            if part == "raw":
+                r = imu.raw
+                unit, values = raw_imu_physical(r.sensor, r.x, r.y, r.z)
+                if r.sensor == IMU_TYPE["ACC"]:
+                    self.imu.append(t, values)  # the accelerometer feeds the windows, as the simulated sensor's
+                name = _IMU_NAMES.get(r.sensor, f"imu/type{r.sensor}")
+                self.latest[name] = (t, {unit: values})
+            elif part == "euler":
+                e = imu.euler
+                self.latest["euler"] = (t, {"deg": (e.heading, e.pitch, e.roll)})
+            elif part == "quat":
+                q = imu.quat
+                self.latest["quat"] = (t, {"wxyz": (q.w, q.x, q.y, q.z), "accuracy": q.accuracy})
+        elif kind == "gasht_data":
+            g = msg.gasht_data
+            self.latest["gasht"] = (self._clock(g.ts, t_recv), {
+                "temperature_C": g.temperature, "hPa": pressure_hpa(g.pressure), "humidity": g.humidity,
+                "gas": g.gas, "gas_index": g.gas_index})
+        elif kind == "pressure_ap_data":
+            a = msg.pressure_ap_data
+            self.latest["pressure_ap"] = (self._clock(a.ts, t_recv), {
+                "channel_a": np.frombuffer(a.channel_a[: len(a.channel_a) // 2 * 2], "<u2"),
+                "channel_b": np.frombuffer(a.channel_b[: len(a.channel_b) // 2 * 2], "<u2")})
+        elif kind == "system_data":
+            self.version = f"{msg.system_data.version_major}.{msg.system_data.version_minor}"
+            self.latest["system"] = (t_recv, {"version": self.version, "status": msg.system_data.status})
+        else:  # a message type this schema does not know (a newer firmware's), or an empty one: skipped
+            self.counters["unknown"] += 1
+            n = self.counters["unknown"]
+            if n == 1 or n % 1000 == 0:
+                log.info("%s: skipped a message of a type this host does not know (%d so far)", self.name, n)
 
     # ------------------------------------------------------------------ audio / camera (optional extras)
     def _open_audio(self) -> None:

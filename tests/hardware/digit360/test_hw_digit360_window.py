@@ -7,7 +7,8 @@ import pytest
 
 from rotation.hardware.digit360 import window as dw
 from rotation.hardware.digit360.proto_schema import parse_proto
-from rotation.hardware.digit360.reader import PROTO, SENSOR, Digit360Config, _ClockMap, _SampleClock, messages
+from rotation.hardware.digit360.protocol import IMU_TYPE, PROTO, messages
+from rotation.hardware.digit360.reader import Digit360Config, _ClockMap, _SampleClock
 
 
 def test_ring_buffer_wraps_in_time_order():
@@ -123,15 +124,15 @@ def test_sparshx_window_without_camera_ends_at_oldest_newest_sample():
 
 
 def test_schema_round_trip_and_parser_errors():
-    msg = messages()["DigitMessage"]()
-    msg.imu.ts = 7
-    msg.imu.raw.sensor = SENSOR["ACC"]
-    msg.imu.raw.z = 4096
-    again = messages()["DigitMessage"].FromString(msg.SerializeToString())
-    assert again.WhichOneof("payload") == "imu" and again.imu.raw.z == 4096
+    msg = messages()["Digit360Message"]()
+    msg.imu_data.ts = 7
+    msg.imu_data.raw.sensor = IMU_TYPE["ACC"]
+    msg.imu_data.raw.z = 4096.0
+    again = messages()["Digit360Message"].FromString(msg.SerializeToString())
+    assert again.WhichOneof("type") == "imu_data" and again.imu_data.raw.z == 4096.0
     with open(PROTO) as f:
         fdp = parse_proto(f.read())
-    assert [o.name for m in fdp.message_type for o in m.oneof_decl] == ["data", "payload"]
+    assert [o.name for m in fdp.message_type for o in m.oneof_decl] == ["imu_type", "type"]
     with pytest.raises(ValueError, match="unsupported"):
         parse_proto('syntax = "proto3";\nmessage A { map<string, int32> m = 1; }\n')
     with pytest.raises(ValueError, match="unknown type"):
