@@ -298,19 +298,20 @@ def num_cores() -> int:
 def script_main(config_cls: type, run: Any, description: str | None, argv: list[str] | None = None) -> int:
     """Entry point of a script: parse ``config_cls`` from the command line and call ``run(cfg)``. Bad input
     (ValueError, also from the config's own validation) and file-system faults (OSError) end with one line on
-    stderr and status 2 or 1, as ``rotate``'s commands do, never a traceback."""
+    stderr and status 2 or 1, as ``rotate``'s commands do, never a traceback. A ``run`` that returns an int (not a
+    bool) returns its exit status (a recipe whose step failed); any other result means status 0."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_dataclass_arguments(parser, config_cls)
     args = parser.parse_args(argv)
     try:
-        run(dataclass_from_args(config_cls, args))
+        result = run(dataclass_from_args(config_cls, args))
     except ValueError as err:
         print(f"{parser.prog}: error: {err}", file=sys.stderr)
         return 2
     except OSError as err:
         print(f"{parser.prog}: error: {err}", file=sys.stderr)
         return 1
-    return 0
+    return result if isinstance(result, int) and not isinstance(result, bool) else 0
 
 
 def save_config(cfg: Any, path: str | Path) -> None:

@@ -251,9 +251,7 @@ def run(cfg: Config) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    status: list[int] = []
-    code = script_main(Config, lambda cfg: status.append(run(cfg)), __doc__, argv)
-    return code or (status[0] if status else 0)
+    return script_main(Config, run, __doc__, argv)
 
 
 if __name__ == "__main__":

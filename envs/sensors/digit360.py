@@ -218,6 +218,26 @@ def fields_from_sensors(contact: np.ndarray, acc: np.ndarray, pos: np.ndarray, q
     return out
 
 
+def slot_values(rows: np.ndarray, name: str) -> np.ndarray:
+    """Contact-field rows (..., NUM_FIELDS) -> (..., CONTACT_SLOTS) float64 values of the per-slot field ``name``
+    (one of found, fn, x, y, z, vn, slip) of every contact slot."""
+    rows = np.asarray(rows)
+    return np.stack([rows[..., FIELD[f"c{k}_{name}"]] for k in range(CONTACT_SLOTS)], axis=-1).astype(np.float64)
+
+
+def contact_slip(rows: np.ndarray) -> np.ndarray:
+    """(..., NUM_FIELDS) -> (...) the fastest slip speed (m/s) among the dome's contacts that press (0 without
+    one): what the per-step ``slip`` label records."""
+    return np.where(slot_values(rows, "fn") > 0, slot_values(rows, "slip"), 0.0).max(axis=-1)
+
+
+def mean_slip(rows: np.ndarray) -> np.ndarray:
+    """(..., NUM_FIELDS) -> (...) the dome's slip speed (m/s), its contacts' weighted by their normal force (0 without
+    contact)."""
+    fn = slot_values(rows, "fn")
+    return (fn * np.maximum(slot_values(rows, "slip"), 0.0)).sum(-1) / np.maximum(fn.sum(-1), 1e-9)
+
+
 def contact_frame_force(rows: np.ndarray) -> np.ndarray:
     """Contact-field rows (..., NUM_FIELDS) -> (..., 2) float32 [normal, tangential] force on the dome (N) at its
     strongest contact: the net force split along the dome's outward normal at that contact point (pressing > 0) and

@@ -9,7 +9,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, contact_frame_force
+from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, contact_frame_force, mean_slip
 from envs.sensors.digit360_model import (
     AUDIO_HZ,
     AUDIO_RING_S,
@@ -103,11 +103,7 @@ def friction_power(rows: np.ndarray) -> np.ndarray:
     """(T, D) contact-field rows -> (T,) frictional power (W): the tangential force at the contact times the
     normal-force-weighted slip speed of the dome's contacts (0 without contact). While a contact slides its
     tangential force is the friction coefficient times the normal force, so this is mu x F_n x v."""
-    rows = np.asarray(rows, dtype=np.float64)
-    fn = np.stack([rows[:, FIELD[f"c{k}_fn"]] for k in range(CONTACT_SLOTS)], 1)  # (T, K)
-    slip = np.stack([rows[:, FIELD[f"c{k}_slip"]] for k in range(CONTACT_SLOTS)], 1)
-    speed = (fn * np.maximum(slip, 0.0)).sum(1) / np.maximum(fn.sum(1), 1e-9)
-    return contact_frame_force(rows)[:, 1].astype(np.float64) * speed
+    return contact_frame_force(rows)[:, 1].astype(np.float64) * mean_slip(rows)
 
 
 def _contact_direction(rows: np.ndarray) -> np.ndarray:
@@ -159,14 +155,15 @@ def _imu_vibration(track: ContactTrack, samples: np.ndarray, key: int, model: Di
         if lo < hi:
             out[lo - first : hi - first] += ((rise[i] / model.imu_effective_mass) * ring[lo - onset : hi - onset, None]
                                              * -direction[i])  # the dome is pushed inward
-    power = friction_power(rows)
+    tangential = contact_frame_force(rows)[:, 1].astype(np.float64)
+    power = tangential * mean_slip(rows)  # friction_power, with the tangential force kept for the axis below
     if np.any(power > 0):
         env = track.causal(samples / IMU_HZ, power)  # (n,)
-        f = contact_frame_force(rows)  # the shake runs across the contact: along the net force's tangential part
+        # the shake runs across the contact: along the net force's tangential part
         force = np.stack([rows[:, FIELD["force_x"]], rows[:, FIELD["force_y"]], -rows[:, FIELD["force_n"]]], 1)
         across = force - (force * direction).sum(1, keepdims=True) * direction
         across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-9)
-        across[f[:, 1] <= 0] = 0.0
+        across[tangential <= 0] = 0.0
         axis = track.causal(samples / IMU_HZ, across)  # (n, 3)
         band = block_read(_imu_band_table(), int(key), STREAM_IMU_SLIP, samples)[:, 0]
         out += (model.imu_slip_gain * env * band)[:, None] * axis

@@ -33,7 +33,7 @@ from envs import constants as C
 from envs.config import EnvConfig, Perturbation
 from envs.core import RotateCupVec
 from envs.errors import RequestRefused
-from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, FINGERS, contact_frame_force
+from envs.sensors.digit360 import FIELD, FINGERS, contact_frame_force, contact_slip, slot_values
 from envs.sensors.xela import skin_metadata
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import to_jsonable
@@ -200,13 +200,11 @@ def _streams(control_hz: float, physics_hz: float, with_z: bool, skin: bool = Fa
 
 def _labels(rows: np.ndarray) -> dict[str, np.ndarray]:
     """Per-step touch labels from the last substep's contact fields (N, 4, D)."""
-    fn = np.stack([rows[..., FIELD[f"c{k}_fn"]] for k in range(CONTACT_SLOTS)], axis=-1)  # (N, 4, K)
-    slip = np.stack([rows[..., FIELD[f"c{k}_slip"]] for k in range(CONTACT_SLOTS)], axis=-1)
     return {
         "force": rows[..., [FIELD["force_n"], FIELD["force_x"], FIELD["force_y"]]].astype(np.float32),  # (N, 4, 3)
         "contact_force": contact_frame_force(rows),  # (N, 4, 2)
-        "slip": np.where(fn > 0, slip, 0.0).max(axis=-1).astype(np.float32),  # (N, 4)
-        "contact": (fn.max(axis=-1) > 0).astype(np.uint8),  # (N, 4)
+        "slip": contact_slip(rows).astype(np.float32),  # (N, 4)
+        "contact": (slot_values(rows, "fn").max(axis=-1) > 0).astype(np.uint8),  # (N, 4)
     }
 
 

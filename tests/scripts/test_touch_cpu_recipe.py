@@ -65,3 +65,12 @@ def test_finished_steps_are_skipped_and_a_stopped_pretraining_resumes(recipe, tm
 def test_a_policy_is_required(recipe, tmp_path, capsys):
     assert recipe.main(["--out", str(tmp_path / "r")]) == 2
     assert "policy" in capsys.readouterr().err
+
+
+def test_a_failed_step_is_the_scripts_exit_status(recipe, tmp_path, monkeypatch, capsys):
+    """script_main returns the status a recipe's run returns: a step that fails stops the recipe with its status."""
+    calls = []
+    monkeypatch.setattr(cli, "main", lambda args: calls.append(args) or 3)
+    assert recipe.main(["--policy", "teacher", "--out", str(tmp_path / "r"), "--no-progress"]) == 3
+    assert len(calls) == 1 and calls[0][0] == "collect"
+    assert "ended with status 3" in capsys.readouterr().err

@@ -17,7 +17,7 @@ from envs.constants import FINGERS
 from envs.sensors.digit360 import NUM_FIELDS
 from envs.sensors.digit360_image import render_frame
 from rotation.tactile.ladder.samples import MODALITIES, HandSamples, stream_features
-from rotation.tactile.models.encoders import encoder_kind, kind_of
+from rotation.tactile.models.encoders import fresh_like
 
 GROUP_MODALITY = {"img": "image", "mic": "audio", "imu": "imu", "pressure": "pressure"}
 """Sparsh-X token group -> the modality it reads."""
@@ -92,11 +92,7 @@ def train_end_to_end(reference: nn.Module, samples: HandSamples, rows: np.ndarra
     the heads on samples ``rows`` for ``steps`` Adam steps; regression targets standardized, the tercile by cross
     entropy, slip by binary cross entropy."""
     torch.manual_seed(seed)
-    fresh = encoder_kind(kind_of(reference)).rebuild(reference)
-    theirs = dict(reference.named_buffers())
-    with torch.no_grad():
-        for name, buf in fresh.named_buffers():
-            buf.copy_(theirs[name])
+    fresh = fresh_like(reference)
     outputs = {k: (classes if kinds[k] == "accuracy" else y[k].shape[1]) for k in y}
     model = HandHead(fresh, outputs).train()
     stats = {k: (y[k][rows].mean(0), np.maximum(y[k][rows].std(0), 1e-6)) for k in y if kinds[k] == "r2"}

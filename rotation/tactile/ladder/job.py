@@ -145,14 +145,15 @@ def run(cfg: Config) -> dict[str, Any]:
     if len(paths) < 2:
         raise RequestRefused(f"touch-report: the ladder needs at least 2 session files (training and test), found "
                              f"{len(paths)}")
-    _check_out(cfg, _digest(cfg, paths))
+    digest = _digest(cfg, paths)
+    _check_out(cfg, digest)
     cfg.out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, cfg.out / "config.json")
     with StopSignals() as stop:
-        return _run(cfg, paths, stop)
+        return _run(cfg, paths, digest, stop)
 
 
-def _run(cfg: Config, paths: list[Path], stop: StopSignals) -> dict[str, Any]:
+def _run(cfg: Config, paths: list[Path], digest: str, stop: StopSignals) -> dict[str, Any]:
     train_paths, test_paths = split_sessions(paths, cfg.test_fraction, cfg.seed)
     samples = open_samples(sorted(paths), cfg.stride)
     order = [Path(p) for p in samples.paths]
@@ -166,7 +167,6 @@ def _run(cfg: Config, paths: list[Path], stop: StopSignals) -> dict[str, Any]:
     if not is_test.any() or is_test.all():
         raise RequestRefused("touch-report: the test or the training sessions hold no whole window (each session "
                              "needs 1.12 s of touch); give more or longer sessions")
-    digest = _digest(cfg, paths)
     print(f"touch-report: {len(samples)} samples of {len(paths)} sessions ({len(train_paths)} training, "
           f"{len(test_paths)} test); friction terciles at {edges[0]:.3f} and {edges[1]:.3f}")
 

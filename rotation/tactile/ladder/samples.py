@@ -28,7 +28,7 @@ import numpy as np
 
 from envs.constants import FINGERS
 from envs.errors import RequestRefused
-from envs.sensors.digit360 import CONTACT_SLOTS, FIELD, contact_frame_force
+from envs.sensors.digit360 import FIELD, contact_frame_force, contact_slip, mean_slip
 from envs.sensors.digit360_model import IMAGE_HZ
 from envs.sensors.digit360_render import WindowIndex
 from rotation.data.dataset import TouchWindows
@@ -114,9 +114,7 @@ def targets(samples: HandSamples, tercile_edges: np.ndarray) -> dict[str, np.nda
             track = samples.windows.contact_track(int(sess), finger)
             rows = track.rows[track.last_row(samples.frame[mine] / IMAGE_HZ)].astype(np.float64)  # (k, D)
             force[mine, f] = contact_frame_force(rows)[:, 0]
-            fn = np.stack([rows[:, FIELD[f"c{k}_fn"]] for k in range(CONTACT_SLOTS)], 1)
-            speed = np.stack([rows[:, FIELD[f"c{k}_slip"]] for k in range(CONTACT_SLOTS)], 1)
-            slip[mine, f] = (np.where(fn > 0, speed, 0.0).max(1) > SLIP_THRESHOLD)
+            slip[mine, f] = contact_slip(rows) > SLIP_THRESHOLD  # the per-step slip label, at this row
     out["normal_force"], out["slip"] = force, slip
     return out
 
@@ -148,9 +146,7 @@ def _track_features(rows: np.ndarray) -> np.ndarray:
     rows = np.asarray(rows, np.float64)
     cf = contact_frame_force(rows).astype(np.float64)  # (T, 2) normal, tangential at the strongest contact
     fn, ft = cf[:, 0], cf[:, 1]
-    weights = np.stack([rows[:, FIELD[f"c{k}_fn"]] for k in range(CONTACT_SLOTS)], 1)
-    slip = (weights * np.stack([rows[:, FIELD[f"c{k}_slip"]] for k in range(CONTACT_SLOTS)], 1)).sum(1) / np.maximum(
-        weights.sum(1), 1e-9)
+    slip = mean_slip(rows)
     sliding = slip > SLIP_THRESHOLD
     ratio = float((ft[sliding] / np.maximum(fn[sliding], 1e-3)).mean()) if sliding.any() else 0.0
     vn = rows[:, FIELD["c0_vn"]]

@@ -127,6 +127,17 @@ def kind_of(model: nn.Module) -> str:
     raise ValueError(f"not a registered touch encoder: {type(model).__name__}")
 
 
+def fresh_like(model: nn.Module) -> nn.Module:
+    """The same encoder structure with fresh random weights (the caller seeds torch) and ``model``'s input
+    statistics (buffers: data facts, not learned): the end-to-end baseline a frozen encoder is compared with."""
+    fresh = encoder_kind(kind_of(model)).rebuild(model)
+    theirs = dict(model.named_buffers())
+    with torch.no_grad():
+        for name, buf in fresh.named_buffers():
+            buf.copy_(theirs[name])
+    return fresh
+
+
 def parse_groups(text: str | Sequence[str], kind: str) -> tuple[str, ...]:
     """'img,mic' or ('img', 'mic') -> the groups in the kind's canonical order (ValueError on unknown names); an
     empty string: every group of the kind."""

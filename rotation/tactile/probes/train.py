@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from rotation.interrupt import ignore_stop_signals
 from rotation.tactile.loading import step_loader, to_device
-from rotation.tactile.models.encoders import encoder_kind, kind_of, load_encoder
+from rotation.tactile.models.encoders import encoder_kind, fresh_like, kind_of, load_encoder
 from rotation.tactile.models.pooling import ProbeHead
 from rotation.tactile.probes.config import Config
 from rotation.tactile.probes.data import (
@@ -94,12 +94,7 @@ def variant_encoder(variant: str, pretrained: nn.Module, cfg: Config, device: to
         return kind.restrict(pretrained, ("img",))
     # e2e: the same structure from scratch, with the checkpoint's input statistics (data facts, not learned)
     torch.manual_seed(cfg.seed)
-    fresh = kind.rebuild(pretrained).to(device)
-    theirs = dict(pretrained.named_buffers())
-    with torch.no_grad():
-        for name, buf in fresh.named_buffers():
-            buf.copy_(theirs[name])
-    return fresh
+    return fresh_like(pretrained).to(device)
 
 
 # ------------------------------------------------------------------------------------------------ training
