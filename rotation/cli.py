@@ -36,6 +36,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "collect": ("rotation.jobs.collect", "record simulated touch sessions (Digit 360 on) with a policy"),
     "inspect-touch": ("rotation.jobs.inspect_tactile", "plot the four touch streams of a session window (PNG)"),
     "deploy": ("rotation.deploy.job", "run a policy on a real or emulated hand with safety limits and recording"),
+    "record": ("rotation.jobs.record", "record a labelled session (the object's measured properties) for adapter "
+               "fine-tuning"),
+    "touch-info": ("rotation.jobs.touch_info",
+                   "list the attached Digit 360 sensors, or read one and report each stream"),
+    "rehearse": ("rotation.jobs.rehearse", "rehearse the lab workflow (record, fine-tune, deploy) on emulated hardware "
+                 "with faults"),
     "encoder-info": ("rotation.tactile.encoder_info", "describe a touch encoder; check that a checkpoint loads"),
     "cache-touch": ("rotation.data.window_cache", "pre-render touch windows of sessions into shards for fast training"),
     "pretrain": ("rotation.tactile.pretrain.job", "pretrain a touch encoder by self-distillation (DINO, EMA teacher)"),

@@ -27,6 +27,7 @@ from rotation import cli
 REQUIRED_ARGS: dict[str, list[str]] = {
     # command: arguments it cannot run without (a required option or a positional argument)
     "deploy": ["--hand", "sim-allegro", "--policy", "student"],
+    "record": ["--hand", "sim-allegro", "--policy", "student", "--record", "s.h5"],
     "inspect-touch": ["session.h5"],
     "ensemble-adapters": ["--members", "adapter"],
 }
@@ -55,6 +56,9 @@ ALLOWED: dict[str, dict[str, str]] = {
     "finetune-adapter:action_weight": {"zero": "0 = the latent MSE alone (the default)"},
     "deploy:rt_priority": {"zero": "0 leaves the scheduling alone"},
     "deploy:grasp": {"zero": "row 0 of the grasp cache"},
+    "record:rt_priority": {"zero": "0 leaves the scheduling alone"},
+    "record:grasp": {"zero": "row 0 of the grasp cache"},
+    "record:duration": {"zero": "0 runs until Ctrl-C / SIGTERM (documented)"},
     "inspect-touch:time": {"negative": "< 0 picks the middle of the session (documented)",
                              "zero": "the start of the session"},
     "demo:deploy_seconds": {"zero": "0 skips the deploy dry run (documented)"},
@@ -279,11 +283,12 @@ def test_the_registry_of_exceptions_names_real_fields():
 
 
 def _defaults_needed(command: str) -> dict[str, Any]:
-    return {"deploy": {"policy": "student"}, "inspect-touch": {"session": Path("session.h5")},
+    return {"deploy": {"policy": "student"}, "record": {"policy": "student", "record": "s.h5"},
+            "inspect-touch": {"session": Path("session.h5")},
             "ensemble-adapters": {"members": ("adapter",)}}.get(command, {})
 
 
-@pytest.mark.parametrize("command", [c for c in cli.COMMANDS if c not in ("hand-info", "deploy")])
+@pytest.mark.parametrize("command", [c for c in cli.COMMANDS if c not in ("hand-info", "deploy", "record")])
 def test_an_output_path_that_is_a_file_is_refused(command, tmp_path, monkeypatch, capsys):
     """--out naming an existing file (for a directory) or a location under a file is refused before any work."""
     options = _options(command)
@@ -405,8 +410,8 @@ def test_every_documented_choice_is_accepted(command, tmp_path, monkeypatch, cap
     problems = []
     for flag, value in _documented_choices(command):
         argv = [*REQUIRED_ARGS.get(command, []), flag, value]
-        if command == "deploy" and flag == "--hand":
-            argv = ["--policy", "student", flag, value]
+        if command in ("deploy", "record") and flag == "--hand":
+            argv = [*REQUIRED_ARGS[command][2:], flag, value]
         status, err, cfg = _run_cli(command, argv, monkeypatch, capsys)
         need = CHOICE_NEEDS.get(f"{command}:{flag} {value}")
         if cfg is not None or need == "":

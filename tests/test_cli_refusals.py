@@ -32,6 +32,12 @@ def _adapter_with_a_missing_encoder(root: Path) -> str:
     return str(out)
 
 
+def _not_a_tty(root: Path) -> str:
+    path = root / "not_a_tty"
+    path.write_text("not a serial port")
+    return str(path)
+
+
 def _not_a_session(root: Path) -> str:
     path = root / "not_a_session.h5"
     with h5py.File(path, "w") as f:
@@ -72,6 +78,12 @@ ROWS = {
                         "not a session file"),
     "deploy": (lambda r: ["deploy", "--hand", "sim-allegro", "--policy", _adapter_with_a_missing_encoder(r),
                           "--duration", "1"], "cannot be found"),
+    "record": (lambda r: ["record", "--hand", "allegro", "--policy", "student", "--record", str(r / "s.h5"),
+                          "--no-ask", "--digit360", "a,b,c,d"], "would lack the object's"),
+    "touch-info": (lambda r: ["touch-info", "--digit360", _not_a_tty(r), "--seconds", "0.2"],
+                   "did not open as a serial port"),
+    "rehearse": (lambda r: ["rehearse", "--policy", _adapter_with_a_missing_encoder(r), "--out", str(r / "reh")],
+                 "cannot be found"),
     "encoder-info": (lambda r: ["encoder-info", "--checkpoint", _not_a_session(r)], "not a readable torch checkpoint"),
     "cache-touch": (lambda r: ["cache-touch", "--sessions", str(r), "--out", str(r / "cache")], "no session files"),
     "pretrain": (lambda r: ["pretrain", "--sessions", str(r), "--out", str(r / "pretrain")], "no session files"),

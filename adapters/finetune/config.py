@@ -164,8 +164,8 @@ class Config:
         check_int("sample_every", self.sample_every, 1, 10**6)
         check_number("val_fraction", self.val_fraction, 0.0, 1.0, high_open=True)
         if self.sessions and self.touch_kind == "skin":
-            raise ValueError("--sessions trains Digit 360 adapters (imu, pressure); recorded skin sessions lack the "
-                             "taxel positions the skin encoder reads (docs/skin.md): train a skin adapter in "
+            raise ValueError("--sessions trains Digit 360 adapters (imu, pressure) only; fine-tuning a skin adapter "
+                             "on recorded skin sessions is not implemented (docs/skin.md): train a skin adapter in "
                              "simulation")
         check_int("refit_folds", self.refit_folds, 2, 100)
         if not self.refit_lambdas or not all(isinstance(v, (int, float)) and math.isfinite(v) and 0 < v <= 1e6

@@ -166,9 +166,15 @@ class PadContacts:
 
     def taxel_pos(self) -> np.ndarray:
         """(N, S, 368, 3) taxel positions in the world frame (= the hand frame: the palm is fixed at the origin)."""
-        local, taken = _padded_taxels()
-        world = self.pad_rot @ local + self.pad_pos[..., None]  # (N, S, P, 3, 30): each pad's taxels, padded
-        return np.swapaxes(world, -1, -2).reshape(*world.shape[:-3], -1, 3)[..., taken, :]
+        return place_taxels(self.pad_pos, self.pad_rot)
+
+
+def place_taxels(pad_pos: np.ndarray, pad_rot: np.ndarray) -> np.ndarray:
+    """Taxel positions (..., 368, 3) from the pad frames: origins (..., 18, 3) and axes (..., 18, 3, 3) (columns)
+    in one frame, in taxel order (the simulator's readout and envs.sensors.xela_kinematics both place them here)."""
+    local, taken = _padded_taxels()
+    world = pad_rot @ local + pad_pos[..., None]  # (..., P, 3, 30): each pad's taxels, padded
+    return np.swapaxes(world, -1, -2).reshape(*world.shape[:-3], -1, 3)[..., taken, :]
 
 
 @cache

@@ -27,7 +27,9 @@ digit360/<finger>/contact     (20,)               float32          any        si
 skin/xela                     (368, 3)            float32/64       100        Xela taxels (raw counts, X Y Z;
                                                                                taxel order envs.sensors.xela.PADS)
 skin/taxel_pos                (368, 3)            float32/64       100        taxel positions (m, hand frame) at
-                                                                               each skin sample (sim: kinematics)
+                                                                               each skin sample (sim: kinematics;
+                                                                               real: forward kinematics of
+                                                                               joints/position, computed at close)
 labels/force                  (4, 3)              float32/64       any        per fingertip [normal, shear x, shear y]
                                                                                (N, force on the dome, sensor frame)
 labels/contact_force          (4, 2)              float32/64       any        per fingertip [normal, tangential]

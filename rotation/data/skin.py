@@ -18,6 +18,10 @@ consecutive, non-overlapping windows ending at the same frame (the temporal deco
 
 Frames are taken on a 100 Hz grid ending at the window's end (the last frame at or before each grid time), so a
 recording with jitter or a dropped frame still gives 10 frames 10 ms apart, and nothing after the end is used.
+Taxel positions are the session's ``skin/taxel_pos``; a recording of the real hand without them (an older one)
+gets them from its ``joints/position`` by forward kinematics at each frame's timestamp (joint angles interpolated
+linearly per joint; rotation.data.skin_positions says which hand model and which frames have them); a session
+with neither stream is refused.
 Baseline of a session, first found of: ``extra["xela_baseline"]`` (a reading measured without contact, e.g. by
 `rotate deploy --skin` before the hand starts); for a simulated session (``extra["skin_key"]``) the simulated
 skin's rest reading with that key's per-taxel offsets (envs.sensors.xela.XelaSkin); else the median of the valid
@@ -40,6 +44,7 @@ from envs.errors import RequestRefused
 from envs.sensors.xela import NUM_TAXELS, REST, SAMPLE_HZ, VALID_RANGE, WINDOW, XelaSkin
 from rotation.data.session import SessionError
 from rotation.data.session_reader import SessionReader
+from rotation.data.skin_positions import STORED, computed_positions, position_source, position_span
 
 SKIN_LABELS = ("skin_force", "object_pose", "joystick", "priv", "z")
 """Labels a skin sample may carry (streams ``labels/<name>``)."""
@@ -103,7 +108,8 @@ class SkinWindows(Dataset):
     """Sparsh-skin windows (or sequences of windows) of a set of sessions (see the module docstring).
 
     Args:
-        paths: session files, each with ``skin/xela`` and ``skin/taxel_pos``.
+        paths: session files, each with ``skin/xela`` and either ``skin/taxel_pos`` or ``joints/position`` (the
+            positions are then computed: rotation.data.skin_positions).
         labels: label names to return (see ``SKIN_LABELS``); None = those present in every session.
         stride: index every ``stride``-th ``skin/xela`` frame as a window end (5: 20 windows per second).
         sequence: None for single windows, else the number S of consecutive windows per sample.
@@ -127,17 +133,18 @@ class SkinWindows(Dataset):
         present: set[str] | None = None
         index, times = [], []
         self.baselines: list[np.ndarray] = []
+        self.positions: list[str] = []
+        """Per session, where its taxel positions come from: rotation.data.skin_positions.STORED, or the Xela hand
+        model they are computed on from ``joints/position``."""
         for s, path in enumerate(self.paths):
             r = shared_reader(path)
-            missing = [n for n in ("skin/xela", "skin/taxel_pos") if not r.has(n)]
-            if missing:
-                raise SessionError(f"session {r.path}: missing stream(s) {', '.join(missing)} (has: "
-                                   f"{', '.join(r.names) or 'none'}); `rotate collect --skin` records both; "
-                                   "recordings of the real hand (`rotate deploy --skin`) hold skin/xela only: their "
-                                   "taxel positions (forward kinematics of joints/position) are not computed yet")
+            if not r.has("skin/xela"):
+                raise SessionError(f"session {r.path}: no skin/xela stream (has: {', '.join(r.names) or 'none'}); "
+                                   "`rotate collect --skin` and `rotate deploy --skin` record it")
+            self.positions.append(position_source(r))
             have = {n.split("/", 1)[1] for n in r.names if n.startswith("labels/")}
             present = have if present is None else present & have
-            ends = self._window_ends(r)[::stride]
+            ends = self._window_ends(r, self.positions[-1])[::stride]
             index.append(np.stack([np.full(len(ends), s), ends], axis=1))
             times.append(r.stream("skin/xela", lazy=True).timestamps[ends])
             self.baselines.append(session_baseline(r, baseline_s))
@@ -154,18 +161,18 @@ class SkinWindows(Dataset):
         self.end_times = np.concatenate(times) if times else np.zeros(0)
         """(num_samples,) time of each sample's end (s since its session started)."""
 
-    def _window_ends(self, r: SessionReader) -> np.ndarray:
+    def _window_ends(self, r: SessionReader, source: str) -> np.ndarray:
         """Rows of ``skin/xela`` whose whole history (and taxel positions, and labels) lies inside the session."""
         t = r.stream("skin/xela", lazy=True).timestamps
-        t_pos = r.stream("skin/taxel_pos", lazy=True).timestamps
-        if len(t) == 0 or len(t_pos) == 0:
+        if len(t) == 0:
             return np.zeros(0, np.int64)
+        pos_first, pos_last = position_span(r, source)
         span = (self.length - 1) / SAMPLE_HZ
-        starts = [t[0], t_pos[0]] + [r.stream(f"labels/{n}").timestamps[0] for n in SKIN_LABELS
-                                     if r.has(f"labels/{n}") and len(r.stream(f"labels/{n}"))]
+        starts = [t[0], pos_first] + [r.stream(f"labels/{n}").timestamps[0] for n in SKIN_LABELS
+                                      if r.has(f"labels/{n}") and len(r.stream(f"labels/{n}"))]
         first_label = max(starts[2:], default=-np.inf)
         ok = (t - span >= max(starts[:2]) - _TIME_EPS) & (t - span >= first_label - _TIME_EPS)
-        return np.flatnonzero(ok)
+        return np.flatnonzero(ok & (t <= pos_last + _TIME_EPS))
 
     def __len__(self) -> int:
         return len(self.index)
@@ -173,17 +180,28 @@ class SkinWindows(Dataset):
     def _reader(self, s: int) -> SessionReader:
         return shared_reader(self.paths[s])
 
+    def _rows(self, timestamps: np.ndarray, t_end: float) -> np.ndarray:
+        """(length,) rows of a stream on the 100 Hz grid ending at ``t_end``: the last sample at or before each."""
+        grid = t_end - np.arange(self.length - 1, -1, -1) / SAMPLE_HZ
+        return np.maximum(np.searchsorted(timestamps, grid + _TIME_EPS, side="right") - 1, 0)
+
     def _frames(self, r: SessionReader, name: str, t_end: float) -> np.ndarray:
         """(length, 368, 3) samples of ``name`` on the 100 Hz grid ending at ``t_end`` (causal)."""
         st = r.stream(name, lazy=True)
-        grid = t_end - np.arange(self.length - 1, -1, -1) / SAMPLE_HZ
-        rows = np.searchsorted(st.timestamps, grid + _TIME_EPS, side="right") - 1  # last sample at or before
-        rows = np.maximum(rows, 0)
+        rows = self._rows(st.timestamps, t_end)
         lo, hi = int(rows[0]), int(rows[-1]) + 1
         x = np.asarray(st.data[lo:hi])[rows - lo]
         if not np.isfinite(x).all():  # lazily read streams are checked window by window
             raise SessionError(f"session {r.path}, stream {name!r}: non-finite samples before t={t_end:.4f} s")
         return x
+
+    def _positions(self, r: SessionReader, s: int, t_end: float) -> np.ndarray:
+        """(length, 368, 3) taxel positions of the frames :meth:`_frames` takes from ``skin/xela``: stored, or
+        computed from the joint angles at those frames' timestamps."""
+        if self.positions[s] == STORED:
+            return self._frames(r, "skin/taxel_pos", t_end)
+        t = r.stream("skin/xela", lazy=True).timestamps
+        return computed_positions(r, self.positions[s], t[self._rows(t, t_end)])
 
     def _shape(self, x: np.ndarray) -> np.ndarray:
         if self.sequence is None:
@@ -200,7 +218,7 @@ class SkinWindows(Dataset):
         s, _ = (int(v) for v in self.index[i])
         r = self._reader(s)
         t_end = float(self.end_times[i])
-        window = np.concatenate([self._frames(r, "skin/xela", t_end), self._frames(r, "skin/taxel_pos", t_end)],
+        window = np.concatenate([self._frames(r, "skin/xela", t_end), self._positions(r, s, t_end)],
                                 axis=-1).astype(np.float32)  # (length, 368, 6)
         ends = self.window_end_times(t_end)
         out: dict[str, Any] = {

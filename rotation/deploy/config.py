@@ -11,11 +11,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from envs.constants import FINGERS
 from envs.validation import check_int, check_number, check_types
 from rotation.configs import add_dataclass_arguments, dataclass_from_args
 from rotation.data.properties import parse_properties
 from rotation.deploy.hands import HANDS
 from rotation.deploy.sensors import check_skin, parse_digit360, parse_skin
+from rotation.deploy.sim_faults import check_sim_faults, parse_sim_faults
 
 
 @dataclass(frozen=True)
@@ -59,8 +61,18 @@ class Config:
     mass offset (m, object frame), size relative to the simulated cup (rotation.data.properties). Fine-tuning the
     tactile adapter on the recording needs all four. An emulated hand records its simulated values; stated ones
     replace them."""
+    friction_method: str = ""
+    """How --properties' friction coefficient was measured, stored beside it (e.g. 'tilt: 5 trials on the
+    fingertip gel', 'pull: force gauge'; docs/lab.md): `rotate record` asks for it."""
     grasp: int = 0
     """Emulated hands: the row of the shipped grasp cache to start from (nominal scale)."""
+    sim_object: str = ""
+    """Emulated hands: the emulated object's mass, friction and center of mass, e.g. 'mass=0.3,friction=0.4,
+    com=0,0,0.01' (kg, coefficient, m in the object frame; any subset; its scale is the grasp cache's nominal):
+    rehearse a heavy or slippery object. The recording stores the emulated values."""
+    sim_faults: str = ""
+    """Emulated hands: faults to inject while the loop runs, e.g. 'unplug=thumb@4,late=6+0.08,bus-error=9'
+    (unplug, corrupt, stall of a fingertip; late feedback or a bus error of the hand; rotation.deploy.sim_faults)."""
     sim_transport: Literal["virtual", "slcan"] = "virtual"
     """Emulated Allegro: python-can virtual bus, or an SLCAN serial adapter on a pseudo-terminal."""
     rt_priority: int = 0
@@ -100,6 +112,20 @@ class Config:
         parse_skin(self.skin, emulated=self.hand.startswith("sim-"))
         if parse_properties(self.properties) and not self.record:
             raise ValueError("properties: they are stored in the recording; give --record FILE.h5 as well")
+        if self.friction_method.strip() and not (parse_properties(self.properties) or self.hand.startswith("sim-")):
+            raise ValueError("friction_method: it says how --properties' friction was measured; give --properties")
+        if self.friction_method.strip() and not self.record:
+            raise ValueError("friction_method: it is stored in the recording; give --record FILE.h5 as well")
+        sim_object = parse_properties(self.sim_object, "sim_object")
+        if sim_object and not self.hand.startswith("sim-"):
+            raise ValueError("sim_object: it sets the emulated object; a real hand holds a real one (--properties "
+                             "records what you measured)")
+        if "scale" in sim_object:
+            raise ValueError("sim_object: the emulated object's scale is the grasp cache's nominal; set mass, "
+                             "friction or com")
+        sim_fingers = tuple(f for f, v in digit_specs.items() if v == "sim")
+        check_sim_faults(parse_sim_faults(self.sim_faults), self.hand.startswith("sim-"),
+                         sim_fingers or (FINGERS if not self.digit360.strip() else ()))
         if self.record_media:
             if not self.record:
                 raise ValueError("record_media: it records the sensors' cameras and microphones; give --record "

@@ -61,6 +61,9 @@ class HandSetup:
     """Emulated Allegro: python-can virtual bus or SLCAN adapter on a pty."""
     sim_hand: str = "digit360"
     """Emulation: the simulated hand variant (envs.scene.HANDS) whose body the emulator drives: the policy's."""
+    sim_object: tuple[tuple[str, float | tuple[float, ...]], ...] = ()
+    """Emulation: (property, value) pairs of the emulated object (mass kg, friction, com m; HandPhysics.set_object);
+    empty: the model's nominal object."""
 
     @property
     def kind(self) -> str:
@@ -166,7 +169,10 @@ def emulated_physics(setup: HandSetup) -> HandPhysics | None:
         return None
     from rotation.sim_hardware.hand_physics import HandPhysics
 
-    return HandPhysics.at_grasp(setup.object, setup.grasp, hold=True, hand=setup.sim_hand)
+    physics = HandPhysics.at_grasp(setup.object, setup.grasp, hold=True, hand=setup.sim_hand)
+    if setup.sim_object:
+        physics.set_object(**dict(setup.sim_object))
+    return physics
 
 
 def open_hand(setup: HandSetup, stack: contextlib.ExitStack,

@@ -61,6 +61,7 @@ from rotation.deploy.config import (  # Config, add_arguments, config_from_args:
 from rotation.deploy.hands import HandSetup, OpenedHand, emulated_physics, open_hand
 from rotation.deploy.outcome import EXIT_FAULT, EXIT_OK, CriticalRecords, classify, finish
 from rotation.deploy.sensors import check_digit360, parse_digit360, parse_skin
+from rotation.deploy.sim_faults import FaultSchedule, check_sim_faults, parse_sim_faults
 
 log = logging.getLogger("rotation.deploy")
 
@@ -143,7 +144,9 @@ def run(cfg: Config) -> dict[str, Any]:
     hz = float(bundle.config.control_hz)
     setup = HandSetup(hand=cfg.hand, can=cfg.can, port=cfg.port, baud=cfg.baud, gain_scale=cfg.gain_scale,
                       control_hz=hz, object=cfg.object, grasp=cfg.grasp, sim_transport=cfg.sim_transport,
-                      sim_hand=sim_hand)
+                      sim_hand=sim_hand,
+                      sim_object=tuple((k, tuple(v) if isinstance(v, list) else v)
+                                       for k, v in parse_properties(cfg.sim_object, "sim_object").items()))
     digit_specs = parse_digit360(cfg.digit360, setup.emulated)
     check_digit360(digit_specs)  # first: a sensor that is not there is named as such, not as one without a camera
     media: dict[str, Any] = {}
@@ -159,6 +162,8 @@ def run(cfg: Config) -> dict[str, Any]:
                              f"{', '.join(lacking)} (is the whole sensor plugged in, not only its serial port?)")
     check_media_extras(media)
     check_before_start(cfg)
+    faults = parse_sim_faults(cfg.sim_faults)
+    check_sim_faults(faults, setup.emulated, tuple(f for f, v in digit_specs.items() if v == "sim"))
     loop_cfg = LoopConfig(control_hz=hz, duration_s=cfg.duration, policy_budget=cfg.policy_budget,
                           hold_limit_s=cfg.hold_limit_s, status_every_s=cfg.status_every_s)
     kind = bundle.config.latent_source + (f" + tactile adapter: {', '.join(bundle.windows)}, every "
@@ -175,6 +180,9 @@ def run(cfg: Config) -> dict[str, Any]:
     loop: ControlLoop | None = None
     recorder: DeployRecorder | None = None
     skin = None
+    emulators: dict[str, Any] = {}  # the emulated fingertips, by finger (their fault switches)
+    schedule: FaultSchedule | None = None
+    readers: dict[str, Any] = {}
     fault: str | None = None
     exit_code = EXIT_OK
     t_start = time.monotonic()
@@ -200,7 +208,7 @@ def run(cfg: Config) -> dict[str, Any]:
             sched = set_realtime_priority(cfg.rt_priority)
             physics = emulated_physics(setup)  # emulation: the hand's world, which the emulated fingertips sense
             # before the hand: the hand leaves first on exit
-            readers = open_digit360(digit_specs, stack, physics, media)
+            readers = open_digit360(digit_specs, stack, physics, media, emulators=emulators)
             if touch:  # the windows fill while the motors are off (a hand holding its pose meanwhile lets go)
                 took = wait_for_touch(bundle, readers)
                 if took is not None:
@@ -220,6 +228,9 @@ def run(cfg: Config) -> dict[str, Any]:
                 recorder = _open_recorder(cfg, bundle, opened, info, readers, hz, skin_baseline)
             loop = ControlLoop(opened, bundle, loop_cfg, recorder=recorder, readers=readers, status_out=sys.stderr,
                                temperature_c=temp0, skin=skin)
+            schedule = FaultSchedule(faults, opened.emulator, emulators)
+            stack.callback(schedule.stop)  # no fault lands after the motors went off
+            schedule.start()
             loop.run()
         # the motors are off; a run that was mostly late or held did not run the policy as it was trained
         shortfall = loop.stats.shortfall(loop_cfg.max_degraded_fraction)
@@ -248,7 +259,7 @@ def run(cfg: Config) -> dict[str, Any]:
     try:
         opened = created[0] if created else None
         return finish(cfg, hz, opened, loop, recorder, critical, fault, exit_code, time.monotonic() - t_start,
-                       skin)
+                       skin, readers=readers, sim_faults=None if schedule is None else schedule.report())
     finally:
         signals.restore()
 
@@ -264,16 +275,15 @@ def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, readers: dict[
     properties: dict[str, Any] = {}
     physics = opened.physics
     if physics is not None:  # the simulated object's values (com: its inertial frame's offset, object frame)
-        body = physics.model.body("object")
-        properties = {"scale": physics.scale, "grasp": physics.grasp, "mass": float(body.mass[0]),
-                      "friction": float(physics.model.geom_friction[physics.model.body_geomadr[body.id], 0]),
-                      "com": [float(x) for x in physics.model.body_ipos[body.id]]}
+        properties = {**physics.object_properties(), "grasp": physics.grasp}
     stated = parse_properties(cfg.properties)
     differ = [k for k, v in stated.items() if k in properties and not np.allclose(v, properties[k])]
     if differ:
         log.warning("--properties: the stated %s replace the emulated object's %s", {k: stated[k] for k in differ},
                     {k: properties[k] for k in differ})
     properties.update(stated)
+    if cfg.friction_method.strip():
+        properties["friction_method"] = cfg.friction_method.strip()
     extra = {
         "hand": cfg.hand, "policy": cfg.policy, "policy_latent_source": bundle.config.latent_source,
         "policy_card": bundle.config.card, "policy_sim": bundle.config.sim,

@@ -75,8 +75,11 @@ def motors_off_state(opened: OpenedHand | None) -> tuple[bool, bool | None, str 
 
 
 def finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, critical: CriticalRecords,
-            fault: str | None, exit_code: int, wall_s: float, skin=None) -> dict[str, Any]:
-    """Summary dict, final log lines, and the JSON line on stdout."""
+            fault: str | None, exit_code: int, wall_s: float, skin=None, readers: dict[str, Any] | None = None,
+            sim_faults: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Summary dict, final log lines, and the JSON line on stdout. ``readers``: the Digit 360 readers, whose
+    counters (frames, bad frames, disconnects, unknown kinds) the summary reports per fingertip; ``sim_faults``:
+    the injected faults (rotation.deploy.sim_faults.FaultSchedule.report)."""
     motors_off, confirmed, witness = motors_off_state(opened)
     stats = loop.stats.summary(1.0 / hz) if loop is not None else {
         "steps": 0, "loop_hz": None, "late_steps": 0, "skipped_slots": 0, "held_steps": 0, "rejected_actions": 0,
@@ -89,6 +92,8 @@ def finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, cr
         "record": str(recorder.path) if recorder is not None else None, "exit_code": exit_code,
         "skin": None if skin is None else {k: skin.counters[k] for k in ("frames", "skipped", "disconnects")},
         "touch": None if loop is None or loop.touch is None else loop.touch.stats.summary(),
+        "digit360": {f: dict(r.counters) for f, r in (readers or {}).items()} or None,
+        "sim_faults": sim_faults or None,
         "model_mismatch_allowed": bool(getattr(cfg, "allow_model_mismatch", False)),
     }
     rot = "" if summary["rotation_rad"] is None else f" (object rotation {summary['rotation_rad']:+.2f} rad)"

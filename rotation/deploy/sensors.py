@@ -169,7 +169,7 @@ def check_media_extras(media: dict[str, Any]) -> None:
 
 
 def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: HandPhysics | None = None,
-                  media: dict[str, Any] | None = None) -> dict[str, Any]:
+                  media: dict[str, Any] | None = None, emulators: dict[str, Any] | None = None) -> dict[str, Any]:
     """Start one reader per finger (and its emulator for 'sim') inside ``stack``; {finger: Digit360}. A sensor that
     does not open (its data tty, or the camera or microphones it is given) raises :class:`SensorError` naming the
     finger.
@@ -177,7 +177,8 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: H
     ``physics``: the emulated hand (rotation.deploy.hands.emulated_physics); a 'sim' sensor then senses its finger
     of that hand and its reader gets the emulated camera and microphones. Without it, 'sim' sensors stream the
     emulator's synthetic readings (IMU and pressure only). ``media``: {finger: Digit360Devices} of real sensors
-    (:func:`find_media`), whose camera and microphones their readers open beside the serial stream.
+    (:func:`find_media`), whose camera and microphones their readers open beside the serial stream. ``emulators``:
+    filled with {finger: Digit360Emulator} of the 'sim' sensors (their fault switches, rotation.deploy.sim_faults).
     """
     if not specs:
         return {}
@@ -195,6 +196,8 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: H
                                                                                        epoch=epoch)
                 cfg = Digit360Config(port=stack.enter_context(emulator).path)
                 rendered = emulator.media
+                if emulators is not None:
+                    emulators[finger] = emulator
             else:
                 devices = (media or {}).get(finger)
                 where = {"port": value} if value.startswith("/") else {"serial_number": value}

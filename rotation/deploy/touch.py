@@ -69,8 +69,9 @@ def touch_sensors(policy: Any, name: str, specs: dict[str, str], emulated: bool,
     """
     if getattr(policy, "sensor", "digit360") != "digit360":
         raise ValueError(f"policy {name!r} reads the Xela skin; deploy runs Digit 360 adapters only (a skin adapter "
-                         "needs the taxel positions from the joint angles, which deploy does not compute yet: "
-                         "docs/skin.md). Deploy its student alone (--policy student) with --skin to record the skin")
+                         "needs skin windows with their taxel positions built live in the control loop, which deploy "
+                         "does not do yet: docs/skin.md). Deploy its student alone (--policy student) with --skin to "
+                         "record the skin and its taxel positions")
     if not specs and emulated:
         log.info("policy %s reads touch (%s from %s): starting emulated Digit 360 fingertips (--digit360 sim)",
                  name, ", ".join(policy.windows), ", ".join(policy.fingers))

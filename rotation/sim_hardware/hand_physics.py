@@ -31,12 +31,13 @@ import numpy as np
 
 from envs.config import default_randomization
 from envs.constants import HOME_POSE, JOINT_NAMES, NUM_JOINTS
-from envs.core import set_contact
+from envs.core import set_contact, skin_geoms
 from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
 from envs.physics import hand_physics as physics_of
 from envs.scene import OBJECT_JOINT, build_model, hand_variant
 from envs.sensors.digit360 import Digit360Readout, add_digit360_sensors
+from envs.task import object_inertia
 
 TIMESTEP = 1e-3
 """Physics step (s): 3 steps per 3 ms hand cycle; finer than the env's 10 ms because the torque loop is explicit."""
@@ -107,6 +108,42 @@ class HandPhysics:
                       hold=hold, hand=hand)
         physics.grasp = int(grasp)
         return physics
+
+    def set_object(self, mass: float | None = None, friction: float | None = None,
+                   com: tuple[float, float, float] | None = None) -> None:
+        """Give the emulated object another mass (kg), sliding friction coefficient or center-of-mass offset (m,
+        object frame), as the env's randomization writes them (envs.core: one coefficient for hand and object,
+        except a hand whose links have their own, whose object then takes the smaller of the two; the inertia of a
+        solid body of that mass). None keeps a value. Before the scene is released (a lab swapping objects)."""
+        with self._lock:
+            m, body = self.model, self.model.body("object").id
+            if friction is not None:
+                obj = np.flatnonzero(m.geom_bodyid == body)
+                links = np.setdiff1d(np.flatnonzero(m.geom_contype > 0), np.r_[skin_geoms(m), obj])
+                link_friction = m.geom_friction[links, 0].copy()
+                m.geom_friction[:, 0] = friction
+                if default_randomization(self.hand).link_friction is not None and len(links):
+                    m.geom_friction[links, 0] = link_friction
+                    m.geom_friction[obj, 0] = min(float(friction), float(link_friction.min()))
+            if mass is not None:
+                spec = get_object(self.object_name)
+                m.body_mass[body] = mass
+                m.body_inertia[body] = object_inertia(np, spec.kind, spec.radius, spec.length,
+                                                      np.array([self.scale]), np.array([float(mass)]))[0]
+            if com is not None:
+                m.body_ipos[body] = com
+            mujoco.mj_setConst(m, mujoco.MjData(m))  # at qpos0, in scratch data: the scene's state stays as it is
+            mujoco.mj_forward(m, self.data)
+            if self._held:
+                self._still_sensors()
+
+    def object_properties(self) -> dict[str, float | list[float]]:
+        """The emulated object's scale, mass (kg), sliding friction coefficient (of its contact with the
+        fingertips) and center-of-mass offset (m, object frame): what a lab would measure (rotation.data.properties)."""
+        m, body = self.model, self.model.body("object").id
+        return {"scale": self.scale, "mass": float(m.body_mass[body]),
+                "friction": float(m.geom_friction[m.body_geomadr[body], 0]),
+                "com": [float(x) for x in m.body_ipos[body]]}
 
     @property
     def held(self) -> bool:

@@ -89,6 +89,6 @@ def test_skin_adapter_finetunes_on_the_xela_hand_and_evaluates_beside_the_studen
     # deploy reads Digit 360 fingertips only: a clear refusal before any sensor or motor starts
     with pytest.raises(ValueError, match="reads the Xela skin"):
         touch_sensors(policy, "skin_adapter", {}, emulated=True)
-    # recorded sessions hold no taxel positions: refused before training
+    # fine-tuning on recorded sessions trains Digit 360 adapters only: refused before training
     with pytest.raises(ValueError, match="simulation"):
         finetune.Config(out=tmp_path / "s", encoder=skin_encoder, modalities="skin", sessions=(tmp_path,))

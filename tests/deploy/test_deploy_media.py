@@ -122,6 +122,13 @@ class Microphones:
         self.fail = fail
         self.module = types.ModuleType("sounddevice")
         self.module.InputStream = self.stream
+        self.module.query_devices = self.query
+        self.module.check_input_settings = lambda **settings: None
+
+    def query(self, device, kind):
+        if device in self.fail:
+            raise ValueError(f"No {kind} device matching {device!r}")
+        return {"name": f"Digit 360: USB Audio {device}", "max_input_channels": 2, "default_samplerate": 48000.0}
 
     def stream(self, *, samplerate, channels, dtype, device, callback):
         if device in self.fail:
@@ -155,20 +162,21 @@ class _Stream:
 
 
 class Cameras:
-    """OpenCV stand-in: ``VideoCapture(path)`` of a known path gives 1280 x 720 BGR frames at 30 fps, frame k
-    uniform (B, G, R) = (10, 20, k mod 256)."""
+    """OpenCV stand-in: ``VideoCapture(path, api)`` of a known path gives 1280 x 720 BGR frames at 30 fps (MJPG),
+    frame k uniform (B, G, R) = (10, 20, k mod 256)."""
 
     def __init__(self, paths: tuple[str, ...]) -> None:
         self.paths, self.opened, self.captures = paths, [], []
         m = types.ModuleType("cv2")
         m.CAP_PROP_FRAME_WIDTH, m.CAP_PROP_FRAME_HEIGHT, m.INTER_AREA, m.COLOR_BGR2RGB = 3, 4, 3, 4
+        m.CAP_PROP_FPS, m.CAP_PROP_FOURCC, m.CAP_ANY, m.CAP_V4L2 = 5, 6, 0, 200
         m.VideoCapture = self.capture
         m.resize = lambda img, size, interpolation=None: img[
             (np.arange(size[1]) * img.shape[0] // size[1])[:, None], np.arange(size[0]) * img.shape[1] // size[0]]
         m.cvtColor = lambda img, code: np.ascontiguousarray(img[..., ::-1])
         self.module = m
 
-    def capture(self, path):
+    def capture(self, path, api=0):
         self.opened.append(path)
         self.captures.append(_Capture(path in self.paths))
         return self.captures[-1]
@@ -187,6 +195,9 @@ class _Capture:
 
     def set(self, prop, value) -> bool:
         return True
+
+    def get(self, prop) -> float:  # width, height, fps, FOURCC 'MJPG' (OpenCV's property numbers)
+        return {3: 1280.0, 4: 720.0, 5: 30.0, 6: float(int.from_bytes(b"MJPG", "little"))}.get(prop, 0.0)
 
     def read(self):
         time.sleep(max(0.0, self.t0 + self.k / 30 - time.monotonic()))

@@ -1,5 +1,5 @@
-"""`rotate deploy --skin`: the Xela skin recorded beside the joints, from a local stand-in xela_server; bad --skin
-values and a server that does not answer are refused before anything starts."""
+"""`rotate deploy --skin`: the Xela skin recorded beside the joints (and its taxel positions), from a local stand-in
+xela_server; bad --skin values and a server that does not answer are refused before anything starts."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from deploy_checks import assert_done_or_load_fault
 
+from envs.sensors.xela_kinematics import XelaKinematics, covered, joints_at
 from rotation.data.session_reader import SessionReader
 from rotation.deploy.config import Config
 from rotation.deploy.job import run
@@ -35,6 +36,13 @@ def test_skin_is_recorded_beside_the_joints(tmp_path, policy, hand_hook):
         assert base.shape == (368, 3) and np.allclose(base, 32768.0, atol=1600.0)
         untouched = np.asarray(st.data)[:, 100:]  # the stand-in presses the index fingertip only (taxels 0..29)
         assert np.all(untouched == 32768.0)
+        # the taxel positions of the frames, from the joint angles at each frame's time (computed at close)
+        pos, q = r.stream("skin/taxel_pos"), r.stream("joints/position")
+        assert np.array_equal(pos.timestamps, st.timestamps[covered(q.timestamps, st.timestamps)])
+        assert len(pos) > 0.8 * len(st)
+        want = XelaKinematics(r.meta.extra["skin_hand"]).taxel_positions(joints_at(q.timestamps, q.data,
+                                                                                   pos.timestamps))
+        assert np.abs(pos.data - want).max() < 1e-6
 
 
 def test_skin_option_errors_before_anything_starts(policy, capsys):

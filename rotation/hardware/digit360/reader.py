@@ -13,7 +13,8 @@ rotation.hardware.digit360.protocol) COBS-encoded and terminated by 0x00. The ac
 other message kind (gyroscope, linear acceleration, fused orientation, gas / humidity / temperature, the high-rate
 pressure channels, system status) is decoded into :attr:`Digit360.latest`; a kind the schema does not know is
 counted and skipped. Audio (48 kHz, 2 microphones, int16) comes through ``sounddevice`` and the camera (UVC)
-through OpenCV; both are imported only when enabled (extra ``[hardware]``).
+through OpenCV, each opened and checked against the device's conventions when the reader starts
+(rotation.hardware.digit360.capture); both are imported only when enabled (extra ``[hardware]``).
 
 Emulated sensors have no camera or microphone device: ``Digit360(cfg, media=...)`` takes a :class:`Digit360Media`
 instead, which renders the two frames and the audio of a window when :meth:`Digit360.window` asks for them (the
@@ -45,6 +46,7 @@ from cobs import cobs
 
 from rotation.hardware.digit360 import discovery
 from rotation.hardware.digit360 import window as dw
+from rotation.hardware.digit360.capture import AudioCapture, CameraCapture
 from rotation.hardware.digit360.protocol import IMU_TYPE, TS_HZ, messages, pressure_hpa, raw_imu_physical
 
 log = logging.getLogger("rotation.hardware.digit360")  # the device's logger (messages name the device)
@@ -141,28 +143,6 @@ class _ClockMap:
         return min(ts / self.hz + self.offset, t_recv)
 
 
-class _SampleClock:
-    """Host times (``time.monotonic()`` s) of a sample stream delivered in blocks (audio): consecutive samples are
-    1 / rate apart, anchored to the host clock at the first block. A block's arrival time jitters by milliseconds,
-    so timing each block from its own arrival would overlap the previous block's times (a recording then drops the
-    overlap); the anchor moves only when the arrival differs from the count by more than ``reanchor_s`` (lost
-    samples, or drift between the sound card's clock and the host's), and never back past the previous sample."""
-
-    def __init__(self, rate: float, reanchor_s: float = 0.02) -> None:
-        self.rate, self.reanchor_s = float(rate), float(reanchor_s)
-        self._next: float | None = None  # time of the next sample by the count
-
-    def __call__(self, frames: int, t_arrival: float) -> np.ndarray:
-        """Times (frames,) of a block whose last sample arrived at ``t_arrival``."""
-        measured = t_arrival - (frames - 1) / self.rate
-        first = measured if self._next is None else self._next
-        if self._next is not None and abs(measured - self._next) > self.reanchor_s:
-            first = max(measured, self._next - 1.0 / self.rate + 1e-6)
-        t = first + np.arange(frames) / self.rate
-        self._next = float(t[-1]) + 1.0 / self.rate if frames else self._next
-        return t
-
-
 class Digit360:
     """Reader threads filling ring buffers; :meth:`window` assembles a Sparsh-X sample.
 
@@ -184,27 +164,33 @@ class Digit360:
             else None
         self.image = dw.RingBuffer(IMAGE_BUFFER_FRAMES, (dw.IMAGE_SIZE, dw.IMAGE_SIZE, 3), np.uint8) \
             if cfg.camera is not None else None
+        self.camera = CameraCapture(cfg.camera, name) if cfg.camera is not None else None
+        """The camera (opened when the reader starts; a test may replace it with one on a stand-in OpenCV)."""
+        self.microphones = AudioCapture(cfg.audio_device, self.audio.extend, name) if self.audio is not None else None
+        """The microphones (opened when the reader starts), feeding :attr:`audio`."""
         self.version = ""
         self.counters = {"frames": 0, "bad_frames": 0, "disconnects": 0, "unknown": 0}
         self.latest: dict[str, tuple[float, object]] = {}
         """Stream -> (host time, newest decoded sample in physical units) of every message kind the device sent
         (``imu/acc``, ``imu/gyro``, ``imu/linacc``, ``pressure``, ``gasht``, ``euler``, ``quat``, ...)."""
+        self.samples: dict[str, int] = {}
+        """Stream -> samples decoded since the reader started (the streams of :attr:`latest`)."""
         self._msg = messages()["Digit360Message"]
         self._clock = _ClockMap(cfg.device_clock_hz)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._serial: serial.Serial | None = None
-        self._audio_stream = None
         self.connected = threading.Event()
 
     def __enter__(self) -> Digit360:
         self._open_serial()  # fail loudly at start if the sensor is not there
         try:
             self._start(self._serial_loop, "serial")
-            if self.cfg.camera is not None:
-                self._start(self._camera_loop, "camera")
-            if self.cfg.audio_device is not None:
-                self._open_audio()
+            if self.camera is not None:
+                self.camera.open()  # checks the format it agreed to (OSError when refused)
+                self._start(lambda: self.camera.run(self._stop, self.image.append, self.cfg.reconnect_s), "camera")
+            if self.microphones is not None:
+                self.microphones.open()
         except BaseException:
             self.close()  # no reader thread outlives a sensor that did not open
             raise
@@ -217,11 +203,11 @@ class Digit360:
         self._stop.set()
         for t in self._threads:
             t.join(timeout=2.0)
+        if self.camera is not None and not any(t.is_alive() for t in self._threads):
+            self.camera.close()  # else its thread, still in a read, releases it when the read returns
         self._threads.clear()
-        if self._audio_stream is not None:
-            self._audio_stream.stop()
-            self._audio_stream.close()
-            self._audio_stream = None
+        if self.microphones is not None:
+            self.microphones.close()
         if self._serial is not None:
             self._serial.close()
             self._serial = None
@@ -330,7 +316,7 @@ class Digit360:
             t = self._clock(p.ts, t_recv)
             hpa = pressure_hpa(p.pressure)
             self.pressure.append(t, hpa)
-            self.latest["pressure"] = (t, {"hPa": hpa, "temperature_C": p.temperature})
+            self._seen("pressure", t, {"hPa": hpa, "temperature_C": p.temperature})
         elif kind == "imu_data":
             imu = msg.imu_data
             part = imu.WhichOneof("imu_type")
@@ -341,86 +327,32 @@ class Digit360:
                 if r.sensor == IMU_TYPE["ACC"]:
                     self.imu.append(t, values)  # the accelerometer feeds the windows, as the simulated sensor's
                 name = _IMU_NAMES.get(r.sensor, f"imu/type{r.sensor}")
-                self.latest[name] = (t, {unit: values})
+                self._seen(name, t, {unit: values})
             elif part == "euler":
                 e = imu.euler
-                self.latest["euler"] = (t, {"deg": (e.heading, e.pitch, e.roll)})
+                self._seen("euler", t, {"deg": (e.heading, e.pitch, e.roll)})
             elif part == "quat":
                 q = imu.quat
-                self.latest["quat"] = (t, {"wxyz": (q.w, q.x, q.y, q.z), "accuracy": q.accuracy})
+                self._seen("quat", t, {"wxyz": (q.w, q.x, q.y, q.z), "accuracy": q.accuracy})
         elif kind == "gasht_data":
             g = msg.gasht_data
-            self.latest["gasht"] = (self._clock(g.ts, t_recv), {
+            self._seen("gasht", self._clock(g.ts, t_recv), {
                 "temperature_C": g.temperature, "hPa": pressure_hpa(g.pressure), "humidity": g.humidity,
                 "gas": g.gas, "gas_index": g.gas_index})
         elif kind == "pressure_ap_data":
             a = msg.pressure_ap_data
-            self.latest["pressure_ap"] = (self._clock(a.ts, t_recv), {
+            self._seen("pressure_ap", self._clock(a.ts, t_recv), {
                 "channel_a": np.frombuffer(a.channel_a[: len(a.channel_a) // 2 * 2], "<u2"),
                 "channel_b": np.frombuffer(a.channel_b[: len(a.channel_b) // 2 * 2], "<u2")})
         elif kind == "system_data":
             self.version = f"{msg.system_data.version_major}.{msg.system_data.version_minor}"
-            self.latest["system"] = (t_recv, {"version": self.version, "status": msg.system_data.status})
+            self._seen("system", t_recv, {"version": self.version, "status": msg.system_data.status})
         else:  # a message type this schema does not know (a newer firmware's), or an empty one: skipped
             self.counters["unknown"] += 1
             n = self.counters["unknown"]
             if n == 1 or n % 1000 == 0:
                 log.info("%s: skipped a message of a type this host does not know (%d so far)", self.name, n)
 
-    # ------------------------------------------------------------------ audio / camera (optional extras)
-    def _open_audio(self) -> None:
-        try:
-            import sounddevice as sd
-        except ImportError as err:
-            raise ImportError("audio needs the 'hardware' extra: pip install 'tactile-rotation[hardware]'") from err
-
-        clock = _SampleClock(dw.AUDIO_RATE)
-
-        def callback(indata, frames, time_info, status) -> None:
-            if status:
-                log.warning("%s: audio %s", self.name, status)
-            self.audio.extend(clock(frames, time.monotonic()), indata)  # type: ignore[union-attr]
-
-        try:
-            stream = sd.InputStream(samplerate=dw.AUDIO_RATE, channels=2, dtype="int16",
-                                    device=self.cfg.audio_device, callback=callback)
-            stream.start()
-        except Exception as err:  # PortAudioError, or ValueError for a device name that matches no input device
-            raise OSError(f"{self.name}: microphones {self.cfg.audio_device!r} did not open: {err}") from err
-        self._audio_stream = stream
-
-    def _camera_loop(self) -> None:
-        try:
-            import cv2
-        except ImportError:
-            log.error("%s: camera needs the 'hardware' extra (opencv-python-headless)", self.name)
-            return
-        cap = cv2.VideoCapture(self.cfg.camera)
-        cap.set(cv2.CAP_PROP_FRAME_WIDTH, 1280)  # the vendor encoder node requests 1280x720
-        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, 720)
-        failing = False  # one error line per failure streak, one info line when frames come back
-        try:
-            while not self._stop.is_set():
-                ok, frame = cap.read() if cap.isOpened() else (False, None)
-                t = time.monotonic()
-                if not ok:
-                    if not failing:
-                        log.error("%s: camera %s gives no frame (%s); retrying every %.1f s", self.name,
-                                  self.cfg.camera, "read failed" if cap.isOpened() else "did not open",
-                                  self.cfg.reconnect_s)
-                    failing = True
-                    self._stop.wait(self.cfg.reconnect_s)
-                    if not cap.isOpened():
-                        cap.open(self.cfg.camera)
-                    continue
-                if failing:
-                    log.info("%s: camera frames are back", self.name)
-                    failing = False
-                h, w = frame.shape[:2]
-                s = min(h, w)  # centre square crop of the fisheye image, then 224 x 224
-                crop = frame[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s]
-                rgb = cv2.cvtColor(cv2.resize(crop, (dw.IMAGE_SIZE, dw.IMAGE_SIZE), interpolation=cv2.INTER_AREA),
-                                   cv2.COLOR_BGR2RGB)
-                self.image.append(t, rgb)  # type: ignore[union-attr]
-        finally:
-            cap.release()
+    def _seen(self, stream: str, t: float, value: object) -> None:
+        self.latest[stream] = (t, value)
+        self.samples[stream] = self.samples.get(stream, 0) + 1

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from rotation.hardware.digit360 import window as dw
+from rotation.hardware.digit360.capture import SampleClock
 from rotation.hardware.digit360.proto_schema import parse_proto
 from rotation.hardware.digit360.protocol import IMU_TYPE, PROTO, messages
-from rotation.hardware.digit360.reader import Digit360Config, _ClockMap, _SampleClock
+from rotation.hardware.digit360.reader import Digit360Config, _ClockMap
 
 
 def test_ring_buffer_wraps_in_time_order():
@@ -55,7 +56,7 @@ def test_audio_blocks_get_consecutive_sample_times_despite_callback_jitter():
     """A sound card's callbacks arrive with jitter; timed from each arrival, a block could overlap the one before
     and a recording would drop the overlap. The sample clock counts samples, and moves its anchor only for lost
     samples or clock drift beyond 20 ms, never back past the previous sample."""
-    clock = _SampleClock(48_000.0)
+    clock = SampleClock(48_000.0)
     rng = np.random.default_rng(0)
     times, arrival = [], 0.0
     for _ in range(200):  # 480-sample blocks, arrival jittered by up to +-4 ms
