@@ -35,7 +35,10 @@ the summary's "motors_off" is true only when confirmed (by the emulated hand, or
 motors-off that was not confirmed ends with a non-zero status and the instruction to cut the hand's power. With
 --skin the summary's "skin" counts the frames received, the malformed messages skipped and the disconnects; with a
 touch-reading policy its "touch" counts the refreshes, the steps acted with the adapter and as the student alone
-(fallback), and the refresh time (rotation.deploy.touch_worker.TouchStats).
+(fallback), and the refresh time (rotation.deploy.touch_worker.TouchStats). Its "hand_bus" holds the hand driver's
+counters (PD cycles, the longest wait for the joints' state in ms, bus errors), its "digit360" each fingertip
+reader's (frames, bad frames, disconnects, unknown message kinds), and with --sim-faults its "sim_faults" each
+injected fault with the time it was applied (rotation.deploy.sim_faults).
 """
 
 from __future__ import annotations

@@ -74,6 +74,15 @@ def motors_off_state(opened: OpenedHand | None) -> tuple[bool, bool | None, str 
     return confirmed, confirmed, "hand"
 
 
+def _driver_stats(opened: OpenedHand | None) -> dict[str, int] | None:
+    """The hand driver's counters (cycles, the longest wait for the joints' state, bus errors), None without one."""
+    stats = getattr(getattr(opened, "driver", None), "stats", None)
+    try:
+        return dict(stats()) if callable(stats) else None
+    except Exception:  # a driver that never started has nothing to count
+        return None
+
+
 def finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, critical: CriticalRecords,
             fault: str | None, exit_code: int, wall_s: float, skin=None, readers: dict[str, Any] | None = None,
             sim_faults: list[dict[str, Any]] | None = None) -> dict[str, Any]:
@@ -93,6 +102,7 @@ def finish(cfg: Config, hz: float, opened: OpenedHand | None, loop, recorder, cr
         "skin": None if skin is None else {k: skin.counters[k] for k in ("frames", "skipped", "disconnects")},
         "touch": None if loop is None or loop.touch is None else loop.touch.stats.summary(),
         "digit360": {f: dict(r.counters) for f, r in (readers or {}).items()} or None,
+        "hand_bus": _driver_stats(opened),
         "sim_faults": sim_faults or None,
         "model_mismatch_allowed": bool(getattr(cfg, "allow_model_mismatch", False)),
     }

@@ -146,8 +146,8 @@ def test_adapter_network_checks_its_inputs():
 
 
 def _tiny_cfg(out, **kw) -> finetune.Config:
-    base = dict(out=out, modalities="pressure", total_steps=384, num_envs=2, touch_every=2, student_steps=64,
-                updates=16, batch_size=32, buffer_size=512, lr=1e-3, checkpoint_every=192, log_every=8,
+    base = dict(out=out, modalities="pressure", total_steps=256, num_envs=2, touch_every=2, student_steps=64,
+                updates=16, batch_size=32, buffer_size=512, lr=1e-3, checkpoint_every=128, log_every=8,
                 progress=False, torch_threads=1, nthread=1, seed=0)
     return finetune.Config(**{**base, **kw})
 
@@ -186,8 +186,8 @@ def test_bundle_round_trip_and_as_a_policy(tiny_run):
 def test_finetune_resume_is_exact(tiny_run, tmp_path):
     out, result = tiny_run
     part = tmp_path / "part"
-    finetune.run(_tiny_cfg(part, total_steps=192))
-    resumed = finetune.run(_tiny_cfg(part, total_steps=384, resume=True))
+    finetune.run(_tiny_cfg(part, total_steps=128))
+    resumed = finetune.run(_tiny_cfg(part, total_steps=256, resume=True))
     a, b = load_adapter(result.bundle_dir), load_adapter(resumed.bundle_dir)
     for (name, x), y in zip(a.adapter.state_dict().items(), b.adapter.state_dict().values(), strict=True):
         assert torch.equal(x, y), name
@@ -302,18 +302,18 @@ def test_rollout_refuses_touch_policy_without_touch(tiny_run):
         env.close()
 
 
-def test_a_checkpoint_another_run_wrote_is_refused_and_left_alone(tmp_path):
+def test_a_checkpoint_another_run_wrote_is_refused_and_left_alone(tiny_run, tmp_path):
     """`--resume` adopts the newest ckpt_*.pt in --out only if it carries this run's id (run.json): another run's
     checkpoint copied in is refused in one line and nothing changes."""
     from envs.errors import RequestRefused
 
     mine, other = tmp_path / "mine", tmp_path / "other"
-    finetune.run(_tiny_cfg(mine, total_steps=192))
-    finetune.run(_tiny_cfg(other, total_steps=192, seed=4))
+    shutil.copytree(tiny_run[0], mine)  # a finished run of its own (the module's)
+    finetune.run(_tiny_cfg(other, total_steps=128, seed=4))
     assert (mine / "run.json").is_file()
     foreign = sorted(other.glob("ckpt_*.pt"))[-1]
     shutil.copy(foreign, mine / "ckpt_999999999.pt")  # the newest name in mine
     before = {p: p.read_bytes() for p in mine.rglob("*") if p.is_file()}
     with pytest.raises(RequestRefused, match="is not a checkpoint this run wrote"):
-        finetune.run(_tiny_cfg(mine, total_steps=384, resume=True))
+        finetune.run(_tiny_cfg(mine, total_steps=512, resume=True))
     assert {p: p.read_bytes() for p in mine.rglob("*") if p.is_file()} == before

@@ -260,5 +260,5 @@ def test_finetune_on_sessions_with_joint_tracking_normalizes_by_the_training_sam
     assert adapter.cfg.tracking
     assert not torch.equal(adapter.track_std, torch.ones(TRACKING_DIM))
     assert 0.0 < float(adapter.track_std[:16].median()) < 0.2  # tracking errors in rad, not the defaults
-    assert float(adapter.g[0].weight[:, -TRACKING_DIM:].abs().sum()) > 0
+    assert float(adapter.g[0].weight[:, -TRACKING_DIM:].detach().abs().sum()) > 0
     assert result.history[-1]["latent_mse"] < result.history[0]["latent_mse"]

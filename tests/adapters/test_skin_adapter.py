@@ -56,9 +56,9 @@ def test_a_fresh_skin_adapter_reads_the_hand_and_acts_exactly_like_the_student(s
 
 
 def test_skin_adapter_finetunes_on_the_xela_hand_and_evaluates_beside_the_student(skin_encoder, tmp_path):
-    cfg = finetune.Config(out=tmp_path / "run", encoder=skin_encoder, modalities="skin", total_steps=192, num_envs=2,
+    cfg = finetune.Config(out=tmp_path / "run", encoder=skin_encoder, modalities="skin", total_steps=96, num_envs=2,
                           touch_every=2, student_steps=32, updates=16, batch_size=32, buffer_size=256, lr=1e-3,
-                          checkpoint_every=192, log_every=4, progress=False, torch_threads=1, nthread=1, seed=0)
+                          checkpoint_every=96, log_every=4, progress=False, torch_threads=1, nthread=1, seed=0)
     assert (cfg.env.hand, cfg.env.skin, cfg.env.tactile) == ("xela", True, False)  # forced: the touch it reads
     result = finetune.run(cfg)
     assert result.history and all(np.isfinite(h["latent_mse"]) for h in result.history)

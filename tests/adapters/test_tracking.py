@@ -22,8 +22,8 @@ def _windows(policy, obs):
 
 
 def _tiny_cfg(out, **kw) -> finetune.Config:
-    base = dict(out=out, modalities="pressure", total_steps=384, num_envs=2, touch_every=2, student_steps=64,
-                updates=16, batch_size=32, buffer_size=512, lr=1e-3, checkpoint_every=192, log_every=8,
+    base = dict(out=out, modalities="pressure", total_steps=256, num_envs=2, touch_every=2, student_steps=64,
+                updates=16, batch_size=32, buffer_size=512, lr=1e-3, checkpoint_every=128, log_every=8,
                 progress=False, torch_threads=1, nthread=1, seed=0, tracking=True)
     return finetune.Config(**{**base, **kw})
 
@@ -103,7 +103,7 @@ def test_a_tracking_run_measures_its_normalization_and_learns_from_the_joints(tr
     torch.testing.assert_close(adapter.track_std, std.clamp_min(1e-4))
     assert 0.001 < float(std[:16].median()) < 0.2  # tracking errors of a few hundredths of a radian
     first = adapter.g[0].weight
-    assert float(first[:, -TRACKING_DIM:].abs().sum()) > 0  # the features reach g and are learned
+    assert float(first[:, -TRACKING_DIM:].detach().abs().sum()) > 0  # the features reach g and are learned
     hist = result.history
     late = hist[len(hist) // 2:]
     adapted = np.mean([h["latent_mse"] for h in late])
@@ -114,8 +114,8 @@ def test_a_tracking_run_measures_its_normalization_and_learns_from_the_joints(tr
 def test_a_tracking_run_resumes_exactly(tracking_run, tmp_path):
     out, result = tracking_run
     part = tmp_path / "part"
-    finetune.run(_tiny_cfg(part, total_steps=192))
-    resumed = finetune.run(_tiny_cfg(part, total_steps=384, resume=True))
+    finetune.run(_tiny_cfg(part, total_steps=128))
+    resumed = finetune.run(_tiny_cfg(part, total_steps=256, resume=True))
     a, b = load_adapter(result.bundle_dir), load_adapter(resumed.bundle_dir)
     for (name, x), y in zip(a.adapter.state_dict().items(), b.adapter.state_dict().values(), strict=True):
         assert torch.equal(x, y), name

@@ -86,6 +86,7 @@ def test_a_lost_fingertip_and_corrupt_frames_leave_the_run_going_and_are_reporte
     assert summary["fault"] is None and summary["exit_code"] == 0 and summary["motors_off"]
     applied = {f["fault"]: f for f in summary["sim_faults"]}
     assert all(f["applied_s"] is not None and f["applied_s"] >= f["due_s"] - 1e-3 for f in applied.values()), applied
+    assert summary["hand_bus"]["longest_gap_ms"] >= 40  # the driver saw the 50 ms pause of its joint feedback
     counters = summary["digit360"]
     assert counters["thumb"]["disconnects"] >= 1 and counters["index"]["disconnects"] == 0
     assert counters["index"]["bad_frames"] >= 3 and counters["middle"]["bad_frames"] == 0

@@ -28,7 +28,9 @@ def test_a_bus_error_that_does_not_end_the_run_is_reported_as_unexpected():
     assert not unplug["ok"] and "the thumb's disconnect counted" in unplug["said"]
     late = rehearse.judge_record("slippery_1", _summary(
         sim_faults=[{"fault": "hand feedback paused 0.06 s at 2 s", "due_s": 2.0, "applied_s": None}]))
-    assert not late["ok"] and "every fault applied" in late["said"]
+    assert not late["ok"] and "every fault applied" in late["said"] and "pause seen by the driver" in late["said"]
+    seen = rehearse.judge_record("slippery_1", _summary(hand_bus={"longest_gap_ms": 63}))
+    assert seen["ok"] and "63 ms" in seen["said"], seen["said"]
 
 
 def test_an_earlier_rehearsal_is_never_replaced_silently(tmp_path, capsys):

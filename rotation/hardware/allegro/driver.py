@@ -79,7 +79,8 @@ class AllegroHand(FeedbackMixin):
         self._recv_errors = 0
         self._temperatures = np.full(NUM_JOINTS, np.nan)
         self._state: HandState | None = None
-        self._counters = {"cycles": 0, "incomplete_cycles": 0, "send_errors": 0, "recv_errors": 0}
+        self._counters = {"cycles": 0, "incomplete_cycles": 0, "send_errors": 0, "recv_errors": 0,
+                          "longest_gap_ms": 0}
         self._cycle_times: deque[float] = deque(maxlen=200_000)
 
     # ------------------------------------------------------------------ lifecycle
@@ -218,7 +219,8 @@ class AllegroHand(FeedbackMixin):
         )
 
     def stats(self) -> dict[str, int]:
-        """Counters since start: cycles, incomplete_cycles, send_errors, recv_errors, rejected_targets."""
+        """Counters since start: cycles, the longest time between two complete position cycles (longest_gap_ms),
+        incomplete_cycles, send_errors, recv_errors, rejected_targets."""
         with self._lock:
             out = dict(self._counters)
         out["rejected_targets"] = self._safety.rejected if self._safety else 0
@@ -376,6 +378,8 @@ class AllegroHand(FeedbackMixin):
         with self._lock:
             self._state = state
             self._counters["cycles"] += 1
+            if self._seq > 0:  # the longest wait for a complete position cycle (feedback_timeout_s ends the run)
+                self._counters["longest_gap_ms"] = max(self._counters["longest_gap_ms"], round(1e3 * dt))
             self._cycle_times.append(now)
         self._t_cycle = now
         self._seq += 1

@@ -117,7 +117,7 @@ class LeapHand(FeedbackMixin):
         self._torque_on = False
         self._released = False
         self._models: dict[int, int] = {}
-        self._counters = {"cycles": 0}
+        self._counters = {"cycles": 0, "longest_gap_ms": 0}
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> LeapHand:
@@ -208,7 +208,8 @@ class LeapHand(FeedbackMixin):
                         extra={"input_voltage_v": volts, "model_numbers": self._models.copy()})
 
     def stats(self) -> dict[str, int]:
-        """Counters since start: cycles, read_retries, failed_reads, rejected_targets."""
+        """Counters since start: cycles, the longest time between two good reads of the joints (longest_gap_ms),
+        read_retries, failed_reads, rejected_targets."""
         with self._lock:
             return dict(self._counters, **self._bus.counters, rejected_targets=self._safety.rejected)
 
@@ -241,6 +242,7 @@ class LeapHand(FeedbackMixin):
                     raise HandFault(f"{self.name}: motors off requested by a signal")
                 try:
                     q, qdot, current = self._read_state_once()
+                    gap_ms = round(1e3 * (now - last_good))
                     last_good = now
                 except PORT_ERRORS as err:
                     raise HandFault(f"{self.name}: serial port {self.port_name} failed ({err}); adapter unplugged?") \
@@ -256,6 +258,8 @@ class LeapHand(FeedbackMixin):
                     self._publish(q, qdot, current, target, now, seq)
                     with self._lock:
                         self._counters["cycles"] += 1
+                        if seq > 1:  # the longest wait for the joints' state (feedback_timeout_s ends the run)
+                            self._counters["longest_gap_ms"] = max(self._counters["longest_gap_ms"], gap_ms)
                     seq += 1
                 last = now
             except Exception as err:  # every failure ends in torque off

@@ -151,7 +151,7 @@ def test_a_tiny_touch_report_runs_end_to_end(tmp_path, v4_sessions, encoder):
     assert (out / "features_rendered.npz").stat().st_mtime_ns == before
     fresh = tmp_path / "fresh"  # features without tokens are not reused by a run that needs them
     again = ["touch-report", "--sessions", str(v4_sessions), "--checkpoint", str(encoder), "--out", str(fresh),
-             "--stride", "10", "--no-progress", "--stages"]
+             "--stride", "20", "--no-progress", "--stages"]
     assert main([*again, "2"]) == 0
     assert not any(k.startswith("tokens/") for k in np.load(fresh / "features_rendered.npz").files)
     assert main([*again, "3"]) == 0
