@@ -280,9 +280,10 @@ def run_traced(module: nn.Module, inputs: dict[str, torch.Tensor], traced: dict)
 
 def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch_every: int = 4,
                   hidden: tuple[int, ...] = (256, 128), with_latent: bool = True, seed: int = 0,
-                  device: str = "cpu", tracking: bool = False) -> AdaptedPolicy:
+                  device: str = "cpu", tracking: bool = False, touch: bool = True) -> AdaptedPolicy:
     """A fresh adapter (zero correction) for ``student`` reading ``encoder`` restricted to ``modalities``: a
-    Sparsh-X encoder reads the four fingertips, a Sparsh-skin encoder the whole hand (one sample)."""
+    Sparsh-X encoder reads the four fingertips, a Sparsh-skin encoder the whole hand (one sample). ``touch`` False:
+    a blind adapter (adapters.model.AdapterNetConfig.touch), the ablation without touch."""
     from envs.constants import FINGERS
 
     student_bundle = load_policy_bundle(student)
@@ -292,7 +293,7 @@ def build_adapted(student: str, encoder: str, modalities: tuple[str, ...], touch
     torch.manual_seed(seed)
     net = AdapterNetConfig(samples=samples, groups=tuple(interface.groups), width=interface.width,
                            latent_dim=student_bundle.config.latent_dim, hidden=tuple(hidden), with_latent=with_latent,
-                           tracking=tracking)
+                           tracking=tracking, touch=touch)
     cfg = AdapterConfig(student=student, student_sha256=file_digest(student_weights(student)), encoder=encoder,
                         encoder_sha256=file_digest(encoder_weights(encoder)), modalities=tuple(interface.names),
                         net=net, touch_every=touch_every)

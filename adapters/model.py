@@ -72,6 +72,10 @@ class AdapterNetConfig:
     tracking: bool = False
     """Also feed g the joints' tracking over the proprioceptive history (:func:`tracking_features`, normalized by
     statistics measured on the student's rollouts before training and kept with the weights)."""
+    touch: bool = True
+    """Read the touch tokens. False blanks them: g sees each sample's embedding alone (the same for every input),
+    so the adapter learns from the student's latent and, with ``tracking``, the joints' tracking: the ablation that
+    says what touch adds (finetune-adapter --blind-touch)."""
 
     def __post_init__(self) -> None:
         if not self.samples or len(set(self.samples)) != len(self.samples):
@@ -148,6 +152,8 @@ class TouchAdapter(nn.Module):
         """(B, S, D) pooled features, the student's (B, Z) latent and, for an adapter that reads them, the (B, 48)
         tracking features (:func:`tracking_features`; ignored otherwise) -> (B, H) g's output, the zero layer's
         input."""
+        if not self.cfg.touch:  # blind: the samples' embeddings alone, whatever the tokens were
+            pooled = self.sample_embed.to(pooled.dtype).expand(pooled.shape)
         x = pooled.flatten(1)  # (B, S * D)
         if self.cfg.with_latent:
             x = torch.cat([x, z_student.to(x.dtype)], dim=-1)

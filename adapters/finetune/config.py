@@ -87,6 +87,11 @@ class Config:
     sag with its weight. Their normalization is measured on the student's own rollouts (simulation) or the training
     sessions before the first update, unless ``--init-from`` is an adapter that reads them; ``--init-from`` an
     adapter without them starts with zero weights on them (the same corrections at the start)."""
+    blind_touch: bool = False
+    """Blank the touch tokens: the adapter learns from the student's latent and, with --tracking, the joints'
+    tracking alone (adapters.model.AdapterNetConfig.touch). The ablation that says what touch adds: with --tracking
+    it is the row 'tracking only' of an adapter's evaluation (docs/adapter.md). --modalities still names what is
+    rendered and encoded, and discarded (pressure is the cheapest)."""
     checkpoint_every: int = 20_000
     """Env transitions between checkpoints (rounded to whole touch periods); each interval starts afresh, so one
     shorter than num_envs x the env's episode_steps cuts every episode short (2,048 with 16 envs: 6.4 s episodes)."""

@@ -144,7 +144,7 @@ class Job:
         teacher = load_policy_bundle(cfg.teacher).require("privileged", f"--teacher {cfg.teacher}")
         modalities = parse_groups(cfg.modalities, cfg.touch_kind)
         policy = build_adapted(cfg.student, cfg.encoder, modalities, touch_every=cfg.touch_every, hidden=cfg.hidden,
-                               seed=cfg.seed, tracking=cfg.tracking)
+                               seed=cfg.seed, tracking=cfg.tracking, touch=not cfg.blind_touch)
         if teacher.config.latent_dim != policy.config.latent_dim:
             raise ValueError(f"the teacher's latent size {teacher.config.latent_dim} differs from the student's "
                              f"{policy.config.latent_dim}: give the student's own teacher")

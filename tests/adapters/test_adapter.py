@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ import torch
 from adapters.bundle import TouchUnavailable, build_adapted, load_adapter
 from adapters.finetune import core
 from adapters.finetune import job as finetune
-from adapters.model import AdapterNetConfig, TouchAdapter
+from adapters.model import TRACKING_DIM, AdapterNetConfig, TouchAdapter
 from envs.config import EnvConfig
 from envs.constants import PRIV_FIELDS
 from envs.core import RotateCupVec
@@ -130,6 +131,26 @@ def test_missing_or_bad_touch_is_touch_unavailable(env_obs):
     bad["ring"]["pressure"] = np.full_like(bad["ring"]["pressure"], np.nan)
     with pytest.raises(TouchUnavailable, match="non-finite"):
         policy.correction(bad, groups)
+
+
+def test_a_blind_adapter_reads_the_latent_and_the_tracking_but_not_the_touch():
+    """The ablation without touch (--blind-touch): other tokens give the same correction, another latent or joint
+    tracking another one; the same network reading touch tells the tokens apart."""
+    torch.manual_seed(0)
+    nets = {}
+    for touch in (True, False):
+        cfg = AdapterNetConfig(samples=("index", "thumb"), groups=(("img", 4),), width=8, latent_dim=3, hidden=(16,),
+                               tracking=True, touch=touch)
+        nets[touch] = net = TouchAdapter(cfg)
+        torch.nn.init.normal_(net.zero.weight)  # trained: no longer the zero map
+    tokens = [{s: {"img": torch.randn(2, 4, 8)} for s in ("index", "thumb")} for _ in range(2)]
+    z, track = torch.randn(2, 3), torch.randn(2, TRACKING_DIM)
+    blind, sighted = nets[False], nets[True]
+    assert torch.equal(blind(tokens[0], z, track), blind(tokens[1], z, track))
+    assert not torch.allclose(blind(tokens[0], z, track), blind(tokens[0], z, track + 1.0))
+    assert not torch.allclose(blind(tokens[0], z, track), blind(tokens[0], z + 1.0, track))
+    assert not torch.allclose(sighted(tokens[0], z, track), sighted(tokens[1], z, track))
+    assert finetune.Config(out=Path("x"), blind_touch=True, tracking=True).blind_touch
 
 
 def test_adapter_network_checks_its_inputs():
