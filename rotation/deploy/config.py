@@ -35,9 +35,10 @@ class Config:
     baud: int = 4_000_000
     """LEAP baud rate."""
     digit360: str = ""
-    """Digit 360 sensors to record (and to read, for a tactile adapter policy): 4 comma-separated USB serials in
-    finger order (index,middle,ring,thumb), FINGER=SERIAL pairs, tty paths, or 'sim' (emulated sensors that sense the
-    emulated hand, emulated hands only; what an adapter policy on an emulated hand starts without this option)."""
+    """Digit 360 sensors to record (and to read, for a tactile adapter policy): 4 comma-separated serials (the USB
+    hub's, as `rotate touch-info` lists them, or the data tty's) in finger order (index,middle,ring,thumb),
+    FINGER=SERIAL pairs, tty paths, or 'sim' (emulated sensors that sense the emulated hand, emulated hands only;
+    what an adapter policy on an emulated hand starts without this option)."""
     skin: str = ""
     """Xela skin to record (skin/xela, 100 Hz): the vendor xela_server's WebSocket URL (ws://HOST:5000), or 'sim'
     (a stand-in server, emulated hands only); empty: none. Start with the skin free of contact (baseline)."""

@@ -97,14 +97,13 @@ def check_digit360(specs: dict[str, str]) -> None:
         return
     from rotation.hardware.digit360 import discovery
 
-    connected = discovery.find_digit360_ports()  # (tty, USB serial) of every Digit 360 plugged in now
-    serials = {serial for _, serial in connected}
+    connected = discovery.find_digit360_ports()  # (tty, serial) of every Digit 360 plugged in now
     missing = []
     for finger, value in real.items():
         if value.startswith("/"):
             if not os.path.exists(value):
                 missing.append(f"{finger}={value} (no such device)")
-        elif value not in serials:
+        elif not discovery.find_digit360_ports(value):  # the hub's serial or the data tty's
             missing.append(f"{finger}={value} (no connected Digit 360 has this USB serial)")
     if missing:
         found = ", ".join(sorted(serial or tty for tty, serial in connected)) or "none"
@@ -139,10 +138,10 @@ def find_media(specs: dict[str, str], windows: tuple[str, ...], sysfs: str = "/s
         return {}
     from rotation.hardware.digit360 import discovery
 
-    ttys = {serial: tty for tty, serial in discovery.find_digit360_ports()}  # one scan of the USB serial ports for all
     out = {}
     for finger, value in real.items():
-        port = value if value.startswith("/") else ttys.get(value)
+        found_ports = [] if value.startswith("/") else discovery.find_digit360_ports(value, sysfs)
+        port = value if value.startswith("/") else (found_ports[0][0] if found_ports else None)
         found = discovery.find_digit360_devices(port, sysfs) if port else discovery.Digit360Devices()
         out[finger] = discovery.Digit360Devices(camera=found.camera if "image" in wanted else None,
                                       audio=found.audio if "audio" in wanted else None)

@@ -54,7 +54,8 @@ def fake_sysfs(root: Path) -> Path:
     webcam and a USB serial adapter of other makers, laid out as Linux's sysfs links them."""
     usb = _write(root / "devices" / "pci0000:00" / "0000:00:14.0" / "usb1", idVendor="1d6b", idProduct="0002")
     for hub, tty, videos, card in (("1-2", "ttyACM0", (2, 3), 1), ("1-3", "ttyACM1", (4, 5), 10)):
-        h = _write(usb / hub, idVendor="2833", idProduct="6500" if hub == "1-2" else "6502")
+        h = _write(usb / hub, idVendor="2833", idProduct="6500" if hub == "1-2" else "6502",
+                   serial="28BF6A0781" if hub == "1-2" else "28BF6A0799")  # the sensor's serial (Meta's name for it)
         data = _write(h / f"{hub}.1", idVendor="2833", idProduct="4001") / f"{hub}.1:1.0"
         cam = _write(h / f"{hub}.2", idVendor="2833", idProduct="b015") / f"{hub}.2:1.0"
         mic = _write(h / f"{hub}.3", idVendor="2833", idProduct="5001") / f"{hub}.3:1.0"
@@ -84,11 +85,30 @@ def test_a_sensors_camera_and_microphones_are_the_ones_on_its_hub(tmp_path):
     assert find_digit360_devices("/dev/pts/7", sysfs) == Digit360Devices()  # a pseudo-terminal: not in sysfs
 
 
+def test_a_sensor_is_found_by_its_hubs_serial_or_its_data_ttys(tmp_path, monkeypatch):
+    """Meta's host code names a Digit 360 by its USB hub's serial; the data tty's own USB serial may differ: either
+    finds the sensor, and the listing gives the hub's."""
+    sysfs = str(fake_sysfs(tmp_path / "sys"))
+    ports = [types.SimpleNamespace(device="/dev/ttyACM0", vid=0x2833, pid=0x4001, serial_number="STM32-AAAA"),
+             types.SimpleNamespace(device="/dev/ttyACM1", vid=0x2833, pid=0x4001, serial_number="STM32-BBBB"),
+             types.SimpleNamespace(device="/dev/ttyUSB0", vid=0x0403, pid=0x6001, serial_number="28BF6A0781")]
+    monkeypatch.setattr(discovery.list_ports, "comports", lambda: ports)
+    assert discovery.find_digit360_ports(sysfs=sysfs) == [("/dev/ttyACM0", "28BF6A0781"),
+                                                          ("/dev/ttyACM1", "28BF6A0799")]
+    assert discovery.find_digit360_ports("28BF6A0799", sysfs) == [("/dev/ttyACM1", "28BF6A0799")]
+    assert discovery.find_digit360_ports("STM32-AAAA", sysfs) == [("/dev/ttyACM0", "28BF6A0781")]
+    assert discovery.find_digit360_ports("28BF6A0700", sysfs) == []
+    assert discovery.hub_serial("/dev/ttyUSB0", sysfs) is None  # another maker's adapter: no Digit 360 hub
+    media = find_media({"index": "28BF6A0781", "thumb": "STM32-BBBB"}, ("image", "audio"), sysfs)
+    assert media == {"index": Digit360Devices("/dev/video2", "(hw:1,0)"),
+                     "thumb": Digit360Devices("/dev/video4", "(hw:10,0)")}
+
+
 def test_find_media_takes_only_what_the_policy_reads(tmp_path, monkeypatch):
     sysfs = str(fake_sysfs(tmp_path / "sys"))
     connected = [("/dev/ttyACM0", "D360-A")]  # (tty, USB serial), as the real function lists them
     monkeypatch.setattr(discovery, "find_digit360_ports",
-                        lambda serial=None: [p for p in connected if serial in (None, p[1])])
+                        lambda serial=None, sysfs="/sys": [p for p in connected if serial in (None, p[1])])
     specs = {"index": "D360-A", "thumb": "/dev/ttyACM1", "ring": "D360-GONE", "middle": "sim"}
     assert find_media(specs, ("imu", "pressure"), sysfs) == {}  # serial streams only: nothing to find
     media = find_media(specs, ("image", "pressure"), sysfs)

@@ -15,14 +15,42 @@ USB_PRODUCT_HUBS = (0x6500, 0x6502)
 """Product ids of the USB hub that each Digit 360 is (its camera, microphones and data tty are its children)."""
 
 
-def find_digit360_ports(serial_number: str | None = None) -> list[tuple[str, str]]:
-    """(device path, USB serial) of the Digit 360 data ttys, optionally only the one with ``serial_number``."""
+def find_digit360_ports(serial_number: str | None = None, sysfs: str | Path = "/sys") -> list[tuple[str, str]]:
+    """(device path, serial) of the Digit 360 data ttys, optionally only the one with ``serial_number``.
+
+    The serial is the sensor's: its USB hub's serial number, which Meta's host code names a sensor by (udev
+    ``ID_SERIAL_SHORT`` of the hub, docs/reference/digit360_protocol.md section 4), read from sysfs; where the hub is
+    not found, the data tty's own USB serial. ``serial_number`` matches either, so a setup written with either
+    finds its sensor."""
     found = []
     for p in list_ports.comports():
         if p.vid == USB_VENDOR and p.pid == USB_PRODUCT_DATA:
-            if serial_number is None or p.serial_number == serial_number:
-                found.append((p.device, p.serial_number or ""))
+            hub = hub_serial(p.device, sysfs)
+            if serial_number is None or serial_number in (hub, p.serial_number):
+                found.append((p.device, hub or p.serial_number or ""))
     return found
+
+
+def hub_serial(port: str, sysfs: str | Path = "/sys") -> str | None:
+    """The serial number of the Digit 360 USB hub above the data tty ``port`` (its sysfs ``serial`` file), None when
+    the tty is not under one (a pseudo-terminal, another maker's adapter) or the hub reports none."""
+    hub = _hub_of(Path(sysfs), port)
+    if hub is None:
+        return None
+    try:
+        return (hub / "serial").read_text().strip() or None
+    except OSError:
+        return None
+
+
+def _hub_of(root: Path, port: str) -> Path | None:
+    tty = root / "class" / "tty" / Path(port).resolve().name / "device"
+    if not tty.exists():
+        return None
+    for parent in tty.resolve().parents:
+        if _usb_id(parent, "idVendor") == USB_VENDOR and _usb_id(parent, "idProduct") in USB_PRODUCT_HUBS:
+            return parent
+    return None
 
 
 @dataclass(frozen=True)
@@ -58,14 +86,7 @@ def find_digit360_devices(port: str, sysfs: str | Path = "/sys") -> Digit360Devi
     is not a Digit 360's, e.g. a pseudo-terminal, has neither). ``sysfs``: another root (tests).
     """
     root = Path(sysfs)
-    tty = root / "class" / "tty" / Path(port).resolve().name / "device"
-    if not tty.exists():
-        return Digit360Devices()
-    hub = None
-    for parent in tty.resolve().parents:
-        if _usb_id(parent, "idVendor") == USB_VENDOR and _usb_id(parent, "idProduct") in USB_PRODUCT_HUBS:
-            hub = parent
-            break
+    hub = _hub_of(root, port)
     if hub is None:
         return Digit360Devices()
 
