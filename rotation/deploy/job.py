@@ -164,6 +164,8 @@ def run(cfg: Config) -> dict[str, Any]:
             raise ValueError(f"record_media: no camera or microphones found on the USB hub of the Digit 360 "
                              f"{', '.join(lacking)} (is the whole sensor plugged in, not only its serial port?)")
     check_media_extras(media)
+    if cfg.digit360_imu == "linacc" and any(v == "sim" for v in digit_specs.values()):
+        raise ValueError("digit360_imu: emulated Digit 360 sensors send the raw accelerometer ('acc') only")
     check_before_start(cfg)
     faults = parse_sim_faults(cfg.sim_faults)
     check_sim_faults(faults, setup.emulated, tuple(f for f, v in digit_specs.items() if v == "sim"))
@@ -211,7 +213,8 @@ def run(cfg: Config) -> dict[str, Any]:
             sched = set_realtime_priority(cfg.rt_priority)
             physics = emulated_physics(setup)  # emulation: the hand's world, which the emulated fingertips sense
             # before the hand: the hand leaves first on exit
-            readers = open_digit360(digit_specs, stack, physics, media, emulators=emulators)
+            readers = open_digit360(digit_specs, stack, physics, media, emulators=emulators,
+                                    imu_channel=cfg.digit360_imu)
             if touch:  # the windows fill while the motors are off (a hand holding its pose meanwhile lets go)
                 took = wait_for_touch(bundle, readers)
                 if took is not None:
@@ -299,6 +302,7 @@ def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, readers: dict[
             "windows": list(getattr(bundle, "windows", ())), "touch_every": getattr(bundle, "touch_every", None)},
         "deploy_config": to_jsonable(cfg),
         "stated_properties": sorted(stated),
+        "digit360_imu": cfg.digit360_imu,
     }
     if skin_baseline is not None:
         from rotation.data.skin import BASELINE_KEY

@@ -168,7 +168,8 @@ def check_media_extras(media: dict[str, Any]) -> None:
 
 
 def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: HandPhysics | None = None,
-                  media: dict[str, Any] | None = None, emulators: dict[str, Any] | None = None) -> dict[str, Any]:
+                  media: dict[str, Any] | None = None, emulators: dict[str, Any] | None = None,
+                  imu_channel: str = "acc") -> dict[str, Any]:
     """Start one reader per finger (and its emulator for 'sim') inside ``stack``; {finger: Digit360}. A sensor that
     does not open (its data tty, or the camera or microphones it is given) raises :class:`SensorError` naming the
     finger.
@@ -178,6 +179,7 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: H
     emulator's synthetic readings (IMU and pressure only). ``media``: {finger: Digit360Devices} of real sensors
     (:func:`find_media`), whose camera and microphones their readers open beside the serial stream. ``emulators``:
     filled with {finger: Digit360Emulator} of the 'sim' sensors (their fault switches, rotation.deploy.sim_faults).
+    ``imu_channel``: the real sensors' accelerometer channel of the imu windows (Digit360Config.imu_channel).
     """
     if not specs:
         return {}
@@ -201,7 +203,7 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: H
                 devices = (media or {}).get(finger)
                 where = {"port": value} if value.startswith("/") else {"serial_number": value}
                 cfg = Digit360Config(**where, camera=getattr(devices, "camera", None),
-                                     audio_device=getattr(devices, "audio", None))
+                                     audio_device=getattr(devices, "audio", None), imu_channel=imu_channel)
             readers[finger] = stack.enter_context(Digit360(cfg, name=f"digit360-{finger}", media=rendered))
         except (OSError, ImportError) as err:  # pyserial's SerialException is an OSError
             raise SensorError(f"digit360 {finger} ({value}) did not open: {err}") from err

@@ -44,6 +44,8 @@ def test_faults_and_the_emulated_object_are_for_emulated_hardware_only():
         Config(hand="allegro", policy="student", sim_object="mass=0.3")
     with pytest.raises(ValueError, match="scale is the grasp cache's nominal"):
         Config(hand="sim-allegro", policy="student", sim_object="scale=0.9")
+    with pytest.raises(ValueError, match="digit360_imu: emulated Digit 360 sensors send"):
+        Config(hand="sim-allegro", policy="student", digit360="sim", digit360_imu="linacc")
     with pytest.raises(ValueError, match="friction_method"):
         Config(hand="allegro", policy="student", record="x.h5", friction_method="tilt")
 

@@ -38,7 +38,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 import serial
@@ -85,6 +85,11 @@ class Digit360Config:
     silent audio stream never passes its last frames off as the present)."""
     reconnect_s: float = 0.5
     """Retry period (s) for reopening the data tty after a disconnect."""
+    imu_channel: Literal["acc", "linacc"] = "acc"
+    """The accelerometer channel that feeds the imu windows: 'acc', the raw accelerometer (specific force, gravity
+    included: what the simulated sensor gives and the shipped encoders trained on), or 'linacc', the sensor fusion's
+    linear acceleration (raw IMU type 6, gravity removed: what Meta's released Sparsh-X was pretrained on,
+    docs/reference/hardware.md section 4). The other channel is still decoded into ``latest``."""
     read_every_s: float = 0.005
     """Pause (s) after each read of the data tty, so that one read takes the frames of a few ms at once: waking for
     every 400 Hz frame of four sensors kept the interpreter's lock so busy that the policy's thread missed its
@@ -101,6 +106,8 @@ class Digit360Config:
                 and self.device_clock_hz > 0):
             raise ValueError("Digit360Config: stale_timeout_s, media_stale_timeout_s, reconnect_s and device_clock_hz "
                              "must be > 0")
+        if self.imu_channel not in ("acc", "linacc"):
+            raise ValueError(f"Digit360Config: imu_channel must be 'acc' or 'linacc', got {self.imu_channel!r}")
         if not 0 <= self.read_every_s < self.stale_timeout_s:
             raise ValueError(f"Digit360Config: read_every_s must be in [0, stale_timeout_s), got {self.read_every_s}")
 
@@ -176,6 +183,7 @@ class Digit360:
         self.samples: dict[str, int] = {}
         """Stream -> samples decoded since the reader started (the streams of :attr:`latest`)."""
         self._msg = messages()["Digit360Message"]
+        self._window_imu = IMU_TYPE["ACC"] if cfg.imu_channel == "acc" else IMU_TYPE["AUX_IMU"]
         self._clock = _ClockMap(cfg.device_clock_hz)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -324,8 +332,8 @@ class Digit360:
             if part == "raw":
                 r = imu.raw
                 unit, values = raw_imu_physical(r.sensor, r.x, r.y, r.z)
-                if r.sensor == IMU_TYPE["ACC"]:
-                    self.imu.append(t, values)  # the accelerometer feeds the windows, as the simulated sensor's
+                if r.sensor == self._window_imu:
+                    self.imu.append(t, values)  # the channel cfg.imu_channel names feeds the windows
                 name = _IMU_NAMES.get(r.sensor, f"imu/type{r.sensor}")
                 self._seen(name, t, {unit: values})
             elif part == "euler":

@@ -84,6 +84,18 @@ def test_gyro_linear_acceleration_and_magnetometer_are_decoded_but_do_not_feed_t
     assert reader.latest["imu/mag"][1]["counts"] == pytest.approx((12.0, 13.0, 14.0))
 
 
+def test_the_linear_acceleration_channel_feeds_the_window_when_asked():
+    """imu_channel='linacc' (Meta's released Sparsh-X was pretrained on it): the windows take raw IMU type 6, gravity
+    removed, and no longer the accelerometer."""
+    reader = Digit360(Digit360Config(port="bytes", imu_channel="linacc"))
+    feed(reader, frame(raw_imu(1, 0.0, 0.0, 4096.0)) + frame(raw_imu(6, 40.96, 0.0, -81.92)))
+    _, v = reader.imu.snapshot()
+    assert len(v) == 1 and np.allclose(v[0], (0.01, 0.0, -0.02), atol=1e-6)
+    assert reader.latest["imu/acc"][1]["g"] == pytest.approx((0.0, 0.0, 1.0))  # still decoded, not windowed
+    with pytest.raises(ValueError, match="imu_channel"):
+        Digit360Config(port="bytes", imu_channel="gravity")
+
+
 def test_fused_orientation_frames(reader):
     euler = lfield(5, vfield(1, 10) + lfield(3, vfield(1, 5) + ffield(2, 90.0) + ffield(3, -10.0) + ffield(4, 2.5)))
     quat = lfield(5, vfield(1, 11) + lfield(4, vfield(1, 6) + ffield(2, 0.0) + ffield(3, 0.0) + ffield(4, 0.6)
