@@ -206,8 +206,8 @@ def judge_record(name: str, summary: dict[str, Any]) -> dict[str, Any]:
     checks: list[tuple[bool, str]] = []
     if name == "cup_1":
         bad, lost = counters.get("index", {}).get("bad_frames", 0), counters.get("thumb", {}).get("disconnects", 0)
-        said.append(f"index: {bad} corrupt frames dropped and counted; thumb: its data tty lost (counted {lost} "
-                    "time(s) while its reader retried)")
+        said.append(f"index: {bad} corrupt frames dropped and counted; thumb: {lost} disconnect counted, its reader "
+                    "retrying")
         checks += [(summary["fault"] is None, "the run should end normally"), (bad >= 5, "5 corrupt frames counted"),
                    (lost >= 1, "the thumb's disconnect counted")]
     elif name == "slippery_1":

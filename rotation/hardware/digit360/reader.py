@@ -270,11 +270,11 @@ class Digit360:
 
     def _serial_loop(self) -> None:
         buf = bytearray()
+        live = False  # the open port has delivered data: losing it now is a disconnect
         while not self._stop.is_set():
             if self._serial is None:
                 try:
                     self._open_serial()
-                    log.warning("%s: data tty reopened", self.name)
                     buf.clear()
                 except (serial.SerialException, OSError) as err:
                     log.debug("%s: reopen failed: %s", self.name, err)
@@ -283,14 +283,23 @@ class Digit360:
             try:
                 chunk = self._serial.read(max(1, self._serial.in_waiting))
             except (serial.SerialException, OSError, TypeError) as err:
-                self.counters["disconnects"] += 1
-                log.error("%s: data tty lost (%s); retrying every %.1f s", self.name, err, self.cfg.reconnect_s)
+                if live:  # one disconnect per loss, not one per failed reopen while the sensor is away
+                    self.counters["disconnects"] += 1
+                    log.error("%s: data tty lost (%s); retrying every %.1f s", self.name, err, self.cfg.reconnect_s)
+                else:
+                    log.debug("%s: the reopened data tty failed again: %s", self.name, err)
+                live = False
                 self.connected.clear()
                 try:
                     self._serial.close()
                 finally:
                     self._serial = None
+                self._stop.wait(self.cfg.reconnect_s)
                 continue
+            if chunk and not live:
+                if self.counters["disconnects"]:
+                    log.warning("%s: data tty back after a disconnect", self.name)
+                live = True
             t_recv = time.monotonic()
             buf.extend(chunk)
             start = 0  # frames are cut from the front once per read, not one by one (a late read holds hundreds)
