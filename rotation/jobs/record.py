@@ -14,7 +14,8 @@ center-of-mass offset in m in the object frame, size relative to the simulated c
 file the lab writes once per object, docs/lab.md), from --properties (which overrides the card's values), or, in a
 terminal, from questions asked for each one still missing. How the friction was measured (--friction-method, or the
 card's ``friction_method``) is stored beside it. An emulated hand's object is known exactly: its values fill what
-is not stated, and the method is 'emulator'.
+is not stated, and the method is 'emulator'. Answers typed in a terminal are saved as a card beside the session
+(NAME.card.json) for --object-card next time.
 
 Refused before the hand starts, with what to do: a session without all four properties or without the friction
 method on a real hand, a run without the Digit 360 fingertips (the adapter learns from their streams), a hand the
@@ -118,6 +119,17 @@ def read_card(path: str) -> dict[str, Any]:
     return card
 
 
+def save_card(path: Path, name: str, props: dict[str, Any], method: str) -> None:
+    """The answers given in a terminal, as an object card beside the session (for --object-card next time); an
+    existing file is left as it is."""
+    if path.exists():
+        print(f"record: {path} exists; the answers were not saved as a card", file=sys.stderr)
+        return
+    path.write_text(json.dumps({"object": name, **props, "friction_method": method}, indent=1) + "\n")
+    print(f"record: the object's measurements are saved in {path}: reuse them with --object-card {path}",
+          file=sys.stderr)
+
+
 def _spec(props: dict[str, Any]) -> str:
     """{key: value} -> the --properties form."""
     return ",".join(f"{k}={','.join(f'{x:g}' for x in v) if isinstance(v, list) else f'{v:g}'}"
@@ -138,9 +150,12 @@ def _ask(key: str, prompt=input) -> float | list[float]:
             print(f"  {str(err).split('; give')[0]}; again:", file=sys.stderr)
 
 
-def resolve_labels(cfg: Config, interactive: bool | None = None, prompt=input) -> tuple[str, dict[str, Any], str]:
+def resolve_labels(cfg: Config, interactive: bool | None = None, prompt=input,
+                   asked: list[str] | None = None) -> tuple[str, dict[str, Any], str]:
     """(object name, stated properties, friction method) from the card, the options and (in a terminal) answers;
-    RequestRefused when a real hand's session would lack a property or the method."""
+    RequestRefused when a real hand's session would lack a property or the method. ``asked`` gets the names of what
+    was asked."""
+    asked = [] if asked is None else asked
     card = read_card(cfg.object_card) if cfg.object_card else {}
     stated = {k: card[k] for k in PROPERTY_SIZES if k in card}
     stated.update(parse_properties(cfg.properties))
@@ -154,9 +169,11 @@ def resolve_labels(cfg: Config, interactive: bool | None = None, prompt=input) -
         print(f"record: measured properties of {name!r} (docs/lab.md says how to measure them):", file=sys.stderr)
         for key in missing:
             stated[key] = _ask(key, prompt)
+            asked.append(key)
         missing = []
     if stated and not method and not emulated and cfg.ask and interactive:
         method = prompt("friction_method: how was the friction measured (tilt, pull, ...)? ").strip()
+        asked.append("friction_method")
     if missing and not emulated:
         raise RequestRefused(
             f"record: the session would lack the object's {', '.join(missing)} "
@@ -205,7 +222,8 @@ def finetune_verdict(path: str | Path, control_hz: float, media: bool) -> dict[s
 def run(cfg: Config) -> dict[str, Any]:
     from rotation.deploy.job import run as deploy
 
-    name, stated, method = resolve_labels(cfg)
+    asked: list[str] = []
+    name, stated, method = resolve_labels(cfg, asked=asked)
     specs = parse_digit360(cfg.digit360, cfg.hand.startswith("sim-"))
     refusal = _touch_refusal(cfg, specs)
     if refusal:
@@ -220,6 +238,8 @@ def run(cfg: Config) -> dict[str, Any]:
     dcfg = deploy_config.Config(**{**fields, "object": name, "properties": _spec(stated),
                                    "friction_method": method})
     summary = deploy(dcfg)
+    if asked and summary.get("record") is not None:
+        save_card(Path(summary["record"]).with_suffix(".card.json"), name, stated, method)
     if summary.get("record") is None:
         summary["finetune_ready"] = {"usable": False, "why": "nothing was recorded (the run did not start)"}
         print(f"record: nothing was recorded: {summary.get('fault')}", file=sys.stderr)

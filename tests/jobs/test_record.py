@@ -39,12 +39,25 @@ def test_missing_properties_are_asked_in_a_terminal_and_a_bad_answer_is_asked_ag
         asked.append(question)
         return next(answers)
 
-    name, props, method = record.resolve_labels(record.Config(**REAL), interactive=True, prompt=prompt)
+    was_asked: list[str] = []
+    name, props, method = record.resolve_labels(record.Config(**REAL), interactive=True, prompt=prompt,
+                                                asked=was_asked)
     assert props == {"mass": 0.3, "friction": 0.6, "com": [0, 0, 0.005], "scale": 0.85}
+    assert was_asked == ["mass", "friction", "com", "scale", "friction_method"]
     assert method == "pull: force gauge" and len(asked) == 8
     err = capsys.readouterr().err
     # '0.3 kg', two numbers for the center of mass, then a scale of 12: each said and asked again
     assert "is not a number" in err and "must be 3 numbers" in err and "outside" in err and "give KEY" not in err
+
+
+def test_answers_are_saved_as_a_card_that_reads_back_and_an_existing_file_is_kept(tmp_path, capsys):
+    path = tmp_path / "s.card.json"
+    props = {"mass": 0.3, "friction": 0.6, "com": [0, 0, 0.005], "scale": 0.85}
+    record.save_card(path, "mug", props, "pull")
+    card = record.read_card(str(path))
+    assert card == {"object": "mug", **props, "friction_method": "pull"}
+    record.save_card(path, "other", props, "tilt")
+    assert record.read_card(str(path))["object"] == "mug" and "were not saved" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("kw, words", [
