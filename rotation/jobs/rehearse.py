@@ -167,12 +167,21 @@ def _last_json(log: Path) -> dict[str, Any] | None:
     return None
 
 
-def _run_record(step: dict[str, Any], log: Path) -> dict[str, Any]:
+def _run_cli(args: list[str], log: Path, name: str) -> dict[str, Any] | None:
+    """Run one `rotate` command in this process, its output into ``log``; its summary (the last JSON line), None
+    without one. Ctrl-C or SIGTERM during it stop the rehearsal (the step saved what it had)."""
     from rotation.cli import main
+    from rotation.interrupt import Interrupted
 
     with _step_output(log):
-        main(step["args"])
-    summary = _last_json(log)
+        code = main(args)
+    if code in (130, 143):
+        raise Interrupted(code - 128, f"stopped during the step {name}; what it wrote is kept (log: {log})")
+    return _last_json(log)
+
+
+def _run_record(step: dict[str, Any], log: Path) -> dict[str, Any]:
+    summary = _run_cli(step["args"], log, step["name"])
     if summary is None:
         return {"ok": False, "said": f"no summary: {_tail(log)}"}
     return judge_record(step["name"], summary)
@@ -261,14 +270,10 @@ def _run_finetune(cfg: Config, sessions: list[str], log: Path) -> dict[str, Any]
 
 
 def _run_deploy(cfg: Config, step: dict[str, Any], bundle: str, log: Path) -> dict[str, Any]:
-    from rotation.cli import main
-
     args = ["deploy", "--hand", cfg.hand, "--policy", bundle, "--duration", f"{cfg.session_s:g}", "--sim-object",
             step["sim_object"], "--sim-faults", step["faults"], "--record", str(cfg.out / "deploy.h5"),
             "--status-every-s", "5"]
-    with _step_output(log):
-        main(args)
-    summary = _last_json(log)
+    summary = _run_cli(args, log, step["name"])
     if summary is None:
         return {"ok": False, "said": f"no summary: {_tail(log)}", "args": args}
     touch = summary.get("touch") or {}

@@ -54,3 +54,13 @@ def test_the_tiny_rehearsal_records_fine_tunes_and_deploys(tmp_path, capsys):
     page = (out / "REHEARSAL.md").read_text()
     assert "Every step behaved as documented" in page and page in capsys.readouterr().out
     assert "rotate record --hand sim-allegro" in page and "rotate finetune-adapter" in page
+
+
+@pytest.mark.skipif("student" not in shipped_bundles(), reason="needs the shipped student")
+def test_ctrl_c_during_a_step_stops_the_rehearsal(tmp_path, monkeypatch):
+    from rotation import cli
+
+    monkeypatch.setattr(cli, "main", lambda argv: 130)  # the step's run ended by Ctrl-C (it saved what it had)
+    with pytest.raises(KeyboardInterrupt, match="during the step cup_1") as stop:
+        rehearse.run(rehearse.Config(out=tmp_path / "r", tiny=True))
+    assert stop.value.exit_code == 130 and not (tmp_path / "r" / "REHEARSAL.md").exists()
