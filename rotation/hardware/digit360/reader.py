@@ -25,7 +25,8 @@ media object is a constructor argument, not a config field, and with it OpenCV a
 Timestamps are host ``time.monotonic()`` seconds. Serial samples carry the device's millisecond clock; it is
 mapped to host time by the smallest observed (receive time - device time) offset (USB delivers in bursts, the
 minimum is the least-delayed sample), allowed to drift by 100 ppm and re-anchored when a sample would map more
-than 50 ms before its arrival.
+than 50 ms before its arrival. The windowed IMU channel's samples are timed more finely by their sensor time stamp
+where it proves to be a finer clock that agrees with the millisecond one (rotation.hardware.digit360.fine_clock).
 
 Faults: an undecodable frame is logged and dropped; a disconnect is logged, the port is reopened every
 ``reconnect_s``; :meth:`window` raises :class:`SensorStale` when the newest serial sample is older than
@@ -47,6 +48,7 @@ from cobs import cobs
 from rotation.hardware.digit360 import discovery
 from rotation.hardware.digit360 import window as dw
 from rotation.hardware.digit360.capture import AudioCapture, CameraCapture
+from rotation.hardware.digit360.fine_clock import FineClock
 from rotation.hardware.digit360.protocol import IMU_TYPE, TS_HZ, messages, pressure_hpa, raw_imu_physical
 
 log = logging.getLogger("rotation.hardware.digit360")  # the device's logger (messages name the device)
@@ -139,7 +141,7 @@ class _ClockMap:
     def __call__(self, ts: int, t_recv: float) -> float:
         if self.offset is not None and ts < self.ts_last and self.ts_last - ts > 2**31:
             self.offset += 2**32 / self.hz  # counter wrapped
-        elif self.offset is not None and ts < self.ts_last:
+        elif self.offset is not None and ts < self.ts_last - 1:  # (within a tick: a sub-tick IMU time before it)
             self.offset = None  # device restarted
         off = t_recv - ts / self.hz
         if self.offset is None or off - self.offset > self.max_latency_s:
@@ -185,6 +187,7 @@ class Digit360:
         self._msg = messages()["Digit360Message"]
         self._window_imu = IMU_TYPE["ACC"] if cfg.imu_channel == "acc" else IMU_TYPE["AUX_IMU"]
         self._clock = _ClockMap(cfg.device_clock_hz)
+        self._fine = FineClock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._serial: serial.Serial | None = None
@@ -337,7 +340,9 @@ class Digit360:
         elif kind == "imu_data":
             imu = msg.imu_data
             part = imu.WhichOneof("imu_type")
-            t = self._clock(imu.ts, t_recv)
+            windowed = part == "raw" and imu.raw.sensor == self._window_imu
+            # the windowed channel's samples timed by their sensor time stamp where it proves to be a finer clock
+            t = self._clock(self._fine(imu.ts, imu.raw.ts_ght) if windowed else imu.ts, t_recv)
             if part == "raw":
                 r = imu.raw
                 unit, values = raw_imu_physical(r.sensor, r.x, r.y, r.z)

@@ -158,3 +158,29 @@ def test_commands_never_enter_a_bootloader():
     data.imu_data.ts = 1
     with pytest.raises(protocol.UnsafeCommand, match="not a host command"):
         protocol.command_bytes(data)
+
+
+def _stream(reader: Digit360, ts_ght_of, seconds: float = 2.0, hz: float = 400.0) -> None:
+    """Raw accelerometer frames at ``hz`` for ``seconds``, each arriving 2 ms after it was sampled: ``ts`` the
+    device's whole milliseconds (as it sends them), ``ts_ght`` = ts_ght_of(true time in s)."""
+    for k in range(int(seconds * hz)):
+        t = 5.0 + k / hz
+        feed(reader, frame(raw_imu(1, 0.0, 0.0, 4096.0, ts=int(t * 1000.0), ts_ght=ts_ght_of(t))), t=95.0 + t + 0.002)
+
+
+def test_sensor_time_stamps_that_prove_a_finer_clock_time_the_imu_samples():
+    """At 400 Hz the device's millisecond ``ts`` rounds each sample by up to 0.5 ms; a ``ts_ght`` that counts a finer
+    clock in step with it (here 15.625 us ticks, Bosch's, from an arbitrary start) times them to the microsecond
+    once enough samples prove it; one that counts samples (the emulator's) or is noise is not used."""
+    runs = {"fine": lambda t: 123_456_789 + round(t * 64_000.0), "samples": lambda t: round(t * 400.0),
+            "noise": lambda t: int(np.random.default_rng(round(t * 400)).integers(0, 1 << 40))}
+    spacing = {}
+    for name, ts_ght_of in runs.items():
+        r = Digit360(Digit360Config(port="bytes"))
+        _stream(r, ts_ght_of)
+        t, _ = r.imu.snapshot()
+        spacing[name] = np.diff(t[-200:]) * 1e3  # ms, the last half second
+        assert r._fine.active == (name == "fine")
+    assert np.allclose(spacing["fine"], 2.5, atol=1e-3)  # within a microsecond
+    for name in ("samples", "noise"):  # whole milliseconds: 2 or 3 ms apart
+        assert set(np.round(spacing[name], 2)) == {2.0, 3.0}
