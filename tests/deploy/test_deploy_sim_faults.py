@@ -5,6 +5,7 @@ one asked for."""
 from __future__ import annotations
 
 import mujoco
+import numpy as np
 import pytest
 from deploy_checks import again_if_loaded, load_fault
 
@@ -108,3 +109,25 @@ def test_a_bus_error_switches_the_motors_off_and_keeps_the_recording(tmp_path, p
     assert summary["motors_off"] and summary["motors_off_confirmed"]
     with SessionReader(summary["record"]) as r:
         assert not r.complete and len(r.stream("joints/position")) >= 10
+
+
+def test_leap_late_feedback_a_stalled_fingertip_and_a_servo_overload(tmp_path, policy):
+    """The same faults on the emulated LEAP: its status replies dropped for 50 ms (the driver retries and goes on),
+    a fingertip's stream stalled for 0.3 s (its windows go stale, the recording keeps the others), then servo 0's
+    overload bit (torque off, the run ends, the recording kept)."""
+    summary = run(Config(hand="sim-leap", policy=policy, record=str(tmp_path / "leap.h5"), digit360="sim",
+                         status_every_s=10.0, duration=4.0,
+                         sim_faults="late=0.8+0.05,stall=ring@1.2+0.3,bus-error=2.5"))
+    if load_fault(summary):
+        pytest.skip(f"the machine was too loaded to run the loop: {summary['fault']}")
+    assert [f["applied_s"] is not None for f in summary["sim_faults"]] == [True, True, True], summary["sim_faults"]
+    assert summary["exit_code"] == 1 and "overload" in summary["fault"], summary["fault"]
+    assert summary["motors_off"]
+    assert summary["hand_bus"]["longest_gap_ms"] >= 40  # the dropped replies seen as a wait for the joints
+    with SessionReader(summary["record"]) as r:
+        ring = r.stream("digit360/ring/imu").timestamps
+        middle = r.stream("digit360/middle/imu").timestamps
+        t0 = r.stream("joints/position").timestamps[0]
+    gaps = np.diff(ring)
+    assert gaps.max() > 0.25 and np.diff(middle).max() < 0.1  # the stall in the ring's samples only
+    assert 1.0 < ring[np.argmax(gaps)] - t0 < 1.6
