@@ -43,7 +43,7 @@ class Config:
     """The accelerometer channel of the real Digit 360 sensors' imu windows: 'acc', the raw accelerometer (gravity
     included, as the simulated sensor and the shipped encoders), or 'linacc', the sensor fusion's linear acceleration
     (gravity removed, what Meta's released Sparsh-X was pretrained on: for an adapter on those weights). Recorded in
-    the session; emulated sensors send 'acc' only."""
+    the session; emulated sensors then send it too (their specific force plus gravity in the fingertip's frame)."""
     skin: str = ""
     """Xela skin to record (skin/xela, 100 Hz): the vendor xela_server's WebSocket URL (ws://HOST:5000), or 'sim'
     (a stand-in server, emulated hands only); empty: none. Start with the skin free of contact (baseline)."""
@@ -117,8 +117,6 @@ class Config:
         digit_specs = parse_digit360(self.digit360, emulated=self.hand.startswith("sim-"))
         if self.digit360_imu not in ("acc", "linacc"):
             raise ValueError(f"digit360_imu must be 'acc' or 'linacc', got {self.digit360_imu!r}")
-        if self.digit360_imu == "linacc" and any(v == "sim" for v in digit_specs.values()):
-            raise ValueError("digit360_imu: emulated Digit 360 sensors send the raw accelerometer ('acc') only")
         parse_skin(self.skin, emulated=self.hand.startswith("sim-"))
         if parse_properties(self.properties) and not self.record:
             raise ValueError("properties: they are stored in the recording; give --record FILE.h5 as well")

@@ -164,8 +164,6 @@ def run(cfg: Config) -> dict[str, Any]:
             raise ValueError(f"record_media: no camera or microphones found on the USB hub of the Digit 360 "
                              f"{', '.join(lacking)} (is the whole sensor plugged in, not only its serial port?)")
     check_media_extras(media)
-    if cfg.digit360_imu == "linacc" and any(v == "sim" for v in digit_specs.values()):
-        raise ValueError("digit360_imu: emulated Digit 360 sensors send the raw accelerometer ('acc') only")
     check_before_start(cfg)
     faults = parse_sim_faults(cfg.sim_faults)
     check_sim_faults(faults, setup.emulated, tuple(f for f, v in digit_specs.items() if v == "sim"))

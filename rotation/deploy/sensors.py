@@ -179,7 +179,8 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: H
     emulator's synthetic readings (IMU and pressure only). ``media``: {finger: Digit360Devices} of real sensors
     (:func:`find_media`), whose camera and microphones their readers open beside the serial stream. ``emulators``:
     filled with {finger: Digit360Emulator} of the 'sim' sensors (their fault switches, rotation.deploy.sim_faults).
-    ``imu_channel``: the real sensors' accelerometer channel of the imu windows (Digit360Config.imu_channel).
+    ``imu_channel``: the accelerometer channel of the imu windows (Digit360Config.imu_channel; emulated sensors then
+    send it too).
     """
     if not specs:
         return {}
@@ -193,9 +194,10 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: H
             if value == "sim":
                 from rotation.sim_hardware.digit360_emulator import Digit360Emulator
 
-                emulator = Digit360Emulator() if physics is None else Digit360Emulator(physics=physics, finger=finger,
-                                                                                       epoch=epoch)
-                cfg = Digit360Config(port=stack.enter_context(emulator).path)
+                linacc = imu_channel == "linacc"  # the emulator then also sends the linear acceleration
+                emulator = Digit360Emulator(linacc=linacc) if physics is None else Digit360Emulator(
+                    physics=physics, finger=finger, epoch=epoch, linacc=linacc)
+                cfg = Digit360Config(port=stack.enter_context(emulator).path, imu_channel=imu_channel)
                 rendered = emulator.media
                 if emulators is not None:
                     emulators[finger] = emulator

@@ -81,10 +81,11 @@ class Digit360Emulator(EmulatorThread):
 
     def __init__(self, source: Callable[[float], tuple[float, np.ndarray]] = synthetic_source,
                  version: tuple[int, int] = (1, 22), *, physics: HandPhysics | None = None, finger: str = "index",
-                 seed: int = 0, epoch: float | None = None) -> None:
+                 seed: int = 0, epoch: float | None = None, linacc: bool = False) -> None:
         if physics is not None and source is not synthetic_source:
             raise ValueError("Digit360Emulator: give a source or a hand's physics, not both")
         self.source = source
+        self.linacc = bool(linacc)
         self.version = version
         self.epoch = epoch
         # the emulated hand's own sensor model (dome radius and generation: envs.scene.touch_model)
@@ -166,6 +167,16 @@ class Digit360Emulator(EmulatorThread):
         m.imu_data.raw.ts_ght = k
         m.imu_data.raw.x, m.imu_data.raw.y, m.imu_data.raw.z = (float(a) * ACC_LSB_PER_G for a in accel)
         self._emit(m)
+        if self.linacc:
+            gravity = (self.touch.physics.gravity_in_sensor(self.touch.finger) if self.touch is not None
+                       else np.array([0.0, 0.0, -1.0]))
+            lin = self._msg()
+            lin.imu_data.ts = ts
+            lin.imu_data.raw.sensor = IMU_TYPE["AUX_IMU"]
+            lin.imu_data.raw.ts_ght = k
+            lin.imu_data.raw.x, lin.imu_data.raw.y, lin.imu_data.raw.z = (
+                float(a) * ACC_LSB_PER_G for a in np.asarray(accel) + gravity)
+            self._emit(lin)
         if pressure is not None:
             p = self._msg()
             p.pressure_data.ts = ts

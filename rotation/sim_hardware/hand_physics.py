@@ -36,7 +36,7 @@ from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
 from envs.physics import hand_physics as physics_of
 from envs.scene import OBJECT_JOINT, build_model, hand_variant
-from envs.sensors.digit360 import Digit360Readout, add_digit360_sensors
+from envs.sensors.digit360 import Digit360Readout, add_digit360_sensors, sensor_name
 from envs.task import object_inertia
 
 TIMESTEP = 1e-3
@@ -136,6 +136,17 @@ class HandPhysics:
             mujoco.mj_forward(m, self.data)
             if self._held:
                 self._still_sensors()
+
+    def gravity_in_sensor(self, finger: str) -> np.ndarray:
+        """(3,) gravity in g, (0, 0, -1) in the world, in the frame of fingertip ``finger``'s Digit 360 (its site's
+        orientation at the last physics step): added to the accelerometer's specific force it gives the linear
+        acceleration a sensor fusion reports."""
+        adr = int(self.model.sensor(sensor_name(finger, "quat")).adr[0])
+        with self._lock:
+            q = self.data.sensordata[adr: adr + 4].copy()
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, q / np.linalg.norm(q))
+        return rot.reshape(3, 3).T @ np.array([0.0, 0.0, -1.0])
 
     def object_properties(self) -> dict[str, float | list[float]]:
         """The emulated object's scale, mass (kg), sliding friction coefficient (of its contact with the

@@ -45,8 +45,8 @@ def test_faults_and_the_emulated_object_are_for_emulated_hardware_only():
         Config(hand="allegro", policy="student", sim_object="mass=0.3")
     with pytest.raises(ValueError, match="scale is the grasp cache's nominal"):
         Config(hand="sim-allegro", policy="student", sim_object="scale=0.9")
-    with pytest.raises(ValueError, match="digit360_imu: emulated Digit 360 sensors send"):
-        Config(hand="sim-allegro", policy="student", digit360="sim", digit360_imu="linacc")
+    with pytest.raises(ValueError, match="digit360_imu must be"):
+        Config(hand="sim-allegro", policy="student", digit360="sim", digit360_imu="gravity")
     with pytest.raises(ValueError, match="friction_method"):
         Config(hand="allegro", policy="student", record="x.h5", friction_method="tilt")
 
@@ -94,7 +94,7 @@ def test_a_lost_fingertip_and_corrupt_frames_leave_the_run_going_and_are_reporte
     assert counters["thumb"]["disconnects"] >= 1 and counters["index"]["disconnects"] == 0
     assert counters["index"]["bad_frames"] >= 3 and counters["middle"]["bad_frames"] == 0
     with SessionReader(summary["record"]) as r:
-        assert r.meta.properties["mass"] == pytest.approx(0.25)
+        assert r.meta.properties["mass"] == pytest.approx(0.25) and r.meta.extra["digit360_imu"] == "acc"
         assert r.meta.properties["friction"] == pytest.approx(0.5)
         t_joint = r.stream("joints/position").timestamps
         thumb = r.stream("digit360/thumb/imu").timestamps

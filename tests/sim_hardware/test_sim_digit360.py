@@ -142,3 +142,20 @@ def test_missing_sensor_fails_loudly():
     with pytest.raises(serial.SerialException, match="no Digit 360"):
         with Digit360(Digit360Config(serial_number="not-plugged-in")):
             pass
+
+
+def test_the_linear_acceleration_channel_of_an_emulated_fingertip_is_free_of_gravity():
+    """A held hand is still: its fingertips' accelerometers read 1 g (gravity), their linear acceleration (the
+    sensor fusion's channel, --digit360-imu linacc) about 0; the reader's windows take the channel it is asked for."""
+    from rotation.sim_hardware.hand_physics import HandPhysics
+
+    physics = HandPhysics.at_grasp("cup", 0, hold=True)
+    with Digit360Emulator(physics=physics, finger="index", linacc=True) as emu, \
+            Digit360(Digit360Config(port=emu.path, imu_channel="linacc")) as d:
+        window = wait_for_window(d)
+        acc = np.asarray(d.latest["imu/acc"][1]["g"])
+        lin = np.asarray(d.latest["imu/linacc"][1]["g"])
+    assert 0.95 < np.linalg.norm(acc) < 1.05 and np.linalg.norm(lin) < 0.05, (acc, lin)
+    assert np.abs(window["imu"]).max() < 0.05  # the windows hold the linear acceleration
+    # the gravity the emulator removes is the fingertip frame's: not the world's z, a tilted finger's
+    assert abs(physics.gravity_in_sensor("index")[2]) < 0.99
