@@ -191,7 +191,10 @@ def _run_record(step: dict[str, Any], log: Path) -> dict[str, Any]:
 
 
 def _load_fault(summary: dict[str, Any]) -> bool:
-    return "could not hold" in (summary.get("fault") or "")
+    """A run ended by what a machine too loaded to run the loop gives (deploy's documented faults): the control rate
+    it could not hold, or the policy's actions missing their deadline until the hold limit."""
+    fault = summary.get("fault") or ""
+    return "could not hold" in fault or fault.startswith("policy fault: no usable action")
 
 
 def _run_line(summary: dict[str, Any]) -> str:
