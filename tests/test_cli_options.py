@@ -55,6 +55,8 @@ ALLOWED: dict[str, dict[str, str]] = {
     "ensemble-adapters:touch_every": {"zero": "0 = the first member's refresh period (the default)"},
     "finetune-adapter:action_weight": {"zero": "0 = the latent MSE alone (the default)"},
     "deploy:rt_priority": {"zero": "0 leaves the scheduling alone"},
+    "pretrain:unimodal_layers": {"zero": "fusion layers alone (the size's 2 for tinier)"},
+    "pretrain:fusion_layers": {"zero": "0 = no fusion: the modalities stay independent"},
     "deploy:grasp": {"zero": "row 0 of the grasp cache"},
     "record:rt_priority": {"zero": "0 leaves the scheduling alone"},
     "record:grasp": {"zero": "row 0 of the grasp cache"},

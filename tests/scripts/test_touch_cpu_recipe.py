@@ -42,6 +42,11 @@ def test_the_recipe_lists_every_step_and_each_command_parses(recipe, tmp_path):
             assert parsed.hand == "digit360_v4" and parsed.policy in ("teacher", "random")
     seeds = {int(a[a.index("--seed") + 1]) for _, a in steps if a[0] == "collect"}
     assert recipe.REPORT_SEED in seeds and len(seeds) == len(recipe.COLLECTIONS) + 1  # the report's draws are new
+    faster = recipe.commands(recipe.Config(policy="teacher", out=tmp_path / "r", progress=False, layers=(3, 1)))
+    parsed = _parsed(next(a for w, a in faster if w.startswith("pretrain")))
+    assert (parsed.unimodal_layers, parsed.fusion_layers) == (3, 1)
+    with pytest.raises(ValueError, match="layers: give two counts"):
+        recipe.Config(policy="teacher", out=tmp_path / "r", layers=(3,))
 
 
 def test_finished_steps_are_skipped_and_a_stopped_pretraining_resumes(recipe, tmp_path):

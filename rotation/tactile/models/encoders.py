@@ -30,8 +30,8 @@ from rotation.tactile.models.sparshx_inputs import MODALITIES, TOKEN_GRIDS
 class EncoderKind:
     """How the jobs build, save, load and restrict one kind of encoder."""
 
-    build: Callable[[str, tuple[str, ...], str, float], nn.Module]
-    """(size, groups, fusion, drop_path) -> a freshly initialized encoder."""
+    build: Callable[..., nn.Module]
+    """(size, groups, fusion, drop_path[, (unimodal, fusion) layers]) -> a freshly initialized encoder."""
     grids: Callable[[nn.Module], dict[str, tuple[int, ...]]]
     """Token layout per group: (h, w) grids get 2-D block masks, (n,) sequences 1-D segments."""
     save: Callable[[nn.Module, Path], Path]
@@ -50,8 +50,18 @@ class EncoderKind:
     """``format`` metadata of the kind's saved files (how load_encoder tells the kinds apart)."""
 
 
-def _sparshx_build(size: str, groups: tuple[str, ...], fusion: str, drop_path: float) -> nn.Module:
-    return SparshX(SparshXConfig(size=size, modalities=groups, fusion=fusion, drop_path=drop_path))
+def _sparshx_build(size: str, groups: tuple[str, ...], fusion: str, drop_path: float,
+                   layers: tuple[int | None, int | None] = (None, None)) -> nn.Module:
+    """``layers``: (unimodal, fusion) layer counts instead of the size's (None: the size's)."""
+    return SparshX(SparshXConfig(size=size, modalities=groups, fusion=fusion, drop_path=drop_path,
+                                 unimodal_layers=layers[0], fusion_layers=layers[1]))
+
+
+def _skin_build(size: str, groups: tuple[str, ...], fusion: str, drop_path: float,
+                layers: tuple[int | None, int | None] = (None, None)) -> nn.Module:
+    if layers != (None, None):
+        raise ValueError("layers: the skin encoder's layers come with its size")
+    return SparshSkin(SparshSkinConfig(size=size, drop_path=drop_path))
 
 
 def _sparshx_restrict(model: nn.Module, groups: tuple[str, ...]) -> nn.Module:
@@ -92,12 +102,11 @@ ENCODERS: dict[str, EncoderKind] = {
         describe=lambda m: m.cfg.describe(),  # type: ignore[union-attr]
         sizes=tuple(SIZES),
         groups=MODALITIES,
-        rebuild=lambda m: _sparshx_build(m.cfg.size, tuple(m.cfg.modalities), m.cfg.fusion,  # type: ignore[union-attr]
-                                         m.cfg.drop_path),  # type: ignore[union-attr]
+        rebuild=lambda m: SparshX(m.cfg),  # type: ignore[arg-type] (its layer counts and tokenizers too)
         file_format="sparshx",
     ),
     "skin": EncoderKind(
-        build=lambda size, groups, fusion, drop_path: SparshSkin(SparshSkinConfig(size=size, drop_path=drop_path)),
+        build=_skin_build,
         grids=lambda m: {SKIN_GROUP: (NUM_TAXELS,)},  # blocks over the taxel order
         save=lambda m, path: save_skin(m, path),  # type: ignore[arg-type]
         load=lambda path, drop_path: load_skin(path, drop_path=drop_path),

@@ -40,6 +40,11 @@ class Config:
     """Sparsh-X token groups (modalities), comma-separated; empty = all of the encoder's (skin has one)."""
     fusion: str = "bottleneck"
     """Sparsh-X fusion layers: bottleneck or vanilla."""
+    unimodal_layers: int | None = None
+    """Sparsh-X unimodal layers per modality instead of the size's (tinier: 6); fewer make a faster encoder (4
+    fingertips on 2 CPU cores: tinier 61 ms, 4 + 2 layers 46 ms, 3 + 1 layers 31 ms)."""
+    fusion_layers: int | None = None
+    """Sparsh-X fusion layers instead of the size's (tinier: 2; 0 = none: the modalities stay independent)."""
     drop_path: float = 0.1
     """Stochastic depth of the student's last layer (Sparsh-X: 0.1; 0 = none)."""
     fingers: tuple[str, ...] = FINGERS
@@ -140,6 +145,13 @@ class Config:
         parse_groups(self.modalities, self.encoder)
         if self.fusion not in ("bottleneck", "vanilla"):
             raise ValueError(f"fusion: must be bottleneck or vanilla, got {self.fusion!r}")
+        for name in ("unimodal_layers", "fusion_layers"):
+            if getattr(self, name) is not None:
+                check_int(name, getattr(self, name), 0, 64)
+                if self.encoder != "sparshx":
+                    raise ValueError(f"{name}: a Sparsh-X option; the skin encoder's layers come with its size")
+        if self.unimodal_layers == 0 and self.fusion_layers == 0:
+            raise ValueError("unimodal_layers, fusion_layers: the encoder needs at least one layer")
         check_fingers(self.fingers)
         check_number("drop_path", self.drop_path, 0.0, 1.0, high_open=True)
         for name, high in (("stride", 1000), ("steps", 10**9), ("batch_size", 65536), ("checkpoint_every", 10**9),

@@ -163,7 +163,7 @@ def build(cfg: Config) -> tuple[torch.nn.Module, torch.nn.Module]:
     """The freshly initialized student (encoder + head, seeded by ``cfg.seed``) and the loss of a run."""
     kind = encoder_kind(cfg.encoder)
     torch.manual_seed(cfg.seed)
-    encoder = kind.build(cfg.size, cfg.groups, cfg.fusion, cfg.drop_path)
+    encoder = kind.build(cfg.size, cfg.groups, cfg.fusion, cfg.drop_path, (cfg.unimodal_layers, cfg.fusion_layers))
     interface = encoder.token_interface
     hidden, prototypes = cfg.head_sizes()
     head = DINOHead(interface.width, hidden, cfg.head_bottleneck, prototypes)

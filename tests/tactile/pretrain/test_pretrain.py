@@ -197,6 +197,25 @@ def test_bad_input_is_a_clear_error(tmp_path, touch_sessions, touch_cache, capsy
     assert "size: unknown size 'huge'" in capsys.readouterr().err
 
 
+def test_a_faster_encoder_by_its_layer_counts(tmp_path, touch_sessions, touch_cache, cache_stride):
+    """--unimodal-layers / --fusion-layers build a Sparsh-X of that depth, which a fresh copy (the probes' and the
+    ladder's end-to-end baselines) keeps; the skin encoder and an encoder without layers are refused."""
+    from rotation.tactile.models.encoders import ENCODERS
+
+    cfg = tiny(tmp_path, touch_cache, touch_sessions, cache_stride, unimodal_layers=3, fusion_layers=1)
+    student, _ = pretrain.build(cfg)
+    enc = student.encoder
+    assert (enc.cfg.num_unimodal, enc.cfg.depth) == (3, 4)
+    assert ENCODERS["sparshx"].rebuild(enc).cfg == enc.cfg
+    default = pretrain.build(tiny(tmp_path, touch_cache, touch_sessions, cache_stride))[0].encoder
+    count = sum(p.numel() for p in enc.parameters())
+    assert count < 0.6 * sum(p.numel() for p in default.parameters())  # 4 of tinier's 8 layers
+    with pytest.raises(ValueError, match="at least one layer"):
+        tiny(tmp_path, touch_cache, touch_sessions, cache_stride, unimodal_layers=0, fusion_layers=0)
+    with pytest.raises(ValueError, match="layers: the skin encoder"):
+        ENCODERS["skin"].build("tinier", ("skin",), "bottleneck", 0.0, (3, 1))
+
+
 def test_a_stop_signal_saves_then_stops(tmp_path, touch_sessions, touch_cache, monkeypatch, cache_stride):
     from rotation.interrupt import Interrupted
 
