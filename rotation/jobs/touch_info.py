@@ -195,9 +195,18 @@ def read_sensor(cfg: Config) -> dict[str, Any]:
         streams[name] = {"samples": after[name][0], "rate_hz": None if rate is None else round(rate, 2),
                          "t_last": after[name][1], "last": _jsonable(value)}
     return {"sensor": port, "usb_serial": usb_serial, "seconds": cfg.seconds, "firmware": reader.version or None,
-            "time": CLOCK, "streams": streams,
+            "time": CLOCK, "streams": streams, "imu_timing": _imu_timing(reader),
             "counters": {"frames": c["frames"], "bad_frames": c["bad_frames"], "unknown_kinds": c["unknown"],
                          "disconnects": c["disconnects"]}}
+
+
+def _imu_timing(reader: Any) -> str:
+    """How the windowed IMU samples are timed (rotation.hardware.digit360.fine_clock): by the sensor time stamp
+    once it proves to be a finer clock, else by the device's milliseconds (what a lab's first sensor tells)."""
+    ticks = reader._fine.ticks_per_ms
+    if ticks is None:
+        return "device milliseconds (the sensor time stamp ts_ght is not a finer clock in step with them, or not yet)"
+    return f"sensor time stamp ts_ght, {ticks:.3f} ticks per ms ({1e3 / ticks:.3f} us per tick)"
 
 
 def _text(value: Any) -> str:
@@ -213,7 +222,8 @@ def _text(value: Any) -> str:
 def format_report(report: dict[str, Any]) -> str:
     lines = [f"Digit 360 {report['sensor']} (USB serial {report['usb_serial'] or '-'}), read for "
              f"{report['seconds']:g} s; firmware {report['firmware'] or 'not reported'}",
-             f"times: {report['time']}", f"{'stream':<12s} {'samples':>8s} {'rate (Hz)':>10s}  last sample"]
+             f"times: {report['time']}", f"IMU sample times: {report['imu_timing']}",
+             f"{'stream':<12s} {'samples':>8s} {'rate (Hz)':>10s}  last sample"]
     for name, s in report["streams"].items():
         rate = "-" if s["rate_hz"] is None else f"{s['rate_hz']:.1f}"
         lines.append(f"{name:<12s} {s['samples']:>8d} {rate:>10s}  {_text(s['last'])}")

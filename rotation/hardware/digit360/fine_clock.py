@@ -45,6 +45,11 @@ class FineClock:
         """Whether sample times come from ``ts_ght`` now."""
         return self._fit is not None
 
+    @property
+    def ticks_per_ms(self) -> float | None:
+        """``ts_ght`` ticks per millisecond of the current fit (None while sample times are the milliseconds)."""
+        return None if self._fit is None else float(self._fit[1])
+
     def __call__(self, ts_ms: int, ts_ght: int) -> float:
         if self._pairs and (ts_ght < self._pairs[-1][1] or ts_ms < self._pairs[-1][0]):
             self._pairs.clear()  # a restart of either clock: start over

@@ -181,6 +181,9 @@ def test_sensor_time_stamps_that_prove_a_finer_clock_time_the_imu_samples():
         t, _ = r.imu.snapshot()
         spacing[name] = np.diff(t[-200:]) * 1e3  # ms, the last half second
         assert r._fine.active == (name == "fine")
+        assert (r._fine.ticks_per_ms is None) == (name != "fine")
+        if name == "fine":
+            assert r._fine.ticks_per_ms == pytest.approx(64.0, rel=1e-3)  # what `rotate touch-info` reports
     assert np.allclose(spacing["fine"], 2.5, atol=1e-3)  # within a microsecond
     for name in ("samples", "noise"):  # whole milliseconds: 2 or 3 ms apart
         assert set(np.round(spacing[name], 2)) == {2.0, 3.0}
