@@ -25,7 +25,7 @@ from envs.grasp_cache import GraspCache, load_default_cache
 from envs.objects import ObjectSpec, get_object
 from envs.observation import ProprioHistory
 from envs.rng import CounterRNG, env_keys
-from envs.scene import OBJECT_BODY, build_model, touch_model
+from envs.scene import OBJECT_BODY, build_model, link_geoms, skin_geoms, touch_model
 from envs.sensors.digit360 import add_digit360_sensors
 from envs.sensors.skin_obs import SkinState, skin_space
 from envs.sensors.tactile_obs import TouchState, tactile_space
@@ -56,13 +56,6 @@ def set_torque_limits(m: mujoco.MjModel, cfg: EnvConfig) -> None:
         m.actuator_forcerange[:] = np.stack([-C.TORQUE_LIMITS, C.TORQUE_LIMITS], axis=1)
     else:
         m.actuator_forcerange[:] = [-cfg.torque_limit, cfg.torque_limit]
-
-
-def skin_geoms(m: mujoco.MjModel) -> np.ndarray:
-    """The geoms that are skin (the gel domes ``<finger>_tip``, the Xela shells and pads ``xela_*``): on the
-    hardware's physics they take the fingertips' friction, the rest of the hand the links' one."""
-    skin = {f"{finger}_tip" for finger in C.FINGERS}
-    return np.array([g for g in range(m.ngeom) if m.geom(g).name in skin or m.geom(g).name.startswith("xela_")])
 
 
 def task_model(cfg: EnvConfig, edit=None) -> tuple[mujoco.MjModel, ObjectSpec, float]:
@@ -106,7 +99,7 @@ class EpisodeStarts:
         # the hardware physics (envs.physics): the skin and the rest of the hand, each with its own friction, and the
         # model fields its other draws write
         self.tip_geoms = skin_geoms(model)
-        self.link_geoms = np.setdiff1d(np.flatnonzero(model.geom_contype > 0), np.r_[self.tip_geoms, self.obj_geoms])
+        self.link_geoms = link_geoms(model, self.obj_geoms)
         self.forcerange0 = model.actuator_forcerange.copy()
         self.frictionloss0 = model.dof_frictionloss.copy()
         self.solref0 = model.geom_solref.copy()

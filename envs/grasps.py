@@ -18,12 +18,12 @@ import numpy as np
 from envs import constants as C
 from envs import task
 from envs.config import EnvConfig, RandomizationConfig, default_randomization
-from envs.core import EpisodeStarts, set_contact, set_torque_limits, skin_geoms, task_model
+from envs.core import EpisodeStarts, set_contact, set_torque_limits, task_model
 from envs.errors import RequestRefused
 from envs.geometry import tilt_angle
 from envs.grasp_cache import GRASP_DIM, GraspCache
 from envs.objects import ObjectSpec, get_object
-from envs.scene import OBJECT_BODY, build_model, hand_variant
+from envs.scene import OBJECT_BODY, build_model, hand_variant, skin_geoms
 
 DEFAULT_MAX_TILT = 0.15
 """Grasps must hold the object's up axis within this angle (rad, about 9 degrees) of vertical after settling:

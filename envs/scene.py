@@ -13,6 +13,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from envs.constants import FINGERS
 from envs.objects import ObjectSpec
 from envs.sensors.digit360_model import Digit360Model
 
@@ -129,3 +130,16 @@ def build_model(obj: ObjectSpec, scale: float = 1.0, timestep: float = 0.01,
     if edit is not None:
         edit(spec)
     return spec.compile()
+
+
+def skin_geoms(m: mujoco.MjModel) -> np.ndarray:
+    """The geoms that are skin (the gel domes ``<finger>_tip``, the Xela shells and pads ``xela_*``): on the
+    hardware's physics they take the fingertips' friction, the rest of the hand the links' one."""
+    skin = {f"{finger}_tip" for finger in FINGERS}
+    return np.array([g for g in range(m.ngeom) if m.geom(g).name in skin or m.geom(g).name.startswith("xela_")])
+
+
+def link_geoms(m: mujoco.MjModel, obj_geoms: np.ndarray) -> np.ndarray:
+    """The colliding geoms of the hand that are not skin (finger links, sensor housings, palm): the ones with the
+    links' own friction where the hardware's physics draws one (EnvConfig's ``link_friction``)."""
+    return np.setdiff1d(np.flatnonzero(m.geom_contype > 0), np.r_[skin_geoms(m), obj_geoms])

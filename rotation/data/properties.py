@@ -49,10 +49,12 @@ def check_properties(props: Mapping[str, Any], where: str) -> dict[str, float | 
         raise ValueError(f"{where}: missing measured object propert{'ies' if len(missing) > 1 else 'y'} "
                          f"{', '.join(missing)} (has: {have}); the privileged vector needs "
                          f"{', '.join(PROPERTY_SIZES)} (rotation.data.properties)")
-    return {k: _check_value(k, props[k], where) for k in PROPERTY_SIZES}
+    return {k: check_value(k, props[k], where) for k in PROPERTY_SIZES}
 
 
-def _check_value(key: str, value: Any, where: str) -> float | list[float]:
+def check_value(key: str, value: Any, where: str) -> float | list[float]:
+    """One property's value (``key`` of PROPERTY_SIZES) checked: its count of finite numbers within PROPERTY_LIMITS;
+    ValueError naming ``where`` and the key."""
     n = PROPERTY_SIZES[key]
     values = value if isinstance(value, list | tuple) else [value]
     if len(values) != n or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in values):
@@ -96,6 +98,6 @@ def parse_properties(spec: str, where: str = "properties") -> dict[str, float | 
             numbers = [float(t) for t in texts]
         except ValueError:
             raise ValueError(f"{where}: property {key!r} = {','.join(texts)!r} is not a number; {form}") from None
-        out[key] = _check_value(key, numbers if PROPERTY_SIZES[key] > 1 else
+        out[key] = check_value(key, numbers if PROPERTY_SIZES[key] > 1 else
                                 (numbers[0] if len(numbers) == 1 else numbers), where)
     return out

@@ -115,8 +115,6 @@ class Config:
             if self.baud not in BAUD_CODES:
                 raise ValueError(f"baud: {self.baud} is not a Dynamixel baud rate; choose one of {sorted(BAUD_CODES)}")
         digit_specs = parse_digit360(self.digit360, emulated=self.hand.startswith("sim-"))
-        if self.digit360_imu not in ("acc", "linacc"):
-            raise ValueError(f"digit360_imu must be 'acc' or 'linacc', got {self.digit360_imu!r}")
         parse_skin(self.skin, emulated=self.hand.startswith("sim-"))
         if parse_properties(self.properties) and not self.record:
             raise ValueError("properties: they are stored in the recording; give --record FILE.h5 as well")

@@ -37,7 +37,7 @@ from typing import Any
 
 from envs.constants import FINGERS
 from envs.errors import RequestRefused
-from rotation.data.properties import PROPERTY_SIZES, PROPERTY_UNITS, check_properties, parse_properties
+from rotation.data.properties import PROPERTY_SIZES, PROPERTY_UNITS, check_properties, check_value, parse_properties
 from rotation.deploy import config as deploy_config
 from rotation.deploy.sensors import parse_digit360
 
@@ -112,10 +112,9 @@ def read_card(path: str) -> dict[str, Any]:
     for key in ("object", "friction_method", "notes"):
         if key in card and not isinstance(card[key], str):
             raise ValueError(f"{where}: {key!r} must be text, got {card[key]!r}")
-    props = {k: card[k] for k in PROPERTY_SIZES if k in card}
-    if props:
-        partial = {**dict.fromkeys(PROPERTY_SIZES, 1.0), "com": [0.0, 0.0, 0.0], **props}
-        check_properties(partial, where)  # each value stated, checked (the missing ones are asked or refused later)
+    for key in PROPERTY_SIZES:  # each value stated, checked (the missing ones are asked or refused later)
+        if key in card:
+            check_value(key, card[key], where)
     return card
 
 

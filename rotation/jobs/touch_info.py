@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from envs.errors import RequestRefused
+from rotation.configs import to_jsonable
 
 STREAMS = {
     "data tty": "USB CDC 2833:4001, COBS-framed protobuf: accelerometer (g, 400 Hz in Sparsh-X), pressure (hPa, "
@@ -110,17 +111,6 @@ def _rate(before: tuple[int, float] | None, after: tuple[int, float]) -> float |
     return (after[0] - before[0]) / (after[1] - before[1])
 
 
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (tuple, list, np.ndarray)):
-        return [_jsonable(v) for v in np.asarray(value).tolist()] if isinstance(value, np.ndarray) \
-            else [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
 def _media_last(d, name: str) -> dict[str, Any]:
     if name == "camera":
         _, frame = d.image.last(1)
@@ -193,7 +183,7 @@ def read_sensor(cfg: Config) -> dict[str, Any]:
         value = last[name] if name in last else reader.latest[name][1]
         rate = _rate(before.get(name), after[name])
         streams[name] = {"samples": after[name][0], "rate_hz": None if rate is None else round(rate, 2),
-                         "t_last": after[name][1], "last": _jsonable(value)}
+                         "t_last": after[name][1], "last": to_jsonable(value)}
     return {"sensor": port, "usb_serial": usb_serial, "seconds": cfg.seconds, "firmware": reader.version or None,
             "time": CLOCK, "streams": streams, "imu_timing": _imu_timing(reader),
             "counters": {"frames": c["frames"], "bad_frames": c["bad_frames"], "unknown_kinds": c["unknown"],

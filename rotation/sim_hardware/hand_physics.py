@@ -31,11 +31,11 @@ import numpy as np
 
 from envs.config import default_randomization
 from envs.constants import HOME_POSE, JOINT_NAMES, NUM_JOINTS
-from envs.core import set_contact, skin_geoms
+from envs.core import set_contact
 from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
 from envs.physics import hand_physics as physics_of
-from envs.scene import OBJECT_JOINT, build_model, hand_variant
+from envs.scene import OBJECT_JOINT, build_model, hand_variant, link_geoms
 from envs.sensors.digit360 import Digit360Readout, add_digit360_sensors, sensor_name
 from envs.task import object_inertia
 
@@ -119,7 +119,7 @@ class HandPhysics:
             m, body = self.model, self.model.body("object").id
             if friction is not None:
                 obj = np.flatnonzero(m.geom_bodyid == body)
-                links = np.setdiff1d(np.flatnonzero(m.geom_contype > 0), np.r_[skin_geoms(m), obj])
+                links = link_geoms(m, obj)
                 link_friction = m.geom_friction[links, 0].copy()
                 m.geom_friction[:, 0] = friction
                 if default_randomization(self.hand).link_friction is not None and len(links):

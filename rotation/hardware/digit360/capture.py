@@ -47,6 +47,8 @@ from typing import Any
 
 import numpy as np
 
+from rotation.hardware.digit360.window import AUDIO_RATE, IMAGE_SIZE
+
 log = logging.getLogger("rotation.hardware.digit360")
 
 EXTRA = "pip install 'tactile-rotation[hardware]'"
@@ -57,8 +59,6 @@ CAMERA_FPS = 30.0
 FPS_TOLERANCE = 0.1
 """A reported rate within this fraction of 30 fps is accepted (29.97 is; 25 and 15 are not: the image window's
 two frames, 5 apart, would no longer be about 167 ms apart)."""
-IMAGE_SIZE = 224
-AUDIO_RATE = 48_000
 AUDIO_CHANNELS = 2
 
 

@@ -346,7 +346,7 @@ class Digit360:
             if part == "raw":
                 r = imu.raw
                 unit, values = raw_imu_physical(r.sensor, r.x, r.y, r.z)
-                if r.sensor == self._window_imu:
+                if windowed:
                     self.imu.append(t, values)  # the channel cfg.imu_channel names feeds the windows
                 name = _IMU_NAMES.get(r.sensor, f"imu/type{r.sensor}")
                 self._seen(name, t, {unit: values})
