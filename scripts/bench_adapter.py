@@ -16,11 +16,29 @@ Figures (medians over ``iters`` timed calls after 2 untimed ones, ``threads`` to
 - ``amortized_ms``: the mean step cost at the adapter's refresh period, (step + (touch_every - 1) x student) /
   touch_every.
 
+With ``--deploy S`` it then measures the touch path's latency where it happens: an S-second ``rotate deploy
+--hand sim-allegro`` of the adapter (the given one, else the shipped ``adapter``) with emulated fingertips, in its
+own process at 20 Hz (the emulated hand and sensors share the cores, as a lab's machine shares them with its
+drivers). From its summary:
+
+- ``latency_ms_p50`` / ``latency_ms_p95``: each correction's touch age at its first action, from the newest sensor
+  sample of the oldest fingertip window it read to that step's command to the hand;
+- ``age_ms_p50`` / ``age_ms_p95``: the touch age of every step acted with a correction (held between refreshes);
+- ``read_age_ms_p50``: how old the touch was when the worker had read it (the sensors' and the link's share);
+- ``read_ms_p50`` / ``encode_ms_p50`` / ``encode_ms_p95``: a refresh's reading of the windows and its encoding;
+- ``delay_steps``: corrections by control steps from the step whose refresh read them to their first step, and
+  ``delay_spec``, the same as ``--touch-delay`` text;
+- ``delay_steps_no_render`` / ``delay_spec_no_render``: the same had reading the windows cost nothing. An emulated
+  fingertip renders its image and audio when its window is read (hundreds of ms for four on 2 cores), a real one
+  hands over slices of what its camera and microphones streamed: this is the delay a real hand meets, and what
+  adapters.touch_delay.MEASURED_TABLE holds.
+
 The last line printed is a JSON object with every figure.
 
     python scripts/bench_adapter.py
     python scripts/bench_adapter.py --threads 1 --iters 30 --adapter runs/adapter/bundle
     python scripts/bench_adapter.py --adapter runs/ensemble        # an adapter ensemble (adapters.ensemble)
+    python scripts/bench_adapter.py --deploy 60                     # and the latency in an emulated deploy
 """
 
 from __future__ import annotations
@@ -28,6 +46,8 @@ from __future__ import annotations
 import json
 import os
 import statistics
+import subprocess
+import sys
 import time
 from dataclasses import dataclass
 
@@ -54,6 +74,8 @@ class Config:
     """Refresh period for ``amortized_ms`` (a given adapter bundle's own period overrides it)."""
     seed: int = 0
     """Seed of the random windows and observations."""
+    deploy: float = 0.0
+    """Seconds of an emulated deploy to measure the touch path's latency in (0: none; see the module docstring)."""
 
 
 def raw_windows(fingers: tuple[str, ...], rng: np.random.Generator) -> dict[str, dict[str, np.ndarray]]:
@@ -82,6 +104,8 @@ def run(cfg: Config) -> dict:
 
     if cfg.threads < 1 or cfg.iters < 1 or cfg.touch_every < 1:
         raise ValueError(f"threads, iters and touch_every must be >= 1, got {cfg}")
+    if not 0 <= cfg.deploy <= 3600:
+        raise ValueError(f"deploy must be 0-3600 s (0: no deploy), got {cfg.deploy}")
     torch.set_num_threads(cfg.threads)
     load_before = os.getloadavg()[0]
     rng = np.random.default_rng(cfg.seed)
@@ -114,8 +138,44 @@ def run(cfg: Config) -> dict:
     result["amortized_ms"] = round((result["step_ms"] + (touch_every - 1) * result["student_ms"]) / touch_every, 2)
     result["threads"] = cfg.threads
     result["loadavg_1min_before"] = round(load_before, 2)
+    if cfg.deploy > 0:
+        result.update(deploy_latency(cfg.adapter or "adapter", cfg.deploy))
     print(json.dumps(result))
     return result
+
+
+def deploy_latency(adapter: str, seconds: float) -> dict:
+    """The touch latency figures of an emulated ``rotate deploy`` of ``adapter`` (module docstring)."""
+    from adapters.touch_delay import delay_spec, parse_delay
+
+    command = [sys.executable, "-m", "rotation.cli", "deploy", "--hand", "sim-allegro", "--policy", adapter,
+               "--duration", f"{seconds:g}", "--status-every-s", "1000"]
+    print("deploy:", " ".join(command[2:]), flush=True)
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    try:
+        summary = json.loads(done.stdout.strip().splitlines()[-1])
+    except (IndexError, json.JSONDecodeError):
+        raise RuntimeError(f"the emulated deploy printed no summary (exit {done.returncode}): "
+                           f"{done.stderr.strip()[-2000:]}") from None
+    touch = summary.get("touch") or {}
+    steps = touch.get("first_use_steps") or {}
+    if not steps:
+        raise RuntimeError(f"the emulated deploy's adapter never acted (fault: {summary.get('fault')}; touch: {touch})")
+    def spec_of(counts: dict) -> str:
+        return delay_spec(parse_delay(",".join(f"{k}:{v}" for k, v in counts.items())))
+
+    spec, no_render = spec_of(steps), touch["first_use_steps_no_render"]
+    figures = {"deploy_s": seconds, "deploy_fault": summary.get("fault"), "deploy_late_steps": summary["late_steps"],
+               "latency_ms_p50": touch["first_use_age_ms_p50"], "latency_ms_p95": touch["first_use_age_ms_p95"],
+               "age_ms_p50": touch["age_ms_p50"], "age_ms_p95": touch["age_ms_p95"],
+               "read_age_ms_p50": touch["read_age_ms_p50"], "refresh_ms_p50": touch["refresh_ms_p50"],
+               "read_ms_p50": touch["read_ms_p50"], "encode_ms_p50": touch["encode_ms_p50"],
+               "encode_ms_p95": touch["encode_ms_p95"], "delay_steps": steps, "delay_spec": spec,
+               "delay_steps_no_render": no_render, "delay_spec_no_render": spec_of(no_render)}
+    print(f"touch latency in deploy ({seconds:g} s, {sum(steps.values())} corrections): median "
+          f"{figures['latency_ms_p50']:.0f} ms, p95 {figures['latency_ms_p95']:.0f} ms; --touch-delay {spec}; "
+          f"without the emulated sensors' rendering (a real hand): --touch-delay {figures['delay_spec_no_render']}")
+    return {k: round(v, 2) if isinstance(v, float) else v for k, v in figures.items()}
 
 
 def main(argv: list[str] | None = None) -> int:

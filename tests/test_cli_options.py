@@ -74,7 +74,6 @@ ALLOWED: dict[str, dict[str, str]] = {
     "train-student:env.perturb.com_shift": {"zero": "no shift of the centre of mass"},
     "collect:com_shift": {"zero": "no shift of the centre of mass"},
     "evaluate:com_shift": {"zero": "no shift of the centre of mass"},
-    "evaluate:touch_lag": {"zero": "the correction acts in the step whose touch it read (the default)"},
     "pretrain:drop_path": {"zero": "no stochastic depth"},
     "pretrain:weight_decay": {"zero": "no weight decay"},
     "pretrain:weight_decay_end": {"zero": "no weight decay at the end of the cosine schedule"},

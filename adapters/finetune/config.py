@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from adapters.touch_delay import parse_delay
 from envs.config import EnvConfig, RandomizationConfig
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import config_resuming_in_out, from_jsonable
@@ -49,6 +50,11 @@ class Config:
     """Control steps between touch refreshes while training, written into the bundle as its refresh period at run
     time; a shorter one can be set afterwards in the bundle's config.json (the shipped adapter trained with 8 and
     runs with 4, which kept more cups: experiments/adapter/tried_touch4)."""
+    touch_delay: str = "measured"
+    """Control steps from the touch a refresh reads to the first action its correction changes in the training
+    rollouts, drawn per refresh (adapters.touch_delay): 'measured' (what `rotate deploy` measured on 2 CPU cores at
+    20 Hz), N (always N; 0: the same step) or STEPS:PROB pairs; recorded in the bundle's card. The regression target
+    is the teacher's latent at the step the touch was read."""
     student_steps: int = 10_000
     """Env steps at the start during which the student acts alone (then student + adapter, DAgger)."""
     updates: int = 4
@@ -146,6 +152,7 @@ class Config:
         check_int("num_envs", self.num_envs, 1, 4096)
         check_int("touch_every", self.touch_every, 1, 1000)
         check_int("student_steps", self.student_steps, 0, 10**12)
+        self.delay = parse_delay(self.touch_delay)
         check_int("updates", self.updates, 1, 10_000)
         check_int("batch_size", self.batch_size, 1, 1 << 20)
         check_int("buffer_size", self.buffer_size, 1, 1 << 24)

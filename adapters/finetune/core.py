@@ -219,6 +219,7 @@ class Job:
         ``after_stop`` (formatted with the bundle directory). ``done`` / ``of``: how far it got and the total (e.g.
         '384 env steps' / '768')."""
         card = {"kind": "adapter", "trained_by": "rotate finetune-adapter", **card,
+                "touch_delay": self.cfg.delay.describe(1.0 / self.cfg.env.control_dt),
                 "wall_time_s": round(self.wall_time_s, 1), "teacher": self.cfg.teacher, "config": to_jsonable(self.cfg)}
         if signum:
             card["interrupted"] = f"stopped by {SIGNAL_NAMES.get(signum, signum)} at {done}"

@@ -1,14 +1,14 @@
 """`rotate finetune-adapter --refit-head`: solve the adapter's zero layer in closed form on its own rollouts.
 
 The adapter's correction is ``ZeroLinear(h)``, with ``h = g(pooled tokens, phi)`` its last hidden features. Given
-``h`` and the exact correction ``z_teacher - phi`` over many states, the best linear map from one to the other is
-a ridge regression, which gradient steps on a ring buffer only approach. This mode keeps every weight of the
-``--init-from`` adapter but the zero layer's, rolls that adapter out (acting with its corrections, held between
-touch refreshes as at run time) in the training env for ``total_steps`` env steps, records ``h`` and the target at
-every refresh, and replaces the zero layer's weight and bias with the ridge solution. The ridge strength is chosen
-from ``refit_lambdas`` by ``refit_folds``-fold cross-validation with whole episodes held out (a cup's samples are
-alike, so held-out samples of a training episode would flatter a weak penalty); the card records every
-candidate's held-out latent error.
+``h`` and the exact correction ``z_teacher - phi`` over many states, the best linear map from one to the other is a
+ridge regression, which gradient steps on a ring buffer only approach. This mode keeps every weight of the ``--init-
+from`` adapter but the zero layer's, rolls that adapter out (acting with its corrections, held between touch
+refreshes and acting ``touch_delay`` steps after the touch they read, as at run time) in the training env for
+``total_steps`` env steps, records ``h`` and the target at every refresh, and replaces the zero layer's weight and
+bias with the ridge solution. The ridge strength is chosen from ``refit_lambdas`` by ``refit_folds``-fold cross-
+validation with whole episodes held out (a cup's samples are alike, so held-out samples of a training episode would
+flatter a weak penalty); the card records every candidate's held-out latent error.
 
     rotate finetune-adapter --init-from rotation/policies/adapter/members/all_modalities --refit-head \\
         --total-steps 76800 \\
@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from adapters.finetune.core import Job, Result, errors_to_teacher, log_point
 from adapters.finetune.rollout import refresh_inputs, rollout_point, step_and_restart
+from adapters.touch_delay import DelayLine
 from envs.metrics import EpisodeTracker
 from rotation.interrupt import StopSignals, end_loop
 
@@ -48,17 +49,14 @@ def refit_in_sim(job: Job) -> Result:
     curves, writer = job.open_outputs("env_steps", 0)
     head = policy.student.net.head
     tracker = EpisodeTracker(n, cfg.env.control_dt, cfg.env.episode_steps)
-    features: list[np.ndarray] = []
-    targets: list[np.ndarray] = []
-    episode_ids: list[np.ndarray] = []
-    episode = np.arange(n)  # a distinct id per episode: env i's next episode gets the next free id
+    refresh = _Samples(policy, teacher, head, n)
     next_id = n
     history: list[dict[str, float]] = []
-    sums: dict[str, float] = {}
     episodes: list = []
-    correction = np.zeros((n, adapter.cfg.latent_dim), np.float32)
+    line = DelayLine(n, adapter.cfg.latent_dim, k, cfg.delay, [cfg.seed + i for i in range(n)])
+    every_env = np.arange(n)
     bar = tqdm(total=total_iters * n, unit="step", disable=not cfg.progress, desc="refit-head", dynamic_ncols=True)
-    signum, refreshes, done_iters = None, 0, 0
+    signum, done_iters = None, 0
     stop = StopSignals()
     try:
         stop.__enter__()
@@ -66,32 +64,23 @@ def refit_in_sim(job: Job) -> Result:
         tracker.begin(obs)
         for it in range(total_iters):
             groups = {key: obs[key] for key in policy.config.obs_groups}
-            if it % k == 0:
-                z_teacher, z_student, proprio, tokens, track = refresh_inputs(policy, teacher, obs, groups)
-                with torch.no_grad():
-                    h = adapter.hidden(adapter.pooled(tokens), z_student, track)
-                    corr = adapter.zero(h)
-                features.append(h.double().numpy())
-                targets.append((z_teacher - z_student).double().numpy())
-                episode_ids.append(episode.copy())
-                correction[:] = corr.numpy()
-                for key, value in errors_to_teacher(head, proprio, z_student + corr, z_student, z_teacher).items():
-                    sums[key] = sums.get(key, 0.0) + value
-                refreshes += 1
+            refresh.obs, refresh.groups = obs, groups
+            correction = line.step(it, every_env, refresh)  # the envs due refresh from this step's touch
             obs, ended, done = step_and_restart(env, tracker, policy.act_batch(groups, correction=correction),
-                                                correction)
+                                                line.correction)
+            line.restart(done, it + 1)
             episodes += ended
-            episode[done] = next_id + np.arange(len(done))
+            refresh.episode[done] = next_id + np.arange(len(done))
             next_id += len(done)
             bar.update(n)
             done_iters = it + 1
-            if refreshes and ((it % k == 0 and refreshes % cfg.log_every == 0) or done_iters == total_iters):
-                point = rollout_point({"iteration": done_iters, "env_steps": done_iters * n}, sums, refreshes,
-                                      episodes)
+            if refresh.refreshes and ((it + 1) % (cfg.log_every * k) == 0 or done_iters == total_iters):
+                point = rollout_point({"iteration": done_iters, "env_steps": done_iters * n}, refresh.sums,
+                                      refresh.refreshes, episodes)
                 log_point(writer, point, "env_steps")
                 history.append(point)
                 curves.append([point])  # on disk at once: the rollout is long and has no checkpoints
-                sums, refreshes, episodes = {}, 0, []
+                refresh.sums, refresh.refreshes, episodes = {}, 0.0, []
             if stop.requested:
                 break
     except KeyboardInterrupt as err:
@@ -101,8 +90,9 @@ def refit_in_sim(job: Job) -> Result:
     signum = signum or stop.signum
 
     card: dict[str, Any] = {"env_steps": done_iters * n, "refit_head": None}
-    if features:
-        h_all, t_all, ids = np.concatenate(features), np.concatenate(targets), np.concatenate(episode_ids)
+    if refresh.features:
+        h_all, t_all = np.concatenate(refresh.features), np.concatenate(refresh.targets)
+        ids = np.concatenate(refresh.episode_ids)
         n_episodes = len(np.unique(ids))
         before = float(((h_all @ adapter.zero.weight.detach().double().numpy().T
                          + adapter.zero.bias.detach().double().numpy() - t_all) ** 2).mean())
@@ -162,3 +152,37 @@ def ridge_by_episode_cv(h: np.ndarray, t: np.ndarray, episodes: np.ndarray, lamb
     best = min(table, key=lambda r: r["cv_latent_mse"])["lambda"]
     weight, bias = ridge(h, t, best)
     return weight, bias, table, best
+
+
+class _Samples:
+    """The refreshes of the refit's rollouts: called by the delay line with the envs whose refresh starts (``obs``,
+    ``groups`` and ``episode`` are this step's), it keeps their hidden features, targets and episode ids and returns
+    their corrections."""
+
+    def __init__(self, policy: Any, teacher: Any, head: Any, n: int) -> None:
+        self.policy, self.teacher, self.head, self.n = policy, teacher, head, n
+        self.obs: dict[str, Any] = {}
+        self.groups: dict[str, Any] = {}
+        self.episode = np.arange(n)
+        """A distinct id per episode: env i's next episode gets the next free id."""
+        self.features: list[np.ndarray] = []
+        self.targets: list[np.ndarray] = []
+        self.episode_ids: list[np.ndarray] = []
+        self.sums: dict[str, float] = {}
+        self.refreshes = 0.0
+        """Refreshes of every env since the last log point (samples / n)."""
+
+    @torch.no_grad()
+    def __call__(self, ids: np.ndarray) -> np.ndarray:
+        adapter = self.policy.adapter
+        z_teacher, z_student, proprio, tokens, track = refresh_inputs(
+            self.policy, self.teacher, self.obs, {key: v[ids] for key, v in self.groups.items()}, ids)
+        h = adapter.hidden(adapter.pooled(tokens), z_student, track)
+        corr = adapter.zero(h)
+        self.features.append(h.double().numpy())
+        self.targets.append((z_teacher - z_student).double().numpy())
+        self.episode_ids.append(self.episode[ids].copy())
+        for key, value in errors_to_teacher(self.head, proprio, z_student + corr, z_student, z_teacher).items():
+            self.sums[key] = self.sums.get(key, 0.0) + value * len(ids) / self.n
+        self.refreshes += len(ids) / self.n
+        return corr.numpy()

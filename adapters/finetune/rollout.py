@@ -39,14 +39,16 @@ def rollout_point(base: dict[str, float], sums: dict[str, float], refreshes: int
 
 
 @torch.no_grad()
-def refresh_inputs(policy: Any, teacher: Any, obs: dict[str, Any], groups: dict[str, Any]
+def refresh_inputs(policy: Any, teacher: Any, obs: dict[str, Any], groups: dict[str, Any],
+                   ids: np.ndarray | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict, torch.Tensor]:
     """What a touch refresh of the simulated env gives the adapter's training: the teacher's z, phi's latent, the
     student actor's proprioceptive input, the frozen encoder's tokens and the joint tracking features (width 0 for
-    an adapter that reads none) of every env."""
-    z_teacher = teacher.net.extractor.z({key: torch.as_tensor(obs[key]) for key in teacher.config.obs_groups})
+    an adapter that reads none) of every env, or of the envs ``ids`` (``groups`` then holds theirs only)."""
+    priv = {key: obs[key] if ids is None else obs[key][ids] for key in teacher.config.obs_groups}
+    z_teacher = teacher.net.extractor.z({key: torch.as_tensor(v) for key, v in priv.items()})
     try:
-        tokens = policy.tokens(policy.env_windows(obs))
+        tokens = policy.tokens(policy.env_windows(obs, ids))
     except TouchUnavailable as err:  # cannot happen in simulation unless the renderer breaks
         raise JobFailed(f"simulated touch unusable: {err}") from None
     return z_teacher, policy.student_latent(groups), policy.proprio_features(groups), tokens, policy.tracking(groups)

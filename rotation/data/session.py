@@ -46,6 +46,9 @@ labels/skin_force             (18, 3)             float32/64       any        pe
                                                                                frame; envs.sensors.xela.PADS)
 labels/joystick               (3,)                float32/64       any        joystick [roll, pitch, yaw] (rad,
                                                                                envs.joystick)
+touch/age                     (1,)                float32/64       any        deploy: the touch age (s) of each
+                                                                               step acted with a correction
+                                                                               (rotation.deploy.recording)
 ============================  ==================  ===============  =========  =================================
 
 ``<finger>`` is one of index, middle, ring, thumb. Fixed rates are the Digit 360's (docs/reference/hardware.md
@@ -137,6 +140,7 @@ def _stream_registry() -> dict[str, StreamSpec]:
         "labels/object_pose": StreamSpec((7,), _FLOAT, None, "m, quaternion wxyz"),
         "labels/priv": StreamSpec((PRIV_DIM,), _FLOAT, None, "envs.constants.PRIV_FIELDS"),
         "labels/z": StreamSpec((LATENT_DIM,), _FLOAT, None, "latent"),
+        "touch/age": StreamSpec((1,), _FLOAT, None, "s"),
     }
     for f in FINGERS:
         streams[f"digit360/{f}/image"] = StreamSpec((None, None, 3), ("uint8",), 30.0, "RGB", chunk=1,

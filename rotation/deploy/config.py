@@ -78,7 +78,8 @@ class Config:
     rehearse a heavy or slippery object. The recording stores the emulated values."""
     sim_faults: str = ""
     """Emulated hands: faults to inject while the loop runs, e.g. 'unplug=thumb@4,late=6+0.08,bus-error=9'
-    (unplug, corrupt, stall of a fingertip; late feedback or a bus error of the hand; rotation.deploy.sim_faults)."""
+    (unplug, corrupt, stall, lag of a fingertip; late feedback or a bus error of the hand;
+    rotation.deploy.sim_faults)."""
     sim_transport: Literal["virtual", "slcan"] = "virtual"
     """Emulated Allegro: python-can virtual bus, or an SLCAN serial adapter on a pseudo-terminal."""
     rt_priority: int = 0

@@ -32,13 +32,14 @@ JSON object on the last line of stdout. Exit status: 0 run completed, 1 fault, 1
 Nothing is reported as safe or done unless it was: the bundle, the --record file, the --digit360 sensors and the
 --skin server are checked before any motor is switched on; a run whose steps were mostly late or held is a fault;
 the summary's "motors_off" is true only when confirmed (by the emulated hand, or by the real hand's answer), and a
-motors-off that was not confirmed ends with a non-zero status and the instruction to cut the hand's power. With
---skin the summary's "skin" counts the frames received, the malformed messages skipped and the disconnects; with a
-touch-reading policy its "touch" counts the refreshes, the steps acted with the adapter and as the student alone
-(fallback), and the refresh time (rotation.deploy.touch_worker.TouchStats). Its "hand_bus" holds the hand driver's
-counters (PD cycles, the longest wait for the joints' state in ms, bus errors), its "digit360" each fingertip
-reader's (frames, bad frames, disconnects, unknown message kinds), and with --sim-faults its "sim_faults" each
-injected fault with the time it was applied (rotation.deploy.sim_faults).
+motors-off that was not confirmed ends with a non-zero status and the instruction to cut the hand's power. With --skin
+the summary's "skin" counts the frames received, the malformed messages skipped and the disconnects; with a touch-
+reading policy its "touch" counts the refreshes, the steps acted with the adapter and as the student alone (fallback),
+the refresh time and its parts, the touch ages and each correction's delay in control steps
+(rotation.deploy.touch_worker.TouchStats; a recorded run holds each step's touch age, ``touch/age``). Its "hand_bus"
+holds the hand driver's counters (PD cycles, the longest wait for the joints' state in ms, bus errors), its "digit360"
+each fingertip reader's (frames, bad frames, disconnects, unknown message kinds), and with --sim-faults its "sim_faults"
+each injected fault with the time it was applied (rotation.deploy.sim_faults).
 """
 
 from __future__ import annotations
@@ -311,7 +312,8 @@ def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, readers: dict[
     try:
         recorder = DeployRecorder(cfg.record, meta, fingers=tuple(readers), object_pose=physics is not None,
                                   overwrite=cfg.overwrite, skin=skin_baseline is not None,
-                                  media={f: media_streams(r) for f, r in readers.items()})
+                                  media={f: media_streams(r) for f, r in readers.items()},
+                                  touch_age=bool(bundle.config.adapter))
     except OSError as err:  # checked before the start, but the disk may have changed since
         raise SessionError(f"could not create {cfg.record}: {err}") from err
     log.info("recording to %s", recorder.path)

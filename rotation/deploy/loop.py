@@ -208,6 +208,7 @@ class ControlLoop:
 
                 # 4. command (the driver's safety layer clamps and rate-limits)
                 hand.set_targets(policy.targets)
+                touch_age = None if touch is None else touch.commanded(k, time.monotonic())
 
                 # 5. record and report
                 pose = self.opened.object_pose()
@@ -215,7 +216,7 @@ class ControlLoop:
                     meter.update(pose)
                     stats.rotation_rad, stats.object_fell = meter.rotation, meter.fell
                 if self.recorder is not None:
-                    self.recorder.step(now - t0, state.q, policy.targets, state.torque, pose)
+                    self.recorder.step(now - t0, state.q, policy.targets, state.torque, pose, touch_age)
                 if drainer is not None:
                     drainer.check()
                 stats.max_temperature_c = self._monitor.max_c

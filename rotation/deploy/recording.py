@@ -12,6 +12,9 @@ Streams, all in session time (s since the first joint measurement of the run):
   a real sensor's camera frames (centre crop, resized, as the reader keeps them for the encoder) and microphones,
   when deploy opened them (``--record-media``, or a policy that reads them; an emulated sensor renders its image and
   audio only when a window is asked for, so it records none); about 4.5 MB/s per sensor;
+- ``touch/age`` (1,) s, at each control step a touch-reading policy acted with a correction: the age of the touch it
+  acted on, from the newest sensor sample of the oldest fingertip window the correction read to the step's command
+  to the hand (no sample where the student acted alone);
 - ``skin/xela`` (368, 3) raw counts at 100 Hz when ``--skin`` is given (baseline in ``extra["xela_baseline"]``);
 - ``skin/taxel_pos`` (368, 3) taxel positions (m, hand frame) of those frames, computed when the recording closes
   (after the run, the motors off: nothing in the control loop) by forward kinematics of ``joints/position``
@@ -49,6 +52,7 @@ from rotation.hardware.digit360 import window as dw
 log = logging.getLogger("rotation.deploy")
 
 JOINT_STREAMS = ("joints/position", "joints/target", "joints/torque")
+TOUCH_AGE = "touch/age"
 POSITION_CHUNK = 1000
 """Skin frames whose taxel positions are computed and queued at once when the recording closes (1.3 MB float32)."""
 
@@ -58,13 +62,17 @@ class DeployRecorder:
 
     def __init__(self, path: str | Path, meta: SessionMeta, fingers: tuple[str, ...] = (),
                  object_pose: bool = False, flush_interval_s: float = 1.0, overwrite: bool = False,
-                 skin: bool = False, media: dict[str, tuple[str, ...]] | None = None) -> None:
+                 skin: bool = False, media: dict[str, tuple[str, ...]] | None = None, touch_age: bool = False
+                 ) -> None:
         """``media``: per finger, which of ``image`` and ``audio`` its sensor streams (real sensors whose camera
-        and microphones deploy opened)."""
+        and microphones deploy opened); ``touch_age``: record each step's touch age (a touch-reading policy)."""
         rate = meta.control_hz
         streams: list[StreamSetup | str] = [StreamSetup(name, rate_hz=rate) for name in JOINT_STREAMS]
         if object_pose:
             streams.append(StreamSetup("labels/object_pose", rate_hz=rate))
+        if touch_age:
+            streams.append(StreamSetup(TOUCH_AGE, rate_hz=rate))
+        self.touch_age = touch_age
         streams += [f"digit360/{f}/{s}" for f in fingers for s in DIGIT_STREAMS]
         media = {f: tuple(m) for f, m in (media or {}).items() if m}
         for f, kinds in media.items():
@@ -94,8 +102,9 @@ class DeployRecorder:
         self.steps = 0
 
     def step(self, t: float, q: np.ndarray, target: np.ndarray, torque: np.ndarray,
-             object_pose: np.ndarray | None = None) -> None:
-        """One control step at session time ``t`` (s): joint vectors (16,), object pose (7,) if recorded."""
+             object_pose: np.ndarray | None = None, touch_age: float | None = None) -> None:
+        """One control step at session time ``t`` (s): joint vectors (16,), object pose (7,) if recorded, the touch
+        age (s; None: the student acted alone, no sample) if recorded."""
         ts = np.array([t])
         q = np.asarray(q, dtype=np.float64).reshape(1, NUM_JOINTS)
         self.writer.append("joints/position", q, ts)
@@ -106,6 +115,8 @@ class DeployRecorder:
         self.writer.append("joints/torque", np.asarray(torque, dtype=np.float64).reshape(1, NUM_JOINTS), ts)
         if self.object_pose and object_pose is not None:
             self.writer.append("labels/object_pose", np.asarray(object_pose, dtype=np.float64).reshape(1, 7), ts)
+        if self.touch_age and touch_age is not None:
+            self.writer.append(TOUCH_AGE, np.array([[touch_age]]), ts)
         self.steps += 1
 
     def append(self, name: str, data: np.ndarray, timestamps: np.ndarray) -> None:

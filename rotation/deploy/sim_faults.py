@@ -9,6 +9,11 @@ A schedule is a comma-separated list; times are seconds after the control loop s
                               adapter that reads the fingertip acts as the student alone from then on
 ``corrupt=FINGER@T+N``        the fingertip sends N corrupt frames at T: each is dropped, counted and logged
 ``stall=FINGER@T+D``          the fingertip stops streaming for D s (samples lost): its windows go stale
+``lag=FINGER@T+L``            from T on the fingertip delivers each sample L s after its device time (a slower
+                              link): its windows end L further in the past, and the summary's touch ages grow by
+                              L (up to about 35 ms: past the reader's 50 ms re-anchoring bound, less the emulator's
+                              10 ms bursts, the reader takes the later arrivals as its clock and the delay no
+                              longer shows)
 ``late=T+D``                  the hand's joint feedback stops for D s at T (Allegro: its position stream pauses;
                               LEAP: its status replies are dropped for D s): late control steps; longer than the
                               driver's feedback timeout, the motors go off and the run ends with a fault
@@ -35,8 +40,8 @@ from envs.constants import FINGERS
 
 log = logging.getLogger("rotation.deploy")
 
-KINDS = ("unplug", "corrupt", "stall", "late", "bus-error")
-SENSOR_KINDS = ("unplug", "corrupt", "stall")
+KINDS = ("unplug", "corrupt", "stall", "lag", "late", "bus-error")
+SENSOR_KINDS = ("unplug", "corrupt", "stall", "lag")
 """Faults of a fingertip (FINGER@...); the others are the hand's."""
 ALLEGRO_ERROR = (0, 0x20)
 """(motor, bits) of the injected Allegro V5 error frame (0x20: overload, rotation.hardware.allegro.protocol)."""
@@ -54,12 +59,13 @@ class Fault:
     at_s: float
     finger: str | None = None
     amount: float = 0.0
-    """corrupt: frames; stall, late: seconds; otherwise unused."""
+    """corrupt: frames; stall, lag, late: seconds; otherwise unused."""
 
     def describe(self) -> str:
         where = f"{self.finger} fingertip " if self.finger else "hand "
         what = {"unplug": "unplugged", "corrupt": f"{self.amount:g} corrupt frames",
-                "stall": f"stalls {self.amount:g} s", "late": f"feedback paused {self.amount:g} s",
+                "stall": f"stalls {self.amount:g} s", "lag": f"delivers its samples {self.amount:g} s late",
+                "late": f"feedback paused {self.amount:g} s",
                 "bus-error": "error reported on the bus"}[self.kind]
         return f"{where}{what} at {self.at_s:g} s"
 
@@ -92,7 +98,7 @@ def parse_sim_faults(spec: str) -> tuple[Fault, ...]:
                 raise ValueError(f"sim_faults: {item!r} must name a fingertip ({', '.join(FINGERS)}) as "
                                  f"{kind}=FINGER@T; {FORM}")
         when, plus, amount = rest.partition("+")
-        needs_amount = kind in ("corrupt", "stall", "late")
+        needs_amount = kind in ("corrupt", "stall", "lag", "late")
         if needs_amount != bool(plus):
             tail = ("+N" if kind == "corrupt" else "+D") if needs_amount else ""
             form = f"{kind}={'FINGER@' if finger else ''}T{tail}"
@@ -178,6 +184,8 @@ class FaultSchedule:
                 emu.disconnect()
             elif fault.kind == "corrupt":
                 emu.faults.corrupt_frames += int(fault.amount)
+            elif fault.kind == "lag":
+                emu.faults.latency_s = fault.amount
             else:
                 emu.faults.pause_s = fault.amount
             return None

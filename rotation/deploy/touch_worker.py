@@ -6,6 +6,7 @@ missing or not finite (the student then acts alone).
 from __future__ import annotations
 
 import logging
+import math
 import re
 import statistics
 import threading
@@ -13,7 +14,7 @@ import time
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -34,12 +35,30 @@ REPEAT_WARN_EVERY = 20
 """A fallback cause that comes back is warned about again every this many times (info in between)."""
 
 
+class RefreshTiming(NamedTuple):
+    """One successful refresh's time line (host s)."""
+
+    t_read: float
+    """When the worker had read every fingertip's window."""
+    read_age_s: float
+    """How old the touch was then (the sensors' and their link's share of the touch age)."""
+    start_s: float
+    """From the observation it was asked with to its start (the policy's inference on that step)."""
+    read_s: float
+    """Reading the windows (a real sensor's: slicing its ring buffers; an emulated one renders its image and audio
+    here, which a real camera and microphones do not cost)."""
+    encode_s: float
+    """Encoding them and computing the correction."""
+
+
 @dataclass
 class TouchStats:
     """What the touch side did in one run (the summary's ``touch``)."""
 
     touch_every: int
     """Control steps between refreshes (the adapter's)."""
+    control_period_s: float
+    """The control loop's period (s)."""
     max_age_s: float
     """Staleness limit (s): older corrections were dropped."""
     refreshes: int = 0
@@ -60,6 +79,16 @@ class TouchStats:
     """Duration (s) of every refresh (windows + correction), successful or not."""
     last_cause: str | None = None
     """Why the last fallback started."""
+    age_s: list[float] = field(default_factory=list)
+    """Touch age (s) of every step acted with a correction: from the newest sensor sample of the oldest fingertip
+    window it read to the step's command to the hand."""
+    first_use_age_s: list[float] = field(default_factory=list)
+    """The same at each correction's first step: the touch path's latency."""
+    timings: list[RefreshTiming] = field(default_factory=list)
+    """How every successful refresh spent its time (the parts of the touch age)."""
+    first_use_steps: Counter[int] = field(default_factory=Counter)
+    """Corrections by the control steps from the step whose refresh read their touch to their first step: the
+    delay simulation applies (adapters.touch_delay)."""
 
     def summary(self) -> dict[str, Any]:
         ms = [1e3 * t for t in self.refresh_s]
@@ -68,7 +97,30 @@ class TouchStats:
                 "adapter_steps": self.adapter_steps, "fallback_steps": self.fallback_steps,
                 "fallbacks": self.fallbacks, "first_correction_step": self.first_correction_step,
                 "refresh_ms_p50": statistics.median(ms) if ms else None,
-                "refresh_ms_max": max(ms) if ms else None, "last_fallback_cause": self.last_cause}
+                "refresh_ms_max": max(ms) if ms else None,
+                "age_ms_p50": _percentile_ms(self.age_s, 50), "age_ms_p95": _percentile_ms(self.age_s, 95),
+                "first_use_age_ms_p50": _percentile_ms(self.first_use_age_s, 50),
+                "first_use_age_ms_p95": _percentile_ms(self.first_use_age_s, 95),
+                "read_age_ms_p50": _percentile_ms([t.read_age_s for t in self.timings], 50),
+                "start_ms_p50": _percentile_ms([t.start_s for t in self.timings], 50),
+                "read_ms_p50": _percentile_ms([t.read_s for t in self.timings], 50),
+                "encode_ms_p50": _percentile_ms([t.encode_s for t in self.timings], 50),
+                "encode_ms_p95": _percentile_ms([t.encode_s for t in self.timings], 95),
+                "first_use_steps": {str(k): self.first_use_steps[k] for k in sorted(self.first_use_steps)},
+                "first_use_steps_no_render": self.steps_without_reading(),
+                "last_fallback_cause": self.last_cause}
+
+    def steps_without_reading(self) -> dict[str, int]:
+        """Refreshes by the control steps to their first use had reading the windows cost nothing: the step after
+        its start plus its encoding, ceil((start + encode) / control period). A real Digit 360's windows are slices
+        of its ring buffers; an emulated one renders its image and audio when they are read, which this leaves out
+        (what simulation should apply for real sensors, from a rehearsal on emulated ones)."""
+        counts = Counter(max(1, math.ceil((t.start_s + t.encode_s) / self.control_period_s)) for t in self.timings)
+        return {str(k): counts[k] for k in sorted(counts)}
+
+
+def _percentile_ms(values_s: list[float], q: float) -> float | None:
+    return float(np.percentile(values_s, q) * 1e3) if values_s else None
 
 
 @dataclass(frozen=True)
@@ -79,6 +131,8 @@ class _Result:
     t_obs: float
     """Host time (s) of the observation and windows it was computed from."""
     correction: np.ndarray | None
+    t_touch: float = float("nan")
+    """Host time (s) of the newest sensor sample of the oldest fingertip window it read (its touch's time)."""
     cause: str | None = None
     error: BaseException | None = None
     """The exception of a bug-level failure (logged with its traceback); None for the expected ones."""
@@ -98,7 +152,7 @@ class TouchWorker:
         self.readers = dict(readers)
         self.every = int(policy.touch_every)
         self.refresh_period_s = self.every * control_period_s
-        self.stats = TouchStats(touch_every=self.every,
+        self.stats = TouchStats(touch_every=self.every, control_period_s=control_period_s,
                                 max_age_s=max(stale_refreshes * self.refresh_period_s, MIN_STALE_S))
         self._groups = tuple(policy.config.obs_groups)
         self._cv = threading.Condition()
@@ -113,6 +167,9 @@ class TouchWorker:
         self._last_request: int | None = None  # control step of the newest refresh request
         self._delayed = False  # the due refresh found the worker busy (counted once)
         self._slow_reported = False
+        self._acting: _Result | None = None  # the result the current step acts with
+        self._t_read = 0.0  # when the running refresh had read its windows (the worker thread's)
+        self._first_used: int | None = None  # seq of the newest result whose first step was recorded
         self._causes: Counter[str] = Counter()  # fallbacks per cause (its message without the numbers)
         self._thread = threading.Thread(target=self._run, name="touch-worker", daemon=True)
         self._thread.start()
@@ -167,6 +224,7 @@ class TouchWorker:
         elif now - result.t_obs > self.max_age_s:
             cause = (f"the newest touch correction is {1e3 * (now - result.t_obs):.0f} ms old (> "
                      f"{1e3 * self.max_age_s:.0f} ms): the touch worker is behind")
+        self._acting = result if cause is None else None
         if cause is None:
             self.stats.adapter_steps += 1
             if self.stats.first_correction_step is None:
@@ -181,6 +239,20 @@ class TouchWorker:
         if self._state == "acting" or (self._state == "starting" and result is not None):
             self._enter_fallback(f"step {step}", cause, error, now)
         return None
+
+    def commanded(self, step: int, now: float) -> float | None:
+        """The control loop sent step ``step``'s command at host time ``now``: record the touch age of the correction
+        it acted with (returned, s; None for the student alone) and, at a correction's first step, its latency."""
+        result = self._acting
+        if result is None:
+            return None
+        age = now - result.t_touch
+        self.stats.age_s.append(age)
+        if result.seq != self._first_used:
+            self._first_used = result.seq
+            self.stats.first_use_age_s.append(age)
+            self.stats.first_use_steps[step - result.seq] += 1
+        return age
 
     def _enter_fallback(self, when: str, cause: str | None, error: BaseException | None, now: float) -> None:
         """Start acting as the student alone: one warning naming the cause. A cause that keeps coming back (its
@@ -214,20 +286,24 @@ class TouchWorker:
         return True
 
     # ------------------------------------------------------------------ the worker's side
-    def _refresh(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """One correction (Z,) from every fingertip's window now and ``obs``; raises when touch is unusable."""
+    def _refresh(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
+        """One correction (Z,) from every fingertip's window now and ``obs``, and the host time of the newest sample of
+        the oldest window; raises when touch is unusable."""
         import torch
 
         from adapters.bundle import TouchUnavailable
 
         names = tuple(self.policy.windows)
         serial_only = not {"image", "audio"} & set(names)  # an emulated camera and microphones render on request
-        windows = {}
+        windows, t_touch = {}, math.inf
         for finger in self.policy.fingers:
             reader = self.readers.get(finger)
             if reader is None:
                 raise TouchUnavailable(f"no Digit 360 on {finger}")
-            windows[finger] = adapter_inputs(reader.window(serial_only=serial_only), names, finger)
+            window = reader.window(serial_only=serial_only)
+            t_touch = min(t_touch, float(window["t_end"]))
+            windows[finger] = adapter_inputs(window, names, finger)
+        self._t_read = time.monotonic()
         if self._stop:  # closed meanwhile: do not start encoding
             raise TouchUnavailable("the run ended")
         batched = {k: v[None] for k, v in obs.items()}  # (1, ...)
@@ -235,7 +311,7 @@ class TouchWorker:
             correction = np.asarray(self.policy.correction(windows, batched), dtype=np.float32)[0]  # (Z,)
         if not np.all(np.isfinite(correction)):  # the policy checks too; nothing non-finite reaches the actor
             raise TouchUnavailable("non-finite touch correction")
-        return correction
+        return correction, t_touch
 
     def _run(self) -> None:
         import torch
@@ -254,13 +330,17 @@ class TouchWorker:
                 self._request = None
             start = time.monotonic()
             try:
-                result = _Result(seq, t_obs, self._refresh(obs))
+                result = _Result(seq, t_obs, *self._refresh(obs))
             except (SensorStale, WindowNotReady, TouchUnavailable) as err:  # the expected ways touch goes missing
                 result = _Result(seq, t_obs, None, f"{type(err).__name__}: {err}")
             except Exception as err:  # a reader's or the encoder's bug must not stop the hand: fall back, say why
                 result = _Result(seq, t_obs, None, f"the touch refresh raised {type(err).__name__}: {err}", err)
+            done = time.monotonic()
             with self._cv:
-                self.stats.refresh_s.append(time.monotonic() - start)
+                self.stats.refresh_s.append(done - start)
+                if result.correction is not None:
+                    self.stats.timings.append(RefreshTiming(self._t_read, self._t_read - result.t_touch,
+                                                            start - t_obs, self._t_read - start, done - self._t_read))
                 if result.correction is None:
                     self.stats.failed_refreshes += 1
                 else:

@@ -21,6 +21,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from adapters.touch_delay import delay_spec, parse_delay
 from envs.errors import RequestRefused
 from envs.grasp_cache import cache_digest
 from envs.metrics import METRICS
@@ -34,7 +35,7 @@ RESUMABLE_CHANGES = frozenset({"out", "resume", "progress", "nthread", "video", 
 """Config fields that do not change a single result row (threads of MuJoCo, where and whether videos are drawn):
 they may differ between a run and its continuation. Everything else must match."""
 
-LATER_FIELDS = {"touch_lag": 0, "contact": None, "physics_dt": None}
+LATER_FIELDS = {"touch_delay": "0", "contact": None, "physics_dt": None}
 """Config fields added after evaluations were first recorded, with their defaults: at its default such a field is
 left out of the identity, so an interrupted evaluation recorded before it existed still continues."""
 
@@ -44,6 +45,8 @@ def identity(cfg: Any, policies: dict[str, str], hand: str = "digit360") -> dict
     the grasp cache (of ``hand``, the hand the episodes run on)."""
     config = {k: v for k, v in to_jsonable(cfg).items()
               if k not in RESUMABLE_CHANGES and not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
+    if "touch_delay" in config:  # the distribution itself: 'measured' changes when deploy is measured again
+        config["touch_delay"] = delay_spec(parse_delay(config["touch_delay"]))
     return {"config": config, "policy_weights": {name: weights_digest(path) for name, path in policies.items()},
             "grasps": {"cache": cache_digest(cfg.grasp_cache, cfg.object, hand)}}
 

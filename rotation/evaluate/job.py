@@ -183,7 +183,7 @@ def _run_condition(cfg: Config, cond: Condition, bundles: dict[str, PolicyBundle
             bar.set_postfix(condition=cond.name, policy=name)
             hook = recorder.hook(name) if recorder is not None else None
             episodes = run_episodes(bundle, env, cfg.episodes, cfg.seed, on_frame=hook,
-                                    on_episode=lambda: bar.update(1), touch_lag=cfg.touch_lag)
+                                    on_episode=lambda: bar.update(1), touch_delay=cfg.delay)
             rows.append(make_row(name, cond, episodes))
         if recorder is not None:
             recorder.write(out / "videos" / f"{cond.name}.mp4", fps=_video_fps(first))

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from adapters.touch_delay import MEASURED, parse_delay
 from envs.config import ContactConfig, EnvConfig, Perturbation, RandomizationConfig
 from envs.validation import check_int, check_number, check_optional_file, check_output_dir, check_seed, check_types
 from rotation.evaluate.suites import SUITES, Condition, get_suite, make_condition
@@ -62,11 +63,11 @@ class Config:
     resume: bool = False
     """Continue the evaluation in `out` (an interrupted one): keep its finished conditions, run the rest. Running
     the same command into the same `out` does this too; --resume also insists that there is something to continue."""
-    touch_lag: int = 0
-    """Control steps between the touch a tactile adapter's correction reads and the first action it changes; 0 = the
-    same step. A deploy acts on each correction from the first control step after its refresh finishes
-    (rotation.deploy.touch): 3 steps later on a 2-core CPU, where a refresh takes 95-120 ms after the policy has acted
-    on its step (the deploy summary's touch.first_correction_step is 3-4 there). Other policies ignore it."""
+    touch_delay: str = "measured"
+    """Control steps between the touch a tactile adapter's correction reads and the first action it changes, drawn
+    per refresh (adapters.touch_delay): 'measured' (what `rotate deploy` measured on 2 CPU cores at 20 Hz), a whole
+    number N (always N; 0 = the same step, the ideal) or STEPS:PROB pairs (e.g. 1:0.7,2:0.3 for your machine's,
+    from its deploy summary's touch.first_use_steps). Other policies ignore it."""
     backend: Literal["cpu", "warp"] = "cpu"
     """Physics backend: 'cpu' (MuJoCo on mujoco.batch threads) or 'warp' (MuJoCo Warp on `warp_device`, the [warp]
     extra). The simulated Digit 360 touch and --video run on the cpu backend only."""
@@ -93,7 +94,7 @@ class Config:
         check_int("video_size height", self.video_size[1], 16, 480, "pixels (MuJoCo's offscreen framebuffer)")
         check_int("nthread", self.nthread, 0, 1024, "(0 = one per CPU core)")
         check_int("torch_threads", self.torch_threads, 1, 1024)
-        check_int("touch_lag", self.touch_lag, 0, 10**6, "control steps")
+        self.delay = parse_delay(self.touch_delay)
         if self.physics_dt is not None:
             check_number("physics_dt", self.physics_dt, 1e-4, 0.02, unit="s")
         if self.com_shift is not None and (not isinstance(self.com_shift, tuple | list) or len(self.com_shift) != 3):
@@ -154,11 +155,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--torch-threads", type=int, default=d.torch_threads, help="torch CPU threads (default 1)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=d.progress,
                         help="show a progress bar")
-    parser.add_argument("--touch-lag", type=int, default=d.touch_lag, metavar="STEPS",
-                        help="a tactile adapter's correction acts STEPS control steps after the touch it read, and "
-                        "the next refresh waits for it, as on a robot whose refresh takes that long (rotate deploy "
-                        "on a 2-core CPU: 3, its summary's touch.first_correction_step). "
-                        f"Default {d.touch_lag}: on the same step")
+    measured = MEASURED.describe().split(": ", 1)[1].replace("%", "%%")  # argparse formats help with %
+    parser.add_argument("--touch-delay", default=d.touch_delay, metavar="DELAY",
+                        help="control steps from the touch a tactile adapter's correction reads to the first action "
+                        "it changes, drawn per refresh; the next refresh waits for it, as on a robot: 'measured' "
+                        f"(rotate deploy on 2 CPU cores: {measured}), N (always N; 0: the same step) or STEPS:PROB "
+                        "pairs such as 1:0.7,2:0.3 (your deploy summary's touch.first_use_steps). "
+                        f"Default {d.touch_delay}")
     parser.add_argument("--backend", choices=list(BACKENDS), default=d.backend, help=BACKEND_HELP)
     parser.add_argument("--warp-device", default=d.warp_device,
                         help=f"device of the warp backend: cuda, cuda:N or cpu (default {d.warp_device})")
@@ -197,7 +200,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
         seed=args.seed, out=args.out, num_envs=args.num_envs, object=args.object, grasp_cache=args.grasp_cache,
         episode_steps=args.episode_steps, randomize=args.randomize, video=args.video,
         video_size=tuple(args.video_size), nthread=args.nthread, torch_threads=args.torch_threads,
-        progress=args.progress, resume=args.resume, touch_lag=args.touch_lag, backend=args.backend,
+        progress=args.progress, resume=args.resume, touch_delay=args.touch_delay, backend=args.backend,
         warp_device=args.warp_device,
         contact=_contact_from_args(args), physics_dt=args.physics_dt,
     )

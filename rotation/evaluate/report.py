@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from adapters.touch_delay import parse_delay
 from envs.config import hand_physics
 from envs.metrics import METRICS, EpisodeMetrics, summarize
 from rotation.configs import to_jsonable
@@ -53,9 +54,9 @@ def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions:
     """results.json, results.md and plots/<metric>.png under ``out`` (the episodes ran on ``hand``)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json_text({"rows": rows, "config": to_jsonable(config)}))
-    lag = config.touch_lag
-    touch_note = (f"\nA tactile adapter's correction acted {lag} control step{'s' * (lag != 1)} after the touch it "
-                  f"read (--touch-lag {lag}); the other policies do not read touch.\n" if lag else "")
+    delay = parse_delay(getattr(config, "touch_delay", "0"))
+    touch_note = (f"\nA tactile adapter's correction acted on its first action after the touch it read with the "
+                  f"{delay.describe()} (--touch-delay); policies that do not read touch ignore it.\n")
     contact, usual = getattr(config, "contact", None), hand_physics(hand).contact
     contact_note = (f"\nContact model: {_contact_text(contact)}: not the settings the policies were trained with on "
                     f"the {hand} hand ({_contact_text(usual)}).\n" if contact is not None and contact != usual else "")

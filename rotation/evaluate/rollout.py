@@ -8,12 +8,13 @@ parameters, pushes and noise, whatever the number of parallel envs.
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 
+from adapters.touch_delay import DelayLine, TouchDelay, parse_delay
 from envs.core import RotateCupVec
 from envs.metrics import EpisodeMetrics, EpisodeTracker
-from envs.validation import check_int
 from rotation.policy.bundle import PolicyBundle
 
 FrameHook = Callable[[RotateCupVec], None]
@@ -22,18 +23,18 @@ FrameHook = Callable[[RotateCupVec], None]
 
 def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: int,
                  on_frame: FrameHook | None = None, on_episode: Callable[[], None] | None = None,
-                 touch_lag: int = 0) -> list[EpisodeMetrics]:
+                 touch_delay: TouchDelay | None = None) -> list[EpisodeMetrics]:
     """Run ``episodes`` episodes (episode j seeded ``seed + j``) in chunks of ``env.num_envs``; one metrics entry
     per episode, in episode order. Each env runs one episode per chunk; finished envs are no longer acted for.
 
-    A tactile adapter's correction is refreshed every ``touch_every`` control steps and held in between. With
-    ``touch_lag`` 0 a refresh acts at once, on the step whose touch it read; with ``touch_lag`` L it acts from L
-    steps later, and the next refresh starts when it is due and the previous one has landed (never two at once),
-    as in ``rotate deploy``, where a refresh runs beside the control loop (rotation.deploy.touch). The student acts
-    alone until the first correction lands."""
+    A tactile adapter's correction is refreshed every ``touch_every`` control steps and held in between; each one
+    acts from ``touch_delay`` steps after the step whose touch it read (drawn per refresh from episode j's own
+    stream; None: 0, at once), and the next refresh starts when it is due and the previous one has landed, as in
+    ``rotate deploy``, where a refresh runs beside the control loop (adapters.touch_delay). The student acts alone
+    until the first correction lands."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    check_int("touch_lag", touch_lag, 0, unit="control steps")
+    delay = touch_delay if touch_delay is not None else parse_delay("0")
     n = env.num_envs
     touch_every = getattr(bundle, "touch_every", 0)  # a tactile adapter (adapters.bundle.AdaptedPolicy)
     if touch_every and any(getattr(env.cfg, k) != v for k, v in bundle.env_needs.items()):
@@ -48,26 +49,16 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
         if record:
             on_frame(env)
         actions = np.zeros((n, env.single_action_space.shape[0]), dtype=np.float32)
-        correction = np.zeros((n, bundle.config.latent_dim), dtype=np.float32) if touch_every else None
-        in_flight: tuple[int, np.ndarray, np.ndarray] | None = None  # (step it lands, envs, their correction)
-        due = 0
+        line = (DelayLine(n, bundle.config.latent_dim, touch_every, delay, [seed + first + i for i in range(n)])
+                if touch_every else None)
         k = 0
         while active.any():
             idx = np.flatnonzero(active)
             actions[:] = 0.0
             groups = {key: obs[key][idx] for key in bundle.config.obs_groups}
-            if correction is not None:
-                if in_flight is not None and in_flight[0] <= k:  # a refresh lands: hold it until the next one
-                    correction[in_flight[1]] = in_flight[2]
-                    in_flight = None
-                if in_flight is None and k >= due:  # refresh the touch correction from this step's touch
-                    due = k + touch_every
-                    fresh = touch_correction(bundle, obs, groups, idx)
-                    if touch_lag:
-                        in_flight = (k + touch_lag, idx, fresh)
-                    else:
-                        correction[idx] = fresh
-                actions[idx] = bundle.act_batch(groups, correction=correction[idx])
+            if line is not None:  # refreshes due read this step's touch of their envs
+                correction = line.step(k, idx, partial(envs_correction, bundle, obs))
+                actions[idx] = bundle.act_batch(groups, correction=correction)
             else:
                 actions[idx] = bundle.act_batch(groups)
             k += 1
@@ -95,3 +86,8 @@ def touch_correction(policy, obs, groups: dict[str, np.ndarray], idx: np.ndarray
         return policy.correction(policy.env_windows(obs, idx), groups)
     except TouchUnavailable:
         return np.zeros((len(next(iter(groups.values()))), policy.config.latent_dim), dtype=np.float32)
+
+
+def envs_correction(policy, obs, ids: np.ndarray) -> np.ndarray:
+    """:func:`touch_correction` of the envs ``ids`` of an env observation."""
+    return touch_correction(policy, obs, {key: obs[key][ids] for key in policy.config.obs_groups}, ids)

@@ -63,6 +63,12 @@ class Digit360Faults:
     """Corrupt the next N frames [frame dropped and counted, a warning logged]."""
     pause_s: float = 0.0
     """Stop streaming once for this long [window() raises SensorStale after stale_timeout_s]."""
+    latency_s: float = 0.0
+    """Deliver every sample this long after its device time, from now on (a slower link) [the reader's clock map
+    keeps its anchor while a sample arrives within its re-anchoring bound (50 ms) of its device time, so its
+    windows end that much further in the past and a deploy's touch age grows by it; the first sample of a 10 ms
+    burst arrives 10 ms later than the last, so beyond about 35 ms the reader re-anchors and the delay no longer
+    shows]."""
 
 
 class Digit360Emulator(EmulatorThread):
@@ -139,15 +145,16 @@ class Digit360Emulator(EmulatorThread):
         k = 0
         self._system()
         while not self._stop.is_set():
-            next_t = t0 + (k + BATCH_TICKS) * IMU_PERIOD_S
+            t0_late = t0 + self.faults.latency_s  # a sample leaves latency_s after its device time
+            next_t = t0_late + (k + BATCH_TICKS) * IMU_PERIOD_S
             self.link.read(max(0.0, next_t - time.monotonic()))  # drain host -> device bytes; also paces
             if time.monotonic() < next_t:
                 continue
             if self.faults.pause_s > 0:  # the device clock runs on; the samples of the pause are lost
                 pause, self.faults.pause_s = self.faults.pause_s, 0.0
                 self._stop.wait(pause)
-                k = int((time.monotonic() - t0) / IMU_PERIOD_S)
-            due = int((time.monotonic() - t0) / IMU_PERIOD_S)  # every tick whose device time has come
+                k = int((time.monotonic() - t0_late) / IMU_PERIOD_S)
+            due = int((time.monotonic() - t0_late) / IMU_PERIOD_S)  # every tick whose sending time has come
             while k < due and not self._stop.is_set():
                 k += 1
                 self._tick(k)

@@ -199,6 +199,7 @@ def test_bundle_round_trip_and_as_a_policy(tiny_run):
     policy = load_adapter(result.bundle_dir)
     assert policy.adapter_config.modalities == ("pressure",) and policy.touch_every == 2
     assert policy.adapter_config.card["trained_by"] == "rotate finetune-adapter"
+    assert policy.adapter_config.card["touch_delay"].startswith("touch delay 'measured': ")  # trained with it
     assert any(p.abs().sum() > 0 for p in policy.adapter.zero.parameters())  # trained: no longer the zero map
     same = load_bundle(result.bundle_dir)  # `--policy NAME=PATH` takes an adapter bundle
     assert type(same).__name__ == "AdaptedPolicy" and same.config.touch_encoder == ENCODER

@@ -49,7 +49,7 @@ def test_cross_validation_holds_out_whole_episodes():
 def _tiny(out, **kw) -> finetune.Config:
     base = dict(out=out, modalities="pressure", total_steps=192, num_envs=2, touch_every=2, updates=4,
                 batch_size=16, buffer_size=256, checkpoint_every=96, log_every=8, progress=False, torch_threads=1,
-                nthread=1, seed=0, env=EnvConfig(tactile=True, episode_steps=24))
+                nthread=1, seed=0, env=EnvConfig(tactile=True, episode_steps=24), touch_delay="0")
     return finetune.Config(**{**base, **kw})
 
 
@@ -68,7 +68,7 @@ def test_refit_replaces_only_the_zero_layer_and_lowers_its_error(trained, tmp_pa
     card = load_adapter(result.bundle_dir).adapter_config.card
     refit = card["refit_head"]
     assert refit["lambda"] in (1e-4, 1e-2) and len(refit["cv"]) == 2
-    # 96 iterations of 2 envs with a refresh every 2, in 24-step episodes
+    # 96 iterations of 2 envs with a refresh every 2 (no delay: each lands at once), in 24-step episodes
     assert refit["samples"] == 96 and refit["episodes"] >= 8
     # the least-squares fit of the layer on its own samples beats the Adam-trained layer on the same samples
     assert refit["fit_latent_mse"] < refit["latent_mse_before"]

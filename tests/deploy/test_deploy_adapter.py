@@ -26,6 +26,7 @@ from rotation import bundles
 from rotation.cli import main
 from rotation.deploy.config import Config
 from rotation.deploy.job import run
+from rotation.deploy.loop import ControlLoop
 from rotation.deploy.sensors import SIM_WINDOWS
 from rotation.deploy.touch import adapter_inputs, touch_sensors, wait_for_touch
 from rotation.deploy.touch_worker import TouchWorker
@@ -91,6 +92,68 @@ def test_adapter_policy_on_the_emulated_hand_starts_its_sensors_and_acts(adapter
     servo_on = next(i for i, m in enumerate(messages) if "servo on" in m)
     assert ready < servo_on, messages
     assert touch["first_correction_step"] is not None and 0 <= touch["first_correction_step"] <= 10, touch
+
+
+def test_the_recorded_touch_age_follows_a_latency_injected_into_the_fingertips(adapter_dir, caplog, hand_hook,
+                                                                                tmp_path, monkeypatch):
+    """Each step records the age of the touch it acted on (touch/age); when the emulated fingertips start delivering
+    their samples 25 ms late (sim fault `lag`), the ages grow by that latency, within one control step: the touch
+    path's latency that training and evaluation apply in simulation (adapters.touch_delay) is what deploy sees.
+    (25 ms: with the emulator's 10 ms bursts the earliest sample of a burst then arrives 35 ms after its device
+    time, below the reader's 50 ms re-anchoring bound, beyond which a latency no longer shows.)"""
+    caplog.set_level(logging.INFO, logger="rotation")
+    lag_s, at_s = 0.025, 2.0
+    faults = ",".join(f"lag={f}@{at_s}+{lag_s}" for f in FINGERS)
+    workers, loops = [], []
+    real_worker, real_loop = TouchWorker.__init__, ControlLoop.__init__
+
+    def worker_init(self, *args, **kwargs):
+        real_worker(self, *args, **kwargs)
+        workers.append(self)
+
+    def loop_init(self, *args, **kwargs):
+        real_loop(self, *args, **kwargs)
+        loops.append(self)
+
+    monkeypatch.setattr(TouchWorker, "__init__", worker_init)
+    monkeypatch.setattr(ControlLoop, "__init__", loop_init)
+
+    def deploy() -> dict:
+        return run(Config(hand="sim-allegro", policy=adapter_dir, duration=4.5, sim_faults=faults,
+                          record=str(tmp_path / f"run{time.monotonic_ns()}.h5")))
+
+    summary = again_if_loaded(deploy, caplog)
+    assert_done_or_load_fault(summary)
+    touch = summary["touch"]
+    assert touch["age_ms_p50"] > 0 and touch["age_ms_p95"] >= touch["age_ms_p50"], touch
+    assert sum(touch["first_use_steps"].values()) >= 2 and all(int(k) >= 1 for k in touch["first_use_steps"]), touch
+    from rotation.data.session_reader import SessionReader
+
+    with SessionReader(summary["record"]) as session:
+        ages = session.stream("touch/age")
+        t, age = ages.timestamps, ages.data[:, 0]
+    assert len(age) == touch["adapter_steps"]  # one sample per step acted with a correction
+    with SessionReader(summary["record"]) as session:
+        t_steps = session.stream("joints/position").timestamps
+    assert set(t) <= set(t_steps)
+    applied = summary["sim_faults"][0]["applied_s"] + t_steps[0]  # loop time -> session time
+    before = age[t < applied - 0.1]
+    after = age[t > applied + 0.5]  # corrections read after the latency started
+    assert len(before) >= 5 and len(after) >= 5, (len(before), len(after))
+    assert np.all(age > 0) and np.all(age < 2.0)
+    # Each age is how old the touch was when the worker read it plus the encoding and the wait for the next step,
+    # which on a loaded machine varies by tens of ms from refresh to refresh; the part the sensors and their link
+    # add is the first, which the worker records per refresh: it grows by the injected latency.
+    timings = workers[-1].stats.timings
+    assert len(timings) == touch["refreshes"]
+    t_read, read_age = np.array([t.t_read for t in timings]), np.array([t.read_age_s for t in timings])
+    assert all(t.start_s >= 0 and t.read_s >= 0 and t.encode_s > 0 for t in timings)
+    t_read -= loops[-1].t0  # host -> session time
+    grown = float(np.median(read_age[t_read > applied + 0.3]) - np.median(read_age[t_read < applied - 0.1]))
+    period = 1.0 / summary["control_hz"]
+    assert abs(grown - lag_s) < 0.4 * period, (grown, read_age)
+    # and the recorded ages, read after the latency started, are older by about as much (within a control step)
+    assert np.median(after) - np.median(before) > lag_s - period
 
 
 def test_the_shipped_adapter_turns_the_emulated_cup(capsys, caplog, hand_hook):

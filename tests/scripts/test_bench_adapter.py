@@ -17,3 +17,22 @@ def test_bench_adapter_tiny(load_script, capsys):
     assert result["touch_every"] == 4
     with pytest.raises(ValueError, match=">= 1"):
         bench.run(bench.Config(iters=0))
+
+
+def test_the_deploy_latency_comes_from_an_emulated_deploy(load_script, tmp_path):
+    """--deploy: the touch path's latency measured in a real (emulated) `rotate deploy` process, as the delay text
+    that simulation takes. A fresh pressure-only adapter keeps it short."""
+    from adapters.bundle import build_adapted
+    from adapters.touch_delay import parse_delay
+
+    bench = load_script("bench_adapter")
+    path = tmp_path / "pressure"
+    build_adapted("student", "sparshx-tinier-sim", ("pressure",), touch_every=4).save(path)
+    figures = bench.deploy_latency(str(path), 3.0)
+    assert figures["latency_ms_p95"] >= figures["latency_ms_p50"] > 0
+    assert figures["age_ms_p95"] >= figures["latency_ms_p50"]  # held corrections age
+    assert 0 <= figures["read_age_ms_p50"] < figures["latency_ms_p50"]
+    delay = parse_delay(figures["delay_spec"])
+    assert sum(figures["delay_steps"].values()) >= 2 and min(delay.steps) >= 1
+    with pytest.raises(RuntimeError, match="no summary|never acted"):
+        bench.deploy_latency(str(tmp_path / "missing"), 1.0)
