@@ -40,12 +40,16 @@ LATER_FIELDS = {"touch_delay": "0", "contact": None, "physics_dt": None}
 left out of the identity, so an interrupted evaluation recorded before it existed still continues."""
 
 
-def identity(cfg: Any, policies: dict[str, str], hand: str = "digit360") -> dict[str, Any]:
-    """What the rows of an evaluation depend on: its config (without RESUMABLE_CHANGES), the policies' weights and
-    the grasp cache (of ``hand``, the hand the episodes run on)."""
+def identity(cfg: Any, policies: dict[str, str], hand: str = "digit360", reads_touch: bool = True
+             ) -> dict[str, Any]:
+    """What the rows of an evaluation depend on: its config (without RESUMABLE_CHANGES, and without the touch delay
+    when no policy reads touch: ``reads_touch``), the policies' weights and the grasp cache (of ``hand``, the hand
+    the episodes run on)."""
     config = {k: v for k, v in to_jsonable(cfg).items()
               if k not in RESUMABLE_CHANGES and not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
-    if "touch_delay" in config:  # the distribution itself: 'measured' changes when deploy is measured again
+    if not reads_touch:
+        config.pop("touch_delay", None)
+    elif "touch_delay" in config:  # the distribution itself: 'measured' changes when deploy is measured again
         config["touch_delay"] = delay_spec(parse_delay(config["touch_delay"]))
     return {"config": config, "policy_weights": {name: weights_digest(path) for name, path in policies.items()},
             "grasps": {"cache": cache_digest(cfg.grasp_cache, cfg.object, hand)}}

@@ -134,7 +134,8 @@ def run(cfg: Config) -> list[dict]:
         raise RequestRefused(f"on the {hand} hand: {err}") from None
     # a grasp cache that cannot be used is refused before `out` is touched (the envs load it again)
     load_default_cache(cfg.object, cfg.grasp_cache, hand)
-    ident = finished.identity(cfg, policy_paths(cfg), hand)
+    touch_policies = [name for name, b in bundles.items() if reads_touch(b)]
+    ident = finished.identity(cfg, policy_paths(cfg), hand, reads_touch=bool(touch_policies))
     continuing = finished.check_out(out, ident, cfg.resume)  # refuses another evaluation's folder: reads only
     names = list(bundles)
     digest = finished.identity_digest(ident)
@@ -161,7 +162,7 @@ def run(cfg: Config) -> list[dict]:
         print(message, flush=True)
         raise Interrupted(signum, message) from None
     rows = [row for cond in conditions for row in done[cond.name]]
-    write_report(out, rows, dataclasses.replace(cfg, out=out), conditions, hand)
+    write_report(out, rows, dataclasses.replace(cfg, out=out), conditions, hand, touch_policies)
     print(f"evaluate: {len(rows)} rows -> {out / 'results.md'}")
     return rows
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -50,13 +51,15 @@ def json_text(data: Any) -> str:
 
 
 def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions: list[Condition],
-                 hand: str = "digit360") -> None:
-    """results.json, results.md and plots/<metric>.png under ``out`` (the episodes ran on ``hand``)."""
+                 hand: str = "digit360", touch_policies: Sequence[str] = ()) -> None:
+    """results.json, results.md and plots/<metric>.png under ``out`` (the episodes ran on ``hand``; the policies
+    ``touch_policies`` read touch, with the config's touch delay)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json_text({"rows": rows, "config": to_jsonable(config)}))
     delay = parse_delay(getattr(config, "touch_delay", "0"))
-    touch_note = (f"\nA tactile adapter's correction acted on its first action after the touch it read with the "
-                  f"{delay.describe()} (--touch-delay); policies that do not read touch ignore it.\n")
+    touch_note = (f"\n{', '.join(touch_policies)}: each touch correction first acted a drawn number of control steps "
+                  f"after the step whose touch it read, {delay.describe()} (--touch-delay).\n"
+                  if touch_policies else "")
     contact, usual = getattr(config, "contact", None), hand_physics(hand).contact
     contact_note = (f"\nContact model: {_contact_text(contact)}: not the settings the policies were trained with on "
                     f"the {hand} hand ({_contact_text(usual)}).\n" if contact is not None and contact != usual else "")

@@ -123,3 +123,7 @@ def test_an_evaluation_recorded_before_touch_delay_existed_continues_only_withou
     measured = finished.identity(job.Config(policies={"student": "student"}, out=tmp_path / "a"), {})
     assert measured["config"]["touch_delay"] == delay_spec(MEASURED)
     assert {k: v for k, v in measured["config"].items() if k != "touch_delay"} == plain["config"]
+    # an evaluation of policies that read no touch does not depend on the delay
+    untouched = finished.identity(job.Config(policies={"student": "student"}, out=tmp_path / "a"), {},
+                                  reads_touch=False)
+    assert untouched == plain
