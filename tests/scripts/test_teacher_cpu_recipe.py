@@ -45,7 +45,8 @@ def test_every_stage_is_a_valid_command_of_its_job(recipe, tmp_path):
     out = tmp_path / "recipe"
     todo = recipe.commands(recipe.Config(out=out, progress=False))
     assert [what.split(":")[0] for what, _ in todo] == ["stage 0", "stage1", "stage2", "stage3", "stage4",
-                                                        "stage5", "student", "student_rl", "evaluation"]
+                                                        "stage5", "student", "student_rl", "evaluation",
+                                                        "evaluation"]
     # with the files each stage reads in place, the options parse and validate as the job's own Config
     (out / "grasps_unchecked").mkdir(parents=True)
     shutil.copy(default_cache_path("cup"), out / "grasps_unchecked" / "grasps_cup.npz")
@@ -78,11 +79,18 @@ def test_every_stage_is_a_valid_command_of_its_job(recipe, tmp_path):
     assert (rl.total_steps, rl.checkpoint_every, rl.seed, rl.fall_reward) == (4_000_000, 500_000, 12, -60.0)
     assert not rl.overlap and not rl.progress and not rl.grasp_cache
     # teacher and final student on the same fresh seeds
-    [evaluation] = configs["evaluate"]
+    evaluation, contact = configs["evaluate"]
     assert evaluation.policies == {"teacher_cpu": str(out / "stage5" / "bundle"),
                                    "student_cpu": str(out / "student_rl" / "bundle")}
     assert (evaluation.conditions, evaluation.episodes, evaluation.seed) == (("nominal",), 128, 3_300_000)
-    assert evaluation.out == out / "evaluation_student"
+    assert evaluation.out == out / "evaluation_student" and evaluation.contact is None
+    # and again under a contact model the hand never trains on (the shipped hand's is pyramidal: elliptic here)
+    assert contact.policies == evaluation.policies and contact.seed == evaluation.seed
+    assert contact.out == out / "evaluation_contact"
+    assert (contact.contact.cone, contact.contact.impratio, contact.contact.noslip_iterations) == ("elliptic", 10, 10)
+    v4 = recipe.commands(recipe.Config(out=tmp_path / "v4", hand="digit360_v4"))[-1][1]
+    assert v4[v4.index("--contact-cone") + 1:v4.index("--contact-noslip-iterations") + 2] == [
+        "pyramidal", "--contact-impratio", "3", "--contact-noslip-iterations", "0"]
 
 
 def test_teacher_only_leaves_the_student_out_and_evaluates_the_teacher_alone(recipe, tmp_path, capsys):
@@ -92,15 +100,15 @@ def test_teacher_only_leaves_the_student_out_and_evaluates_the_teacher_alone(rec
     assert "rotate train-teacher" in printed and "student" not in printed and not out.exists()
     todo = recipe.commands(recipe.Config(out=out, teacher_only=True))
     assert [what.split(":")[0] for what, _ in todo] == ["stage 0", "stage1", "stage2", "stage3", "stage4",
-                                                        "stage5", "evaluation"]
-    evaluation = _parsed(todo[-1][1])
+                                                        "stage5", "evaluation", "evaluation"]
+    evaluation = _parsed(todo[-2][1])
     assert evaluation.policies == {"teacher_cpu": str(out / "stage5" / "bundle")}
     assert evaluation.out == out / "evaluation"
     # its evaluation is not the full recipe's: a later run without --teacher-only still evaluates the student
     (out / "evaluation").mkdir(parents=True)
     (out / "evaluation" / "results.md").write_text("# Evaluation\n")
-    assert recipe.commands(recipe.Config(out=out, teacher_only=True))[-1][0].startswith("stage5")
-    assert recipe.commands(recipe.Config(out=out))[-1][1][-1] == str(out / "evaluation_student")
+    assert recipe.commands(recipe.Config(out=out, teacher_only=True, contact_check=False))[-1][0].startswith("stage5")
+    assert recipe.commands(recipe.Config(out=out, contact_check=False))[-1][1][-1] == str(out / "evaluation_student")
 
 
 def test_finished_stages_are_skipped_and_a_stopped_one_resumes(recipe, tmp_path):
@@ -195,6 +203,8 @@ def test_a_tiny_recipe_runs_end_to_end_and_a_second_call_has_nothing_left(recipe
     assert finetuned["finetuned_from"]["bundle"] == str(out / "student" / "bundle")
     results = (out / "evaluation_student" / "results.md").read_text()
     assert "| nominal" in results and "teacher_cpu" in results and "student_cpu" in results
+    contact = (out / "evaluation_contact" / "results.md").read_text()
+    assert "teacher_cpu" in contact and "Contact model: elliptic" in contact, contact
     capsys.readouterr()
     assert recipe.main(["--out", str(out), "--no-progress"]) == 0
     assert "every stage is done" in capsys.readouterr().out
@@ -215,7 +225,8 @@ def test_a_tiny_recipe_runs_end_to_end_and_a_second_call_has_nothing_left(recipe
     assert said == [f"teacher_cpu_recipe: student: resume at {out / 'student' / 'ckpt_000000008.pt'}",
                     f"teacher_cpu_recipe: student_rl: resume at {rl_ckpts / 'last.zip'}",
                     f"teacher_cpu_recipe: done; the teacher is {out / 'stage5' / 'bundle'}; the student is "
-                    f"{out / 'student_rl' / 'bundle'}; evaluated in {out / 'evaluation_student' / 'results.md'}"]
+                    f"{out / 'student_rl' / 'bundle'}; evaluated in {out / 'evaluation_student' / 'results.md'} and "
+                    f"{out / 'evaluation_contact' / 'results.md'}"]
     distilled = json.loads((out / "student" / "bundle" / "config.json").read_text())["card"]
     finetuned = json.loads((out / "student_rl" / "bundle" / "config.json").read_text())["card"]
     assert "interrupted" not in distilled and distilled["env_steps"] == 64
