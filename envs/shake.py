@@ -1,0 +1,321 @@
+"""Bottle shaking: the hand, on a wrist that moves, holds a closed bottle and shakes it; the fingertips' Digit 360s
+feel the contents (envs.shake_contents) through the bottle.
+
+The scene is the hand variant's model (envs.scene) with its palm on a free joint welded to a mocap body (the wrist:
+a stiff spring that follows the scripted motion, as a robot arm's wrist would), a bottle at one of the hand's cup
+grasps (the cup grasp cache of the hand: the bottle has the cup's outer radius and height at the grasp's scale, no
+handle, a wall of 1.5 mm HDPE, a bottom and a cap) and its contents. The hand holds the grasp's joint targets; the
+contact model, the vendor's torque limits and the middle of the hand's friction ranges are the hand's
+(envs.physics); the physics step is 2 ms (the smallest grains are 2 mm across).
+
+An episode (:func:`draw_episode`, all from its seed): the content and fill level (uniform unless given), the grasp
+(bucket and row), then the shake: the bottle settles for ``settle_s``, the wrist's motion ramps in over ``ramp_s``
+and goes on to ``duration_s``: a sinusoid of amplitude ``amplitude`` (m) and frequency ``frequency`` (Hz) along a
+random direction (mostly horizontal), and a tilt about a random horizontal axis of ``tilt`` (rad) a quarter period
+behind it. :class:`ShakeSim` steps it and returns the fingertips' contact fields at every physics step (the rows
+the Digit 360 streams are rendered from, envs.sensors.digit360) with the labels.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from envs import constants as C
+from envs.grasp_cache import GraspCache, load_default_cache
+from envs.physics import hand_physics
+from envs.scene import hand_spec, link_geoms, skin_geoms
+from envs.sensors.digit360 import NUM_FIELDS, Digit360Readout, add_digit360_sensors
+from envs.shake_contents import CONTENT_NAMES, CONTENTS, FILL_LEVELS, Grain, Liquid, slosh_model
+
+TIMESTEP = 0.002
+"""Physics step (s)."""
+WALL = 0.0015
+"""Bottle wall thickness (m)."""
+WALL_DENSITY = 950.0
+"""HDPE (kg/m^3)."""
+WALL_SEGMENTS = 16
+"""Boxes around the bottle's wall."""
+WELD_TIMECONST = 0.01
+"""Time constant (s) of the weld that makes the palm follow the wrist's mocap body."""
+HELD_TOLERANCE = 0.015
+"""A bottle that moved more than this (m) relative to the palm by the end was not held."""
+BOTTLE_CONTYPE, GRAIN_BIT = 2, 4
+"""Collision bits: the hand collides with the bottle (as with the rotation env's objects), grains with the bottle
+and each other, never with the hand."""
+
+
+@dataclass(frozen=True)
+class ShakeConfig:
+    """The shaking task's ranges (each drawn uniformly per episode)."""
+
+    hand: str = "digit360_v4"
+    """A hand variant with Digit 360 fingertips (envs.scene.HANDS)."""
+    duration_s: float = 3.0
+    """Episode length (s), settling included."""
+    settle_s: float = 0.3
+    """The bottle and contents settle in the still hand first."""
+    ramp_s: float = 0.3
+    """The shake's amplitude ramps in over this (s)."""
+    amplitude: tuple[float, float] = (0.005, 0.02)
+    """Wrist displacement amplitude (m), at most ``max_accel / (2 pi f)^2``."""
+    max_accel: float = 5.0
+    """Largest peak acceleration of the wrist (m/s^2): harder shakes throw a full bottle of water out of the
+    grasps (a 150 g bottle left the hand at 12 m/s^2)."""
+    frequency: tuple[float, float] = (1.5, 4.0)
+    """Shake frequency (Hz): a hand shakes a bottle at a few hertz."""
+    tilt: tuple[float, float] = (0.0, 0.25)
+    """Wrist tilt amplitude (rad)."""
+    vertical: float = 0.3
+    """Largest vertical part of the shake's direction (unit vector's z)."""
+
+    def __post_init__(self) -> None:
+        if self.hand not in ("digit360", "digit360_v4"):
+            raise ValueError(f"shake: the hand must have Digit 360 fingertips ('digit360' or 'digit360_v4'), "
+                             f"got {self.hand!r}")
+        for name in ("amplitude", "frequency", "tilt"):
+            lo, hi = getattr(self, name)
+            if not (0 <= lo <= hi and math.isfinite(hi)):
+                raise ValueError(f"shake: {name} must be a range 0 <= low <= high, got {(lo, hi)}")
+        if not (self.duration_s > self.settle_s + self.ramp_s >= 0 and self.settle_s >= 0 and self.ramp_s >= 0):
+            raise ValueError(f"shake: duration_s ({self.duration_s}) must exceed settle_s + ramp_s "
+                             f"({self.settle_s} + {self.ramp_s})")
+
+
+@dataclass(frozen=True)
+class ShakeEpisode:
+    """One episode's draws (:func:`draw_episode`)."""
+
+    seed: int
+    content: str
+    fill: int
+    """Fill level (index into envs.shake_contents.FILL_LEVELS)."""
+    bucket: int
+    """Grasp cache bucket: the bottle's scale."""
+    grasp_u: float
+    """Picks the grasp row in the bucket."""
+    amplitude: float
+    frequency: float
+    phase: float
+    direction: tuple[float, float, float]
+    tilt: float
+    tilt_axis: tuple[float, float, float]
+
+    @property
+    def content_id(self) -> int:
+        return CONTENT_NAMES.index(self.content)
+
+
+def draw_episode(cfg: ShakeConfig, seed: int, grasps: GraspCache, content: str | None = None,
+                 fill: int | None = None) -> ShakeEpisode:
+    """An episode's draws from its seed (content and fill level uniform unless given)."""
+    if content is not None and content not in CONTENTS:
+        raise ValueError(f"shake: unknown content {content!r}; contents: {', '.join(CONTENT_NAMES)}")
+    if fill is not None and fill not in range(len(FILL_LEVELS)):
+        raise ValueError(f"shake: fill must be 0-{len(FILL_LEVELS) - 1} ({', '.join(FILL_LEVELS)}), got {fill}")
+    rng = np.random.default_rng([int(seed), 0x5AC3])
+    drawn_content = CONTENT_NAMES[int(rng.integers(len(CONTENT_NAMES)))]
+    drawn_fill = int(rng.integers(len(FILL_LEVELS)))
+    azimuth = rng.uniform(0, 2 * math.pi)
+    up = rng.uniform(-cfg.vertical, cfg.vertical)
+    flat = math.sqrt(1 - up * up)
+    tilt_az = rng.uniform(0, 2 * math.pi)
+    amplitude, frequency = float(rng.uniform(*cfg.amplitude)), float(rng.uniform(*cfg.frequency))
+    return ShakeEpisode(
+        seed=int(seed), content=content if content is not None else drawn_content,
+        fill=fill if fill is not None else drawn_fill, bucket=int(rng.integers(len(grasps.scales))),
+        grasp_u=float(rng.uniform()), amplitude=min(amplitude, cfg.max_accel / (2 * math.pi * frequency) ** 2),
+        frequency=frequency, phase=float(rng.uniform(0, 2 * math.pi)),
+        direction=(flat * math.cos(azimuth), flat * math.sin(azimuth), up), tilt=float(rng.uniform(*cfg.tilt)),
+        tilt_axis=(math.cos(tilt_az), math.sin(tilt_az), 0.0))
+
+
+@dataclass
+class ShakeRecording:
+    """What one episode gives (:meth:`ShakeSim.run`)."""
+
+    episode: ShakeEpisode
+    times: np.ndarray
+    """(T,) s: the time of every physics step's sensor sample."""
+    contact: np.ndarray
+    """(4, T, NUM_FIELDS) float32: each fingertip's contact fields (envs.sensors.digit360.CONTACT_FIELDS)."""
+    content_mass: float
+    """kg."""
+    bottle_offset: np.ndarray
+    """(T, 3): the bottle's centre relative to the palm, in the palm's frame (m)."""
+    held: bool
+    """The bottle stayed in the hand (it moved at most HELD_TOLERANCE relative to the palm)."""
+    extra: dict = field(default_factory=dict)
+
+
+def _add_bottle(spec: mujoco.MjSpec, radius: float, height: float, pos: np.ndarray, quat: np.ndarray
+                ) -> mujoco.MjsBody:
+    bottle = spec.worldbody.add_body(name="bottle", pos=pos.tolist(), quat=quat.tolist())
+    bottle.add_freejoint(name="bottle_free")
+    common = dict(contype=BOTTLE_CONTYPE, conaffinity=1 | GRAIN_BIT, condim=4, density=WALL_DENSITY,
+                  rgba=[0.25, 0.5, 0.8, 1.0])
+    half_w = radius * math.tan(math.pi / WALL_SEGMENTS) + WALL / 2  # the boxes overlap a little at the seams
+    for i in range(WALL_SEGMENTS):
+        a = 2 * math.pi * i / WALL_SEGMENTS
+        bottle.add_geom(name=f"bottle_wall{i}", type=mujoco.mjtGeom.mjGEOM_BOX, size=[WALL / 2, half_w, height / 2],
+                        pos=[(radius - WALL / 2) * math.cos(a), (radius - WALL / 2) * math.sin(a), 0.0],
+                        quat=[math.cos(a / 2), 0.0, 0.0, math.sin(a / 2)], **common)
+    for name, z in (("bottle_bottom", -height / 2 + WALL / 2), ("bottle_cap", height / 2 - WALL / 2)):
+        bottle.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[radius, WALL / 2, 0.0],
+                        pos=[0.0, 0.0, z], **common)
+    return bottle
+
+
+def _grain_slots(grain: Grain, inner_r: float, inner_h: float, count: int, rng: np.random.Generator
+                 ) -> np.ndarray:
+    """(count, 3) start positions (bottle frame, from the bottom up) of grains lying along x in a lattice."""
+    gap = 0.0005
+    dx, dyz = 2 * (grain.half_length + grain.radius) + gap, 2 * grain.radius + gap
+    reach = inner_r - gap
+    slots = []
+    z = -inner_h / 2 + grain.radius + gap
+    while z < inner_h / 2 - grain.radius and len(slots) < count:
+        layer = []
+        for y in np.arange(-reach + grain.radius, reach - grain.radius + 1e-9, dyz):
+            half = math.sqrt(max(reach**2 - (abs(y) + grain.radius) ** 2, 0.0)) - grain.half_length - grain.radius
+            layer += [(x, y, z) for x in np.arange(-half, half + 1e-9, dx)]
+        rng.shuffle(layer)
+        slots += layer
+        z += dyz
+    if len(slots) < count:
+        raise ValueError(f"shake: {count} grains do not fit in a bottle of inner radius {inner_r * 1e3:.0f} mm and "
+                         f"height {inner_h * 1e3:.0f} mm")
+    return np.asarray(slots[:count])
+
+
+def _add_contents(spec: mujoco.MjSpec, bottle: mujoco.MjsBody, episode: ShakeEpisode, pos: np.ndarray,
+                  quat: np.ndarray, inner_r: float, inner_h: float, rng: np.random.Generator) -> float:
+    """Add the episode's contents; returns their mass (kg)."""
+    content = CONTENTS[episode.content]
+    if isinstance(content, Liquid):
+        slosh = slosh_model(content, inner_r, content.fills[episode.fill] * inner_h)
+        centroid = -inner_h / 2 + slosh.depth / 2
+        bottle.add_geom(name="liquid_fixed", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.003, 0, 0],
+                        pos=[0, 0, centroid], mass=slosh.mass - slosh.moving_mass, contype=0, conaffinity=0,
+                        rgba=[0.3, 0.6, 1.0, 0.3])
+        pivot = bottle.add_body(name="slosh", pos=[0, 0, centroid + slosh.length])
+        for axis, name in (([1, 0, 0], "slosh_x"), ([0, 1, 0], "slosh_y")):
+            pivot.add_joint(name=name, type=mujoco.mjtJoint.mjJNT_HINGE, axis=axis, range=[-math.pi / 3, math.pi / 3],
+                            limited=True, damping=slosh.hinge_damping, armature=1e-7)
+        pivot.add_geom(name="slosh_mass", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.003, 0, 0],
+                       pos=[0, 0, -slosh.length], mass=slosh.moving_mass, contype=0, conaffinity=0,
+                       rgba=[0.3, 0.6, 1.0, 0.5])
+        return slosh.mass
+    count = content.counts[episode.fill]
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, quat)
+    slots = _grain_slots(content, inner_r, inner_h, count, rng)
+    for i, local in enumerate(slots):
+        grain = spec.worldbody.add_body(name=f"grain{i}", pos=(pos + rot.reshape(3, 3) @ local).tolist(),
+                                        quat=quat.tolist())
+        grain.add_freejoint()
+        along_x = [math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0]  # the capsule's axis z -> x
+        kind = mujoco.mjtGeom.mjGEOM_CAPSULE if content.half_length > 0 else mujoco.mjtGeom.mjGEOM_SPHERE
+        grain.add_geom(type=kind, size=[content.radius, content.half_length, 0], quat=along_x,
+                       density=content.density, friction=[content.friction, 0.005, 0.0001], condim=3,
+                       contype=GRAIN_BIT, conaffinity=GRAIN_BIT, solref=[2 * TIMESTEP, 1.0],
+                       rgba=[0.9, 0.85, 0.6, 1.0])
+    return count * content.mass
+
+
+def _middle(lo: float, hi: float, log: bool) -> float:
+    return math.sqrt(lo * hi) if log else (lo + hi) / 2
+
+
+class ShakeSim:
+    """One shaking episode (see the module docstring): the model is built for its bottle and contents."""
+
+    def __init__(self, cfg: ShakeConfig, episode: ShakeEpisode, grasps: GraspCache | None = None) -> None:
+        self.cfg, self.episode = cfg, episode
+        grasps = grasps if grasps is not None else load_default_cache("cup", "", cfg.hand)
+        b = episode.bucket
+        scale = float(grasps.scales[b])
+        q, pose = grasps.sample(np.array([b]), np.array([scale]), np.array([episode.grasp_u]))
+        self.grasp_q, pose = q[0], pose[0]
+        radius, height = 0.040 * scale, 0.085 * scale  # the cup's body (envs.objects 'cup') at the grasp's scale
+        spec = hand_spec(cfg.hand)
+        spec.option.timestep = TIMESTEP
+        palm = spec.body("palm")
+        palm.add_freejoint(name="wrist")
+        self._palm_quat0 = np.array(palm.quat, dtype=float)
+        spec.worldbody.add_body(name="wrist_target", mocap=True, pos=list(palm.pos), quat=list(palm.quat))
+        weld = spec.add_equality(type=mujoco.mjtEq.mjEQ_WELD, name1="palm", name2="wrist_target",
+                                 objtype=mujoco.mjtObj.mjOBJ_BODY)
+        weld.solref = [WELD_TIMECONST, 1.0]
+        bottle = _add_bottle(spec, radius, height, pose[:3], pose[3:])
+        rng = np.random.default_rng([episode.seed, 0x607])
+        self.content_mass = _add_contents(spec, bottle, episode, pose[:3], pose[3:], radius - WALL,
+                                          height - 2 * WALL, rng)
+        add_digit360_sensors(spec, history=1)
+        m = self.model = spec.compile()
+        from envs.config import EnvConfig
+        from envs.core import set_contact, set_torque_limits
+
+        # the hand's contact model without the noslip solver: with tens of grains it halved the rate, and the
+        # bottle's drift in the hand over an episode was the same with and without it (3.2-3.4 mm)
+        set_contact(m, dataclasses.replace(hand_physics(cfg.hand).contact, noslip_iterations=0))
+        set_torque_limits(m, EnvConfig(hand=cfg.hand))
+        rc = hand_physics(cfg.hand).randomization
+        tip = _middle(*rc.friction, rc.friction_log)
+        link = _middle(*rc.link_friction, False) if rc.link_friction is not None else tip
+        bottle_geoms = np.array([g for g in range(m.ngeom) if m.geom(g).name.startswith("bottle_")])
+        m.geom_friction[link_geoms(m, bottle_geoms), 0] = link
+        m.geom_friction[skin_geoms(m), 0] = tip
+        m.geom_friction[bottle_geoms, 0] = min(tip, link)
+        self.data = mujoco.MjData(m)
+        self.readout = Digit360Readout(m)
+        self._joints = np.array([m.jnt_qposadr[m.joint(name).id] for name in C.JOINT_NAMES])
+        self._palm, self._bottle = m.body("palm").id, m.body("bottle").id
+
+    def _wrist(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """The wrist's mocap position and quaternion at time ``t``."""
+        cfg, ep = self.cfg, self.episode
+        ramp = min(max((t - cfg.settle_s) / cfg.ramp_s, 0.0), 1.0) if cfg.ramp_s > 0 else float(t >= cfg.settle_s)
+        w = 2 * math.pi * ep.frequency * t + ep.phase
+        pos = ramp * ep.amplitude * math.sin(w) * np.asarray(ep.direction)
+        angle = ramp * ep.tilt * math.sin(w - math.pi / 2)
+        tilt = np.array([math.cos(angle / 2), *(math.sin(angle / 2) * np.asarray(ep.tilt_axis))])
+        quat = np.zeros(4)
+        mujoco.mju_mulQuat(quat, tilt, self._palm_quat0)
+        return pos, quat
+
+    def reset(self) -> None:
+        """The episode's start: the grasp, the bottle and contents where the model put them, all at rest."""
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
+        d.qpos[self._joints] = self.grasp_q
+        d.ctrl[:] = self.grasp_q
+        d.mocap_pos[0], d.mocap_quat[0] = self._wrist(0.0)
+        mujoco.mj_forward(m, d)
+
+    def run(self, reset: bool = True) -> ShakeRecording:
+        """Step the episode (from its start, or with ``reset=False`` from the state :meth:`reset` left and the caller
+        may have changed); the contact fields of every physics step and the labels."""
+        m, d = self.model, self.data
+        if reset:
+            self.reset()
+        steps = int(round(self.cfg.duration_s / TIMESTEP))
+        times = np.empty(steps)
+        rows = np.empty((4, steps, NUM_FIELDS), np.float32)
+        offset = np.empty((steps, 3))
+        rot = np.zeros(9)
+        for k in range(steps):
+            d.mocap_pos[0], d.mocap_quat[0] = self._wrist(d.time)
+            times[k] = d.time
+            mujoco.mj_step(m, d)
+            rows[:, k] = self.readout.read_current(d.sensordata[None])[0, :, 0]
+            mujoco.mju_quat2Mat(rot, d.xquat[self._palm])
+            offset[k] = rot.reshape(3, 3).T @ (d.xpos[self._bottle] - d.xpos[self._palm])
+        if not np.all(np.isfinite(rows)):
+            raise FloatingPointError(f"shake: the simulation of episode seed {self.episode.seed} diverged")
+        held = bool(np.linalg.norm(offset[-1] - offset[0]) <= HELD_TOLERANCE)
+        return ShakeRecording(self.episode, times, rows, self.content_mass, offset, held)

@@ -1,0 +1,104 @@
+"""Bottle shaking (envs.shake, envs.shake_contents): the sloshing model's figures by hand, the simulated liquid
+rings at its predicted frequency and damping, episodes are deterministic per seed and the hand holds the bottle."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from envs.grasp_cache import load_default_cache
+from envs.shake import ShakeConfig, ShakeSim, draw_episode
+from envs.shake_contents import CONTENT_NAMES, CONTENTS, FILL_LEVELS, Grain, slosh_model
+
+
+@pytest.fixture(scope="module")
+def grasps():
+    return load_default_cache("cup", "", "digit360_v4")
+
+
+def test_the_sloshing_model_matches_the_formulas_worked_by_hand():
+    """Water in a cylinder of radius 30 mm filled 30 mm deep: tanh(1.8412) = 0.9511, w^2 = 9.81 x 1.8412 / 0.03 x
+    0.9511 = 572.6 s^-2 (3.81 Hz); m1 / m = 2 x 0.9511 / (1.8412 x 2.3900) = 0.4323; Stephens' decrement 4.98 x 1e-3 x
+    0.03^-0.75 x 9.81^-0.25 x (1 + 0.318 / sinh(1.8400)) = 0.04305, zeta = 0.006852."""
+    s = slosh_model(CONTENTS["water"], 0.03, 0.03)
+    assert s.omega**2 == pytest.approx(572.6, rel=2e-3)
+    assert s.moving_mass / s.mass == pytest.approx(0.4323, rel=2e-3)
+    assert s.mass == pytest.approx(998 * math.pi * 0.03**3, rel=1e-9)
+    assert s.length == pytest.approx(9.81 / 572.6, rel=2e-3)
+    assert s.damping_ratio == pytest.approx(0.006852, rel=5e-3)
+    # oil is about 96 times as viscous: its decrement sqrt(92) = 9.6 times water's
+    assert slosh_model(CONTENTS["oil"], 0.03, 0.03).damping_ratio / s.damping_ratio == pytest.approx(92**0.5, rel=1e-6)
+    with pytest.raises(ValueError, match="radius and depth"):
+        slosh_model(CONTENTS["water"], 0.03, 0.0)
+
+
+def test_grains_have_their_stated_size_and_mass():
+    pills, rice = CONTENTS["pills"], CONTENTS["rice"]
+    assert isinstance(pills, Grain) and pills.mass == pytest.approx(0.0005)
+    assert 2 * (pills.half_length + pills.radius) == pytest.approx(0.0217)
+    assert 2 * (rice.half_length + rice.radius) == pytest.approx(0.0068) and rice.mass == pytest.approx(2.8e-5, rel=0.1)
+    assert all(list(c.counts) == sorted(c.counts) for c in CONTENTS.values() if isinstance(c, Grain))
+
+
+def _ring(grasps, content: str, kick: float = 0.3) -> tuple[float, float, object]:
+    """The liquid's pendulum swung by ``kick`` rad in a still hand: its measured frequency (Hz) and damping ratio,
+    and the model's sloshing figures."""
+    cfg = ShakeConfig(amplitude=(0.0, 0.0), tilt=(0.0, 0.0), duration_s=2.0, settle_s=0.0, ramp_s=0.0)
+    ep = draw_episode(cfg, 3, grasps, content, 1)
+    sim = ShakeSim(cfg, ep, grasps)
+    sim.reset()
+    adr = sim.model.jnt_qposadr[sim.model.joint("slosh_x").id]
+    sim.data.qpos[adr] = kick
+    angles = []
+    import mujoco
+
+    for _ in range(1000):
+        mujoco.mj_step(sim.model, sim.data)
+        angles.append(sim.data.qpos[adr])
+    a = np.asarray(angles) - np.mean(angles[-200:])
+    up = np.flatnonzero((a[:-1] < 0) & (a[1:] >= 0))  # upward zero crossings
+    freq = (len(up) - 1) / ((up[-1] - up[0]) * sim.model.opt.timestep)
+    peaks = [a[i:j].max() for i, j in zip(up[:-1], up[1:], strict=True)]
+    zeta = math.log(peaks[0] / peaks[-1]) / (len(peaks) - 1) / (2 * math.pi)
+    inner_r = 0.040 * float(grasps.scales[ep.bucket]) - 0.0015
+    inner_h = 0.085 * float(grasps.scales[ep.bucket]) - 0.003
+    return freq, zeta, slosh_model(CONTENTS[content], inner_r, CONTENTS[content].fills[1] * inner_h)
+
+
+def test_the_simulated_liquid_rings_at_its_sloshing_frequency_and_oil_damps_it_faster(grasps):
+    f_water, z_water, model = _ring(grasps, "water")
+    assert f_water == pytest.approx(model.omega / (2 * math.pi), rel=0.08), (f_water, model.omega / (2 * math.pi))
+    f_oil, z_oil, model_oil = _ring(grasps, "oil")
+    assert f_oil == pytest.approx(model_oil.omega / (2 * math.pi), rel=0.08)
+    assert z_oil == pytest.approx(model_oil.damping_ratio, rel=0.35), (z_oil, model_oil.damping_ratio)
+    assert z_oil > 4 * z_water
+
+
+def test_an_episode_is_deterministic_per_seed_and_the_hand_holds_the_bottle(grasps):
+    cfg = ShakeConfig(duration_s=1.2)
+    ep = draw_episode(cfg, 21, grasps, "pills", 1)
+    assert ep == draw_episode(cfg, 21, grasps, "pills", 1) and ep != draw_episode(cfg, 22, grasps, "pills", 1)
+    a, b = ShakeSim(cfg, ep, grasps).run(), ShakeSim(cfg, ep, grasps).run()
+    assert np.array_equal(a.contact, b.contact) and np.array_equal(a.times, b.times)
+    assert a.contact.shape == (4, 600, a.contact.shape[2]) and np.all(np.isfinite(a.contact))
+    assert a.held and a.content_mass == pytest.approx(8 * CONTENTS["pills"].mass)
+    assert a.contact[:, :, 0].max() > 0.05  # some fingertip presses on the bottle
+    # the wrist moved: once the shake is on (after 0.6 s) the fingertips' accelerometers leave gravity's 9.81 m/s^2
+    # more than twice as far as while the bottle settled (2.9 m/s^2 peak wrist acceleration in this episode)
+    deviation = np.abs(np.linalg.norm(a.contact[:, :, 3:6], axis=-1) - 9.81)
+    assert deviation[:, 300:].mean() > 2 * deviation[:, :100].mean()
+
+
+def test_draws_cover_every_content_and_level_and_cap_the_acceleration(grasps):
+    cfg = ShakeConfig()
+    eps = [draw_episode(cfg, s, grasps) for s in range(200)]
+    assert {e.content for e in eps} == set(CONTENT_NAMES) and {e.fill for e in eps} == set(range(len(FILL_LEVELS)))
+    assert all(e.amplitude * (2 * math.pi * e.frequency) ** 2 <= cfg.max_accel + 1e-9 for e in eps)
+    with pytest.raises(ValueError, match="unknown content"):
+        draw_episode(cfg, 0, grasps, "sand")
+    with pytest.raises(ValueError, match="fill must be"):
+        draw_episode(cfg, 0, grasps, "rice", 3)
+    with pytest.raises(ValueError, match="Digit 360"):
+        ShakeConfig(hand="xela_v4")
