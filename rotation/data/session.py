@@ -46,6 +46,10 @@ labels/skin_force             (18, 3)             float32/64       any        pe
                                                                                frame; envs.sensors.xela.PADS)
 labels/joystick               (3,)                float32/64       any        joystick [roll, pitch, yaw] (rad,
                                                                                envs.joystick)
+labels/content                (1,)                float32/64       any        shaken bottle's content class
+                                                                               (envs.shake_contents.CONTENT_NAMES)
+labels/fill                   (1,)                float32/64       any        its fill level (FILL_LEVELS)
+labels/content_mass           (1,)                float32/64       any        its content's mass (kg)
 touch/age                     (1,)                float32/64       any        deploy: the touch age (s) of each
                                                                                step acted with a correction
                                                                                (rotation.deploy.recording)
@@ -141,6 +145,9 @@ def _stream_registry() -> dict[str, StreamSpec]:
         "labels/priv": StreamSpec((PRIV_DIM,), _FLOAT, None, "envs.constants.PRIV_FIELDS"),
         "labels/z": StreamSpec((LATENT_DIM,), _FLOAT, None, "latent"),
         "touch/age": StreamSpec((1,), _FLOAT, None, "s"),
+        "labels/content": StreamSpec((1,), _FLOAT, None, "class id (envs.shake_contents.CONTENT_NAMES)"),
+        "labels/fill": StreamSpec((1,), _FLOAT, None, "level id (envs.shake_contents.FILL_LEVELS)"),
+        "labels/content_mass": StreamSpec((1,), _FLOAT, None, "kg"),
     }
     for f in FINGERS:
         streams[f"digit360/{f}/image"] = StreamSpec((None, None, 3), ("uint8",), 30.0, "RGB", chunk=1,

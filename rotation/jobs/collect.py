@@ -5,6 +5,7 @@
     rotate collect --policy student --episodes 20 --out data/heavy --added-mass 0.1 --com-shift 0 0 0.01
     rotate collect --skin --policy play --episodes 64 --out data/skin_cup        # Xela skin, scripted cup play
     rotate collect --skin --task joystick --policy play --episodes 64 --out data/skin_joystick
+    rotate collect --task shake --episodes 200 --out data/shake               # bottles of pills, rice, ..., water
 
 Files: OUT/shard_<e // 100>/episode_<e>.h5 in the session format (rotation.data.session) with joint streams,
 per-substep contact fields of every fingertip (the loader renders images, audio, IMU and pressure from them) and
@@ -48,6 +49,7 @@ from rotation.jobs.collect_resume import (
     settings_digest,
     write_manifest,
 )
+from rotation.jobs.collect_shake import run_shake, shake_streams
 from rotation.jobs.collect_skin import PlayPolicy, joystick_streams, record_skin, run_joystick, skin_streams
 
 SHARD_SIZE = 100
@@ -90,10 +92,14 @@ class Config:
     """The Digit 360 hand: 'auto' is a policy bundle's own hand, and 'digit360' for the scripted policies (the
     Xela hand with --skin); 'digit360_v4' (the vendor's kinematics, generation-2 touch: envs.scene.touch_model) for
     the scripted policies, or to check a bundle's hand."""
-    task: Literal["cup", "joystick"] = "cup"
+    task: Literal["cup", "joystick", "shake"] = "cup"
     """'cup': the RotateCup env with the object; 'joystick': the Xela hand presses and pushes the spring-returned
     joystick fixture (needs --skin and policy 'play' or 'random'; adds labels/joystick; the object and
-    perturbation options do not apply)."""
+    perturbation options do not apply); 'shake': the Digit 360 hand shakes closed bottles of pills, rice, lentils,
+    water or oil by script (rotation.jobs.collect_shake; labels content, fill, content_mass; the policy, object
+    and perturbation options do not apply)."""
+    shake_s: float = 3.0
+    """Seconds per shaking episode (--task shake), 0.6 s of settling and ramp-in included."""
 
     def __post_init__(self) -> None:
         check_types(self, skip=("com_shift",))  # Perturbation below checks com_shift with its own message
@@ -116,6 +122,10 @@ class Config:
             raise ValueError(f"hand: --skin records the Xela hand; leave --hand at auto, got {self.hand!r}")
         if self.task == "joystick" and not self.skin:
             raise ValueError("task: the joystick task records the Xela skin; add --skin")
+        if self.task == "shake" and (self.skin or self.hand == "digit360" or self.policy != "random"):
+            raise ValueError("task: the shake task moves the Digit 360 hand with the vendor's kinematics by script; "
+                             "leave --skin, --hand and --policy out")
+        check_number("shake_s", self.shake_s, 1.2, 600.0, unit="s (a Sparsh-X window needs 1.12 s of history)")
         if self.task == "joystick" and self.policy not in ("play", "random"):
             raise ValueError(f"policy: the joystick task moves the hand by script: 'play' or 'random', got "
                              f"{self.policy!r}")
@@ -292,11 +302,15 @@ def run(cfg: Config) -> dict[str, float]:
     policy = scripted[cfg.policy]() if cfg.policy in scripted else _BundlePolicy(cfg.policy)
     env_cfg = _env_config(cfg, policy)
     settings = _settings(cfg, env_cfg, policy)
+    if cfg.task == "shake":
+        settings["shake_s"] = cfg.shake_s
     check_manifest(cfg, settings)
     digest = settings_digest(settings)
     with_z = isinstance(policy, _BundlePolicy) and policy.privileged
     if cfg.task == "joystick":
         streams = [s.name for s in joystick_streams()]
+    elif cfg.task == "shake":
+        streams = [s.name for s in shake_streams()]
     else:
         streams = [s.name for s in _streams(env_cfg.control_hz, 1.0 / env_cfg.physics_dt, with_z, cfg.skin)]
     todo = [e for e in range(cfg.episodes) if not kept_episode(episode_path(cfg.out, e), e, digest, streams)]
@@ -306,6 +320,9 @@ def run(cfg: Config) -> dict[str, float]:
     if cfg.task == "joystick":
         write_manifest(cfg, settings)
         return run_joystick(cfg, todo, episode_path, {SETTINGS_KEY: digest})
+    if cfg.task == "shake":
+        write_manifest(cfg, settings)
+        return run_shake(cfg, todo, episode_path, {SETTINGS_KEY: digest})
     env = RotateCupVec(env_cfg, num_envs=m, seed=cfg.seed)  # loads the grasp cache: may still refuse
     write_manifest(cfg, settings)
     if isinstance(policy, PlayPolicy):

@@ -1,0 +1,72 @@
+"""`rotate collect --task shake`: one session per shaking episode, deterministic per seed, whose windows carry the
+content and fill labels of their episode; a resumed collection keeps its files; options that do not apply are
+refused in one line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from envs.grasp_cache import load_default_cache
+from envs.shake import ShakeConfig, draw_episode
+from envs.shake_contents import CONTENT_NAMES, FILL_LEVELS
+from rotation.cli import main
+from rotation.data.dataset import TouchWindows, find_sessions
+from rotation.data.session_reader import SessionReader
+from rotation.jobs import collect
+from rotation.jobs.collect_shake import shake_seed
+
+
+def _collect(out, episodes=2, seed=4):
+    return collect.run(collect.Config(task="shake", episodes=episodes, out=out, seed=seed, shake_s=1.3,
+                                      progress=False))
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory):
+    out = tmp_path_factory.mktemp("shake") / "c"
+    figures = _collect(out)
+    return out, figures
+
+
+def test_sessions_hold_the_contact_fields_and_their_episodes_labels(sessions):
+    out, figures = sessions
+    assert figures["episodes"] == 2 and figures["sim_s_per_s"] > 0
+    paths = find_sessions(out)
+    assert len(paths) == 2
+    grasps = load_default_cache("cup", "", "digit360_v4")
+    for e, path in enumerate(paths):
+        ep = draw_episode(ShakeConfig(duration_s=1.3), shake_seed(4, e), grasps)
+        with SessionReader(path) as r:
+            assert r.meta.properties["content"] == ep.content and r.meta.properties["fill"] == FILL_LEVELS[ep.fill]
+            assert r.meta.extra["sim_hand"] == "digit360_v4" and r.meta.extra["task"] == "shake"
+            contact = r.stream("digit360/thumb/contact")
+            assert len(contact) == 650 and np.all(np.isfinite(contact.data))
+            assert np.all(r.stream("labels/content").data == CONTENT_NAMES.index(ep.content))
+    ds = TouchWindows(paths, labels=("content", "fill"))
+    assert len(ds) > 0
+    rows = np.linspace(0, len(ds) - 1, 5).astype(int)
+    for i in rows:  # a window's labels are its session's
+        sample = ds[int(i)]
+        with SessionReader(paths[int(sample["session"])]) as r:
+            assert int(sample["content"][0]) == CONTENT_NAMES.index(r.meta.properties["content"])
+            assert int(sample["fill"][0]) == FILL_LEVELS.index(r.meta.properties["fill"])
+        assert sample["imu"].shape == (224, 3) and sample["image"].shape == (6, 224, 224)
+
+
+def test_a_collection_is_deterministic_and_resumes(sessions, tmp_path, capsys):
+    out, _ = sessions
+    again = tmp_path / "again"
+    _collect(again, episodes=1)
+    with SessionReader(find_sessions(out)[0]) as a, SessionReader(find_sessions(again)[0]) as b:
+        assert np.array_equal(a.stream("digit360/index/contact").data, b.stream("digit360/index/contact").data)
+    assert _collect(out)["episodes"] == 0  # both already there
+
+
+@pytest.mark.parametrize("options", [["--policy", "student"], ["--skin"], ["--hand", "digit360"],
+                                     ["--shake-s", "1.0"]])
+def test_options_that_do_not_apply_are_refused(options, tmp_path, capsys):
+    assert main(["collect", "--task", "shake", "--episodes", "1", "--out", str(tmp_path / "x"), *options]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and ("shake" in err or "1.12 s" in err), err
+    assert not (tmp_path / "x").exists()
