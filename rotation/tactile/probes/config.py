@@ -11,6 +11,7 @@ from typing import Literal
 import numpy as np
 
 from envs.constants import FINGERS, PRIV_FIELDS
+from envs.shake_contents import CONTENT_NAMES, FILL_LEVELS
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.data.dataset import check_fingers, check_session_sources
 from rotation.tactile.probes.data import (
@@ -28,16 +29,33 @@ from rotation.tactile.runtime import (
 
 VARIANTS = ("pretrained", "e2e", "image_only")
 """Sparsh-X's variants (Sparsh-skin has no image tokens: pretrained and e2e)."""
+MODALITY_VARIANTS = {"all": None, "image": ("img",), "audio": ("mic",), "imu": ("imu",), "pressure": ("pressure",)}
+"""Sparsh-X's frozen encoder reading every modality's tokens ('all', the same as 'pretrained') or one modality's:
+the variants of the touch benchmarks (shake, object-action-surface), by the names their reports use."""
+BENCHMARK_VARIANTS = (*MODALITY_VARIANTS, "e2e")
+"""The default variants of a run of touch-benchmark tasks."""
+BENCHMARKS = {"shake": ("shake_content", "shake_fill")}
+"""A benchmark name given as a task stands for its tasks."""
+CLASS_NAMES = {"shake_content": CONTENT_NAMES, "shake_fill": FILL_LEVELS}
+"""Class names of the multi-class tasks (their confusion matrices' axes)."""
 
 
 def _rmse(pred: np.ndarray, target: np.ndarray) -> float:
     return float(np.sqrt(np.mean((pred - target) ** 2)))
 
 
-def balanced_accuracy(pred: np.ndarray, target: np.ndarray) -> float:
-    """Mean of the recall of each class present in ``target`` (0/1 arrays)."""
-    recalls = [float(np.mean(pred[target == c] == c)) for c in (0, 1) if np.any(target == c)]
+def balanced_accuracy(pred: np.ndarray, target: np.ndarray, classes: int = 2) -> float:
+    """Mean of the recall of each class present in ``target`` (class ids 0 .. classes - 1)."""
+    recalls = [float(np.mean(pred[target == c] == c)) for c in range(classes) if np.any(target == c)]
     return float(np.mean(recalls)) if recalls else float("nan")
+
+
+def class_metrics(classes: int):
+    """Accuracy and balanced accuracy of (N, 1) predicted and true class ids."""
+    def metrics(p: np.ndarray, t: np.ndarray) -> dict[str, float]:
+        return {"accuracy": float(np.mean(p[:, 0] == t[:, 0])),
+                "balanced_accuracy": balanced_accuracy(p[:, 0], t[:, 0], classes)}
+    return metrics
 
 
 _MASS, _FRICTION = PRIV_FIELDS.index("mass"), PRIV_FIELDS.index("friction")
@@ -53,6 +71,10 @@ TASKS: dict[str, Task] = {
                  lambda p, t: {"rmse_kg": _rmse(p, t)}),
     "friction": Task("priv", 1, False, lambda y, _: y[:, _FRICTION : _FRICTION + 1],
                      lambda p, t: {"rmse": _rmse(p, t)}),
+    "shake_content": Task("content", len(CONTENT_NAMES), False, lambda y, _: y[:, :1],
+                          class_metrics(len(CONTENT_NAMES)), classes=len(CONTENT_NAMES)),
+    "shake_fill": Task("fill", len(FILL_LEVELS), False, lambda y, _: y[:, :1], class_metrics(len(FILL_LEVELS)),
+                       classes=len(FILL_LEVELS)),
 }
 """Sparsh-X task name -> definition (see the module docstring)."""
 SKIN_TASKS: dict[str, Task] = {
@@ -62,7 +84,7 @@ SKIN_TASKS: dict[str, Task] = {
 }
 """Sparsh-skin task name -> definition (rotation.tactile.probes.skin)."""
 ENCODER_TASKS = {"sparshx": TASKS, "skin": SKIN_TASKS}
-ENCODER_VARIANTS = {"sparshx": VARIANTS, "skin": ("pretrained", "e2e")}
+ENCODER_VARIANTS = {"sparshx": VARIANTS + tuple(MODALITY_VARIANTS), "skin": ("pretrained", "e2e")}
 
 
 @dataclass(frozen=True)
@@ -82,11 +104,14 @@ class Config:
     out: Path = Path("runs/probe")
     """Report directory: results.json, results.md, probe.png, config.json, tb/."""
     tasks: tuple[str, ...] | None = None
-    """Tasks: Sparsh-X force, contact_force, slip, mass, friction; skin force, pose, joystick. None: every task of the
-    encoder whose label all the sessions hold (skin cup sessions: force, pose; joystick sessions: force, joystick)."""
+    """Tasks: Sparsh-X force, contact_force, slip, mass, friction, and the shaking benchmark's shake_content,
+    shake_fill ('shake': both); skin force, pose, joystick. None: every task of the encoder whose label all the
+    sessions hold (skin cup sessions: force, pose; joystick sessions: force, joystick)."""
     variants: tuple[str, ...] | None = None
     """Variants among pretrained (frozen), e2e (trained end to end from scratch), image_only (Sparsh-X: frozen,
-    image tokens). None: all of the encoder's."""
+    image tokens); for the touch benchmarks all (frozen, every modality: pretrained), image, audio, imu, pressure
+    (frozen, that modality's tokens). None: the encoder's first three, or for benchmark tasks all, image, audio, imu,
+    pressure and e2e."""
     budgets: tuple[float, ...] = (0.1, 0.33, 1.0)
     """Label budgets: fractions of the training sessions, each in (0, 1]."""
     image_checkpoint: Path | None = None
@@ -128,6 +153,9 @@ class Config:
     def __post_init__(self) -> None:
         check_types(self)
         object.__setattr__(self, "sessions", check_session_sources(self.sessions))
+        if self.tasks is not None:  # a benchmark's name stands for its tasks
+            object.__setattr__(self, "tasks", tuple(dict.fromkeys(
+                t for name in self.tasks for t in BENCHMARKS.get(name, (name,)))))
         check_output_dir("out", self.out)
         if self.encoder not in ENCODER_TASKS:
             raise ValueError(f"encoder: unknown encoder {self.encoder!r}; encoders: {', '.join(ENCODER_TASKS)}")
@@ -167,5 +195,14 @@ class Config:
         return {t: tasks[t] for t in (self.tasks if self.tasks is not None else tuple(tasks))}
 
     @property
+    def benchmark(self) -> bool:
+        """Every task is a touch benchmark's (shake_*)."""
+        return self.tasks is not None and all(t.startswith(tuple(BENCHMARKS)) for t in self.tasks)
+
+    @property
     def variant_names(self) -> tuple[str, ...]:
-        return self.variants if self.variants is not None else ENCODER_VARIANTS[self.encoder]
+        if self.variants is not None:
+            return self.variants
+        if self.benchmark:
+            return BENCHMARK_VARIANTS
+        return VARIANTS if self.encoder == "sparshx" else ENCODER_VARIANTS[self.encoder]

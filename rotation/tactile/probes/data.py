@@ -42,6 +42,9 @@ class Task:
     """Reads sequences of windows and predicts at every window (Sparsh-skin's temporal decoders)."""
     loss: str = "mse"
     """Regression loss on standardized targets: 'mse' or 'smooth_l1'."""
+    classes: int = 0
+    """Multi-class classification over this many classes (cross-entropy, arg-max predictions; the target is the
+    class id, (B, 1)); 0: regression or ``classify``."""
 
 
 def window_labels(ds: Dataset, name: str) -> np.ndarray:
@@ -115,6 +118,8 @@ def target_stats(data: ProbeData, rows: np.ndarray, tasks: Mapping[str, Task], s
     stats, pos_weight = {}, 1.0
     for name, task in tasks.items():
         y = _rows_of(task.target(torch.from_numpy(data.train_labels[task.label][rows]), slip_threshold).numpy())
+        if task.classes:
+            continue
         if task.classify:
             pos = float(y.mean())
             pos_weight = float(np.clip((1.0 - pos) / max(pos, 1e-6), 1.0, 100.0))  # balance rare slip
@@ -130,7 +135,11 @@ def baselines(data: ProbeData, tasks: Mapping[str, Task], slip_threshold: float)
     for name, task in tasks.items():
         tr = _rows_of(task.target(torch.from_numpy(data.train_labels[task.label]), slip_threshold).numpy())
         te = _rows_of(task.target(torch.from_numpy(window_labels(data.test, task.label)), slip_threshold).numpy())
-        guess = np.broadcast_to((tr.mean(axis=0) > 0.5).astype(np.float32) if task.classify else tr.mean(axis=0),
-                                te.shape)
+        if task.classes:  # the most frequent training class
+            majority = np.bincount(tr[:, 0].astype(np.int64), minlength=task.classes).argmax()
+            guess = np.full(te.shape, float(majority), np.float32)
+        else:
+            guess = np.broadcast_to((tr.mean(axis=0) > 0.5).astype(np.float32) if task.classify
+                                    else tr.mean(axis=0), te.shape)
         rows += [{"task": name, "metric": m, "value": v} for m, v in task.metrics(guess, te).items()]
     return rows

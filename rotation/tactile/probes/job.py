@@ -3,6 +3,7 @@
     rotate probe --checkpoint runs/pretrain --sessions data/touch --cache data/touch_cache --out runs/probe
     rotate probe --checkpoint d360_sparshx_img_mic_imu_pressure_base.pth --sessions data/real --tasks force slip
     rotate probe --encoder skin --checkpoint runs/pretrain_skin --sessions data/skin --out runs/probe_skin
+    rotate probe --checkpoint runs/pretrain --sessions data/shake --tasks shake --out runs/probe_shake
 
 For every variant and label budget, one attentive probe per task (rotation.tactile.models.pooling: a learned query
 cross-attends over the encoder's layer-normed tokens, then an MLP head) is trained with Adam on the budget's
@@ -12,7 +13,9 @@ share of the training sessions and scored on held-out sessions (docs/reference/s
 - ``e2e``: the same architecture from a random initialization (the checkpoint's input statistics), trained with
   each task's probe end to end, one encoder per task;
 - ``image_only`` (Sparsh-X): the checkpoint's encoder reading only its image tokens, frozen (or
-  ``--image-checkpoint``).
+  ``--image-checkpoint``);
+- the touch benchmarks' names (``--tasks shake``: shake_content, shake_fill): ``all`` (= pretrained), ``image``,
+  ``audio``, ``imu``, ``pressure`` (the frozen encoder reading that modality's tokens alone) and ``e2e``.
 
 Sparsh-X tasks, from the labels simulated sessions store (rotation.data.session): ``force`` per-fingertip contact
 force, along the camera axis and across it (N, sensor frame; RMSE of each); ``contact_force`` the same force split
@@ -20,6 +23,9 @@ at the strongest contact, normal and tangential (N; RMSE of each: many of this h
 the dome, where the camera axis is close to tangent to the contact); ``slip`` whether the fingertip slides
 faster than ``slip_threshold`` (balanced accuracy); ``mass`` and ``friction`` of the object (RMSE; from
 ``labels/priv``).
+The shaking benchmark (sessions of `rotate collect --task shake`; those where the hand dropped the bottle are
+left out): ``shake_content`` which of pills, rice, lentils, water, oil the bottle holds, ``shake_fill`` which of
+three fill levels (accuracy and balanced accuracy; confusion matrices at the largest budget, <task>_confusion.png).
 Sparsh-skin tasks (``--encoder skin``, rotation.tactile.probes.skin): ``force`` per pad (instantaneous), ``pose``
 and ``joystick`` (temporal: sequences of ``sequence_windows`` windows, a causal transformer block over the pooled
 windows). Sessions are split into train and test by file; a budget b trains on the first max(1, round(b n)) of
@@ -59,7 +65,7 @@ from rotation.tactile.probes.data import (
     open_probe_data,
     target_stats,
 )
-from rotation.tactile.probes.report import write_report, write_traces
+from rotation.tactile.probes.report import write_confusions, write_report, write_traces
 from rotation.tactile.probes.train import Probes, evaluate, train_probes, variant_encoder
 from rotation.tactile.runtime import (
     resolve_device,
@@ -88,9 +94,19 @@ def _available_tasks(cfg: Config, paths: list[Path]) -> dict[str, Task]:
     return tasks
 
 
+def _held(path: Path) -> bool:
+    with SessionReader(path) as r:
+        return bool(r.meta.properties.get("held", True))
+
+
 def _prepare(cfg: Config) -> tuple[dict[str, Task], dict[bool, ProbeData]]:
     """The run's tasks, and samples for each kind of task: {False: single windows, True: sequences} (those needed)."""
     paths = session_paths(cfg.sessions)
+    if cfg.benchmark:  # a shaking episode whose bottle left the hand is no sample of its contents
+        held = [p for p in paths if _held(p)]
+        if len(held) < len(paths):
+            print(f"probe: {len(paths) - len(held)} of {len(paths)} sessions left out: the hand dropped the bottle")
+        paths = held
     if len(paths) < 2:
         raise ValueError(f"probe: need at least 2 session files to split into train and test, found {len(paths)} "
                          f"in {', '.join(map(str, cfg.sessions))}")
@@ -138,6 +154,7 @@ def _run(cfg: Config) -> dict[str, Any]:
     bar = tqdm(total=runs * cfg.steps, unit="step", desc="probe", disable=not cfg.progress, dynamic_ncols=True)
     sessions_used: dict[str, int] = {}
     traces: dict[str, dict[str, dict[str, np.ndarray]]] = {}  # task -> variant -> trace (largest budget)
+    confusions: dict[str, dict[str, np.ndarray]] = {}  # task -> variant -> confusion matrix (largest budget)
     first = next(iter(groups.values()))
     fixed = {"baselines": [b for temporal, data in groups.items() for b in baselines(
                  data, {n: t for n, t in all_tasks.items() if t.temporal == temporal}, cfg.slip_threshold)],
@@ -150,6 +167,9 @@ def _run(cfg: Config) -> dict[str, Any]:
         out_report = {"rows": rows, "complete": complete, **fixed, "sessions_per_budget": sessions_used}
         if traces:
             out_report["trace_plots"] = write_traces(traces, out, budget=max(cfg.budgets))
+        if confusions:
+            out_report["confusion"] = {t: {v: m.tolist() for v, m in by.items()} for t, by in confusions.items()}
+            out_report["confusion_plots"] = write_confusions(confusions, out, max(cfg.budgets))
         write_report(out_report, out)
         return out_report
 
@@ -174,7 +194,10 @@ def _run(cfg: Config) -> dict[str, Any]:
                                       "value": v} for m, v in metrics.items()]
                         if budget == max(cfg.budgets):
                             for task, trace in task_traces.items():
-                                traces.setdefault(task, {})[variant] = trace
+                                if "confusion" in trace:
+                                    confusions.setdefault(task, {})[variant] = trace["confusion"]
+                                else:
+                                    traces.setdefault(task, {})[variant] = trace
                         del probes
                     report(complete=False)
                     stop.raise_if_requested(f"probe: stopped after {variant} at budget {budget:g}; the finished "

@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-HIGHER_IS_BETTER = {"balanced_accuracy"}
+HIGHER_IS_BETTER = {"balanced_accuracy", "accuracy"}
 """Metrics where a larger value is better (all others are errors)."""
 
 
@@ -26,8 +26,8 @@ def write_report(report: dict[str, Any], out: Path) -> None:
              f"Checkpoint `{report.get('checkpoint', '')}`; {report.get('train_sessions')} training and "
              f"{report.get('test_sessions')} test sessions ({report.get('train_windows')} / "
              f"{report.get('test_windows')} windows), split by session. Budget = fraction of the training sessions. "
-             "RMSE: lower is better; balanced accuracy: higher is better. Baseline: the training mean (majority "
-             "class for slip).", "",
+             "RMSE: lower is better; accuracy and balanced accuracy: higher is better. Baseline: the training mean "
+             "(the majority class for classification).", "",
              "| task | metric | budget | " + " | ".join(variants) + " | baseline |",
              "|---" * (4 + len(variants)) + "|"]
     for task, metric in keys:
@@ -37,6 +37,8 @@ def write_report(report: dict[str, Any], out: Path) -> None:
             lines.append(f"| {task} | {metric} | {b:g} | " + " | ".join(cells) +
                          f" | {'' if ref is None else f'{ref:.4g}'} |")
     figures = ["![metric vs label budget](probe.png)"]
+    figures += [f"![{name.split('_confusion')[0]}: confusion matrices]({name})"
+                for name in report.get("confusion_plots", [])]
     figures += [f"![{name.split('_over_time')[0]}: predicted vs true over time]({name})"
                 for name in report.get("trace_plots", [])]
     (out / "results.md").write_text("\n".join(lines) + "\n\n" + "\n\n".join(figures) + "\n")
@@ -109,6 +111,46 @@ def write_traces(traces: dict[str, dict[str, dict[str, Any]]], out: Path, budget
         axes[-1, 0].set_xlabel("time (s)", fontsize=8)
         fig.tight_layout()
         name = f"{task}_over_time.png"
+        fig.savefig(out / name, dpi=100)
+        plt.close(fig)
+        names.append(name)
+    return names
+
+
+def write_confusions(confusions: dict[str, dict[str, Any]], out: Path, budget: float) -> list[str]:
+    """``<task>_confusion.png`` per multi-class task: each variant's confusion matrix on the test windows (rows true,
+    columns predicted, each row normalized), trained at ``budget``. Returns the file names."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from rotation.tactile.probes.config import CLASS_NAMES
+
+    out.mkdir(parents=True, exist_ok=True)
+    names = []
+    for task, by_variant in confusions.items():
+        labels = CLASS_NAMES.get(task)
+        fig, axes = plt.subplots(1, len(by_variant), figsize=(2.6 * len(by_variant) + 0.4, 2.9), squeeze=False)
+        for ax, (variant, matrix) in zip(axes[0], by_variant.items(), strict=True):
+            m = np.asarray(matrix, dtype=np.float64)
+            share = m / np.maximum(m.sum(axis=1, keepdims=True), 1)
+            ax.imshow(share, vmin=0, vmax=1, cmap="Blues")
+            k = len(m)
+            ticks = labels if labels is not None and len(labels) == k else [str(i) for i in range(k)]
+            ax.set_xticks(range(k), ticks, rotation=60, fontsize=7)
+            ax.set_yticks(range(k), ticks, fontsize=7)
+            for i in range(k):
+                for j in range(k):
+                    ax.text(j, i, f"{share[i, j]:.2f}", ha="center", va="center", fontsize=6,
+                            color="white" if share[i, j] > 0.6 else "black")
+            ax.set_title(f"{variant}: {np.trace(m) / max(m.sum(), 1):.2f}", fontsize=8)
+            ax.set_xlabel("predicted", fontsize=7)
+        axes[0, 0].set_ylabel("true", fontsize=7)
+        fig.suptitle(f"{task}: confusion on the test windows (budget {budget:g}; title: accuracy)", fontsize=9)
+        fig.tight_layout()
+        name = f"{task}_confusion.png"
         fig.savefig(out / name, dpi=100)
         plt.close(fig)
         names.append(name)

@@ -18,7 +18,7 @@ from rotation.interrupt import ignore_stop_signals
 from rotation.tactile.loading import step_loader, to_device
 from rotation.tactile.models.encoders import encoder_kind, fresh_like, kind_of, load_encoder
 from rotation.tactile.models.pooling import ProbeHead
-from rotation.tactile.probes.config import Config
+from rotation.tactile.probes.config import MODALITY_VARIANTS, Config
 from rotation.tactile.probes.data import (
     Task,
 )
@@ -79,8 +79,15 @@ class Probes(nn.Module):
 
 def variant_encoder(variant: str, pretrained: nn.Module, cfg: Config, device: torch.device) -> nn.Module:
     kind = encoder_kind(kind_of(pretrained))
-    if variant == "pretrained":
+    if variant in ("pretrained", "all"):
         return pretrained
+    if variant in MODALITY_VARIANTS and variant != "all":
+        groups = MODALITY_VARIANTS[variant]
+        missing = [g for g in groups if g not in pretrained.token_interface.names]
+        if missing:
+            raise ValueError(f"variant {variant}: the encoder of {cfg.checkpoint} has no {missing[0]} tokens "
+                             f"({list(pretrained.token_interface.names)}); drop the variant")
+        return kind.restrict(pretrained, groups)
     if variant == "image_only":
         if cfg.image_checkpoint is not None:
             enc = load_encoder(cfg.image_checkpoint, device=device)
@@ -119,7 +126,9 @@ def train_probes(probes: Probes, data: Dataset, tasks: dict[str, Task], cfg: Con
         for name, task in tasks.items():
             y = _targets(batch, task, cfg)
             p = preds[name].float()
-            if task.classify:
+            if task.classes:
+                losses[name] = F.cross_entropy(p, y[:, 0].long())
+            elif task.classify:
                 losses[name] = F.binary_cross_entropy_with_logits(p, y, pos_weight=pw)
             else:
                 mean, std = stats[name]
@@ -140,7 +149,8 @@ def evaluate(probes: Probes, data: Dataset, tasks: dict[str, Task], cfg: Config,
               stats: dict[str, tuple[Tensor, Tensor]], device: torch.device, bf16: bool
               ) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, np.ndarray]]]:
     """Metrics per task on ``data``, and for temporal tasks the traces of the last window of every sequence
-    (``pred``, ``true`` (N, outputs), ``time`` (N,) s, ``session`` (N,)) for the plots over time."""
+    (``pred``, ``true`` (N, outputs), ``time`` (N,) s, ``session`` (N,)) for the plots over time; for multi-class
+    tasks the confusion matrix instead (``confusion`` (classes, classes): rows true, columns predicted)."""
     probes.eval()
     loader = DataLoader(data, batch_size=cfg.batch_size, shuffle=False, num_workers=cfg.num_workers,
                         worker_init_fn=ignore_stop_signals)
@@ -153,7 +163,9 @@ def evaluate(probes: Probes, data: Dataset, tasks: dict[str, Task], cfg: Config,
             out = probes(probes.reference.preprocess(batch))
         for name, task in tasks.items():
             p = out[name].float()
-            if task.classify:
+            if task.classes:
+                p = p.argmax(dim=-1, keepdim=True).float()
+            elif task.classify:
                 p = (p > 0).float()
             else:
                 mean, std = stats[name]
@@ -166,6 +178,10 @@ def evaluate(probes: Probes, data: Dataset, tasks: dict[str, Task], cfg: Config,
     for name, task in tasks.items():
         p, t = np.concatenate(preds[name]), np.concatenate(targets[name])
         scores[name] = task.metrics(p.reshape(-1, p.shape[-1]), t.reshape(-1, t.shape[-1]))
+        if task.classes:
+            confusion = np.zeros((task.classes, task.classes), np.int64)
+            np.add.at(confusion, (t.reshape(-1).astype(np.int64), p.reshape(-1).astype(np.int64)), 1)
+            traces[name] = {"confusion": confusion}
         if task.temporal:  # (N, S, out): the last window of each sequence has the whole history
             traces[name] = {"pred": p[:, -1], "true": t[:, -1], "time": np.concatenate(times)[:, -1],
                             "session": np.concatenate(sessions)}
