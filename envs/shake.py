@@ -1,12 +1,9 @@
 """Bottle shaking: the hand, on a wrist that moves, holds a closed bottle and shakes it; the fingertips' Digit 360s
 feel the contents (envs.shake_contents) through the bottle.
 
-The scene is the hand variant's model (envs.scene) with its palm on a free joint welded to a mocap body (the wrist:
-a stiff spring that follows the scripted motion, as a robot arm's wrist would), a bottle at one of the hand's cup
-grasps (the cup grasp cache of the hand: the bottle has the cup's outer radius and height at the grasp's scale, no
-handle, a wall of 1.5 mm HDPE, a bottom and a cap) and its contents. The hand holds the grasp's joint targets; the
-contact model, the vendor's torque limits and the middle of the hand's friction ranges are the hand's
-(envs.physics); the physics step is 2 ms (the smallest grains are 2 mm across).
+The scene is the held-hand scene (envs.held_hand: the hand on a wrist that follows a scripted motion, the object at
+one of its cup grasps) with a bottle: the cup's outer radius and height at the grasp's scale, no handle, a wall of
+1.5 mm HDPE, a bottom and a cap, and its contents. The physics step is 2 ms (the smallest grains are 2 mm across).
 
 An episode (:func:`draw_episode`, all from its seed): the content and fill level (uniform unless given), the grasp
 (bucket and row), then the shake: the bottle settles for ``settle_s``, the wrist's motion ramps in over ``ramp_s``
@@ -18,18 +15,14 @@ the Digit 360 streams are rendered from, envs.sensors.digit360) with the labels.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
 
-from envs import constants as C
 from envs.grasp_cache import GraspCache, load_default_cache
-from envs.physics import hand_physics
-from envs.scene import hand_spec, link_geoms, skin_geoms
-from envs.sensors.digit360 import NUM_FIELDS, Digit360Readout, add_digit360_sensors
+from envs.held_hand import OBJECT_CONTYPE, WristRun, finish, grip, tilt_quat, wrist_spec
 from envs.shake_contents import CONTENT_NAMES, CONTENTS, FILL_LEVELS, Grain, Liquid, slosh_model
 
 TIMESTEP = 0.002
@@ -40,11 +33,9 @@ WALL_DENSITY = 950.0
 """HDPE (kg/m^3)."""
 WALL_SEGMENTS = 16
 """Boxes around the bottle's wall."""
-WELD_TIMECONST = 0.01
-"""Time constant (s) of the weld that makes the palm follow the wrist's mocap body."""
 HELD_TOLERANCE = 0.015
 """A bottle that moved more than this (m) relative to the palm by the end was not held."""
-BOTTLE_CONTYPE, GRAIN_BIT = 2, 4
+BOTTLE_CONTYPE, GRAIN_BIT = OBJECT_CONTYPE, 4
 """Collision bits: the hand collides with the bottle (as with the rotation env's objects), grains with the bottle
 and each other, never with the hand."""
 
@@ -227,54 +218,24 @@ def _add_contents(spec: mujoco.MjSpec, bottle: mujoco.MjsBody, episode: ShakeEpi
     return count * content.mass
 
 
-def _middle(lo: float, hi: float, log: bool) -> float:
-    return math.sqrt(lo * hi) if log else (lo + hi) / 2
-
-
 class ShakeSim:
     """One shaking episode (see the module docstring): the model is built for its bottle and contents."""
 
     def __init__(self, cfg: ShakeConfig, episode: ShakeEpisode, grasps: GraspCache | None = None) -> None:
         self.cfg, self.episode = cfg, episode
         grasps = grasps if grasps is not None else load_default_cache("cup", "", cfg.hand)
-        b = episode.bucket
-        scale = float(grasps.scales[b])
-        q, pose = grasps.sample(np.array([b]), np.array([scale]), np.array([episode.grasp_u]))
-        self.grasp_q, pose = q[0], pose[0]
-        radius, height = 0.040 * scale, 0.085 * scale  # the cup's body (envs.objects 'cup') at the grasp's scale
-        spec = hand_spec(cfg.hand)
-        spec.option.timestep = TIMESTEP
-        palm = spec.body("palm")
-        palm.add_freejoint(name="wrist")
-        self._palm_quat0 = np.array(palm.quat, dtype=float)
-        spec.worldbody.add_body(name="wrist_target", mocap=True, pos=list(palm.pos), quat=list(palm.quat))
-        weld = spec.add_equality(type=mujoco.mjtEq.mjEQ_WELD, name1="palm", name2="wrist_target",
-                                 objtype=mujoco.mjtObj.mjOBJ_BODY)
-        weld.solref = [WELD_TIMECONST, 1.0]
-        bottle = _add_bottle(spec, radius, height, pose[:3], pose[3:])
+        g = grip(grasps, episode.bucket, episode.grasp_u)
+        self.grasp_q = g.q
+        spec, self._palm_quat0 = wrist_spec(cfg.hand, TIMESTEP)
+        bottle = _add_bottle(spec, g.radius, g.height, g.pose[:3], g.pose[3:])
         rng = np.random.default_rng([episode.seed, 0x607])
-        self.content_mass = _add_contents(spec, bottle, episode, pose[:3], pose[3:], radius - WALL,
-                                          height - 2 * WALL, rng)
-        add_digit360_sensors(spec, history=1)
-        m = self.model = spec.compile()
-        from envs.config import EnvConfig
-        from envs.core import set_contact, set_torque_limits
-
+        self.content_mass = _add_contents(spec, bottle, episode, g.pose[:3], g.pose[3:], g.radius - WALL,
+                                          g.height - 2 * WALL, rng)
         # the hand's contact model without the noslip solver: with tens of grains it halved the rate, and the
         # bottle's drift in the hand over an episode was the same with and without it (3.2-3.4 mm)
-        set_contact(m, dataclasses.replace(hand_physics(cfg.hand).contact, noslip_iterations=0))
-        set_torque_limits(m, EnvConfig(hand=cfg.hand))
-        rc = hand_physics(cfg.hand).randomization
-        tip = _middle(*rc.friction, rc.friction_log)
-        link = _middle(*rc.link_friction, False) if rc.link_friction is not None else tip
-        bottle_geoms = np.array([g for g in range(m.ngeom) if m.geom(g).name.startswith("bottle_")])
-        m.geom_friction[link_geoms(m, bottle_geoms), 0] = link
-        m.geom_friction[skin_geoms(m), 0] = tip
-        m.geom_friction[bottle_geoms, 0] = min(tip, link)
-        self.data = mujoco.MjData(m)
-        self.readout = Digit360Readout(m)
-        self._joints = np.array([m.jnt_qposadr[m.joint(name).id] for name in C.JOINT_NAMES])
-        self._palm, self._bottle = m.body("palm").id, m.body("bottle").id
+        self.model = finish(spec, cfg.hand, "bottle_", noslip=False)
+        self._run = WristRun(self.model, g, self._palm_quat0, "bottle")
+        self.data = self._run.data
 
     def _wrist(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """The wrist's mocap position and quaternion at time ``t``."""
@@ -282,40 +243,20 @@ class ShakeSim:
         ramp = min(max((t - cfg.settle_s) / cfg.ramp_s, 0.0), 1.0) if cfg.ramp_s > 0 else float(t >= cfg.settle_s)
         w = 2 * math.pi * ep.frequency * t + ep.phase
         pos = ramp * ep.amplitude * math.sin(w) * np.asarray(ep.direction)
-        angle = ramp * ep.tilt * math.sin(w - math.pi / 2)
-        tilt = np.array([math.cos(angle / 2), *(math.sin(angle / 2) * np.asarray(ep.tilt_axis))])
-        quat = np.zeros(4)
-        mujoco.mju_mulQuat(quat, tilt, self._palm_quat0)
-        return pos, quat
+        return pos, tilt_quat(self._palm_quat0, np.asarray(ep.tilt_axis), ramp * ep.tilt * math.sin(w - math.pi / 2))
 
     def reset(self) -> None:
         """The episode's start: the grasp, the bottle and contents where the model put them, all at rest."""
-        m, d = self.model, self.data
-        mujoco.mj_resetData(m, d)
-        d.qpos[self._joints] = self.grasp_q
-        d.ctrl[:] = self.grasp_q
-        d.mocap_pos[0], d.mocap_quat[0] = self._wrist(0.0)
-        mujoco.mj_forward(m, d)
+        self._run.reset(*self._wrist(0.0))
 
     def run(self, reset: bool = True) -> ShakeRecording:
         """Step the episode (from its start, or with ``reset=False`` from the state :meth:`reset` left and the caller
         may have changed); the contact fields of every physics step and the labels."""
-        m, d = self.model, self.data
         if reset:
             self.reset()
-        steps = int(round(self.cfg.duration_s / TIMESTEP))
-        times = np.empty(steps)
-        rows = np.empty((4, steps, NUM_FIELDS), np.float32)
-        offset = np.empty((steps, 3))
-        rot = np.zeros(9)
-        for k in range(steps):
-            d.mocap_pos[0], d.mocap_quat[0] = self._wrist(d.time)
-            times[k] = d.time
-            mujoco.mj_step(m, d)
-            rows[:, k] = self.readout.read_current(d.sensordata[None])[0, :, 0]
-            mujoco.mju_quat2Mat(rot, d.xquat[self._palm])
-            offset[k] = rot.reshape(3, 3).T @ (d.xpos[self._bottle] - d.xpos[self._palm])
-        if not np.all(np.isfinite(rows)):
-            raise FloatingPointError(f"shake: the simulation of episode seed {self.episode.seed} diverged")
+        try:
+            times, rows, offset = self._run.run(int(round(self.cfg.duration_s / TIMESTEP)), self._wrist)
+        except FloatingPointError as err:
+            raise FloatingPointError(f"shake: episode seed {self.episode.seed}: {err}") from None
         held = bool(np.linalg.norm(offset[-1] - offset[0]) <= HELD_TOLERANCE)
         return ShakeRecording(self.episode, times, rows, self.content_mass, offset, held)
