@@ -55,7 +55,8 @@ from rotation.data.audio import fbank
 from rotation.data.session import SessionError
 from rotation.data.session_reader import SessionReader
 
-LABELS = ("force", "contact_force", "slip", "contact", "object_pose", "priv", "z", "content", "fill", "content_mass")
+LABELS = ("force", "contact_force", "slip", "contact", "object_pose", "priv", "z", "content", "fill", "content_mass",
+          "object", "action", "surface", "surface_force")
 """Per-step labels a sample may carry (streams ``labels/<name>``)."""
 PER_FINGERTIP = ("force", "contact_force", "slip", "contact")
 """The labels with one value per fingertip (a sample carries its own fingertip's)."""

@@ -50,6 +50,12 @@ labels/content                (1,)                float32/64       any        sh
                                                                                (envs.shake_contents.CONTENT_NAMES)
 labels/fill                   (1,)                float32/64       any        its fill level (FILL_LEVELS)
 labels/content_mass           (1,)                float32/64       any        its content's mass (kg)
+labels/object                 (1,)                float32/64       any        object-action-surface: the held
+                                                                               object's material (envs.oas.OBJECTS)
+labels/action                 (1,)                float32/64       any        the action (envs.oas.ACTIONS)
+labels/surface                (1,)                float32/64       any        the surface (envs.oas.SURFACES)
+labels/surface_force          (1,)                float32/64       any        the object's normal force on the
+                                                                               surface (N)
 touch/age                     (1,)                float32/64       any        deploy: the touch age (s) of each
                                                                                step acted with a correction
                                                                                (rotation.deploy.recording)
@@ -148,6 +154,10 @@ def _stream_registry() -> dict[str, StreamSpec]:
         "labels/content": StreamSpec((1,), _FLOAT, None, "class id (envs.shake_contents.CONTENT_NAMES)"),
         "labels/fill": StreamSpec((1,), _FLOAT, None, "level id (envs.shake_contents.FILL_LEVELS)"),
         "labels/content_mass": StreamSpec((1,), _FLOAT, None, "kg"),
+        "labels/object": StreamSpec((1,), _FLOAT, None, "class id (envs.oas.OBJECTS)"),
+        "labels/action": StreamSpec((1,), _FLOAT, None, "class id (envs.oas.ACTIONS)"),
+        "labels/surface": StreamSpec((1,), _FLOAT, None, "class id (envs.oas.SURFACES)"),
+        "labels/surface_force": StreamSpec((1,), _FLOAT, None, "N"),
     }
     for f in FINGERS:
         streams[f"digit360/{f}/image"] = StreamSpec((None, None, 3), ("uint8",), 30.0, "RGB", chunk=1,

@@ -6,6 +6,7 @@
     rotate collect --skin --policy play --episodes 64 --out data/skin_cup        # Xela skin, scripted cup play
     rotate collect --skin --task joystick --policy play --episodes 64 --out data/skin_joystick
     rotate collect --task shake --episodes 200 --out data/shake               # bottles of pills, rice, ..., water
+    rotate collect --task oas --episodes 200 --out data/oas                   # objects, actions, surfaces
 
 Files: OUT/shard_<e // 100>/episode_<e>.h5 in the session format (rotation.data.session) with joint streams,
 per-substep contact fields of every fingertip (the loader renders images, audio, IMU and pressure from them) and
@@ -40,6 +41,7 @@ from envs.validation import check_int, check_number, check_output_dir, check_see
 from rotation.configs import to_jsonable
 from rotation.data.session import LATENT_DIM, SessionMeta, StreamSetup
 from rotation.data.session_writer import SessionWriter
+from rotation.jobs.collect_bench import bench_streams, run_bench
 from rotation.jobs.collect_resume import (
     SETTINGS,
     SETTINGS_KEY,
@@ -49,7 +51,6 @@ from rotation.jobs.collect_resume import (
     settings_digest,
     write_manifest,
 )
-from rotation.jobs.collect_shake import run_shake, shake_streams
 from rotation.jobs.collect_skin import PlayPolicy, joystick_streams, record_skin, run_joystick, skin_streams
 
 SHARD_SIZE = 100
@@ -92,14 +93,15 @@ class Config:
     """The Digit 360 hand: 'auto' is a policy bundle's own hand, and 'digit360' for the scripted policies (the
     Xela hand with --skin); 'digit360_v4' (the vendor's kinematics, generation-2 touch: envs.scene.touch_model) for
     the scripted policies, or to check a bundle's hand."""
-    task: Literal["cup", "joystick", "shake"] = "cup"
+    task: Literal["cup", "joystick", "shake", "oas"] = "cup"
     """'cup': the RotateCup env with the object; 'joystick': the Xela hand presses and pushes the spring-returned
     joystick fixture (needs --skin and policy 'play' or 'random'; adds labels/joystick; the object and
     perturbation options do not apply); 'shake': the Digit 360 hand shakes closed bottles of pills, rice, lentils,
-    water or oil by script (rotation.jobs.collect_shake; labels content, fill, content_mass; the policy, object
-    and perturbation options do not apply)."""
+    water or oil by script; 'oas': it taps, presses, slides or rotates a held object of one of four materials on
+    one of three surfaces (rotation.jobs.collect_bench: the touch benchmarks; their labels; the policy, object and
+    perturbation options do not apply)."""
     shake_s: float = 3.0
-    """Seconds per shaking episode (--task shake), 0.6 s of settling and ramp-in included."""
+    """Seconds per episode of --task shake or oas, the object's settling included."""
 
     def __post_init__(self) -> None:
         check_types(self, skip=("com_shift",))  # Perturbation below checks com_shift with its own message
@@ -122,9 +124,9 @@ class Config:
             raise ValueError(f"hand: --skin records the Xela hand; leave --hand at auto, got {self.hand!r}")
         if self.task == "joystick" and not self.skin:
             raise ValueError("task: the joystick task records the Xela skin; add --skin")
-        if self.task == "shake" and (self.skin or self.hand == "digit360" or self.policy != "random"):
-            raise ValueError("task: the shake task moves the Digit 360 hand with the vendor's kinematics by script; "
-                             "leave --skin, --hand and --policy out")
+        if self.task in ("shake", "oas") and (self.skin or self.hand == "digit360" or self.policy != "random"):
+            raise ValueError(f"task: the {self.task} task moves the Digit 360 hand with the vendor's kinematics by "
+                             "script; leave --skin, --hand and --policy out")
         check_number("shake_s", self.shake_s, 1.2, 600.0, unit="s (a Sparsh-X window needs 1.12 s of history)")
         if self.task == "joystick" and self.policy not in ("play", "random"):
             raise ValueError(f"policy: the joystick task moves the hand by script: 'play' or 'random', got "
@@ -302,15 +304,15 @@ def run(cfg: Config) -> dict[str, float]:
     policy = scripted[cfg.policy]() if cfg.policy in scripted else _BundlePolicy(cfg.policy)
     env_cfg = _env_config(cfg, policy)
     settings = _settings(cfg, env_cfg, policy)
-    if cfg.task == "shake":
+    if cfg.task in ("shake", "oas"):
         settings["shake_s"] = cfg.shake_s
     check_manifest(cfg, settings)
     digest = settings_digest(settings)
     with_z = isinstance(policy, _BundlePolicy) and policy.privileged
     if cfg.task == "joystick":
         streams = [s.name for s in joystick_streams()]
-    elif cfg.task == "shake":
-        streams = [s.name for s in shake_streams()]
+    elif cfg.task in ("shake", "oas"):
+        streams = [s.name for s in bench_streams(cfg.task)]
     else:
         streams = [s.name for s in _streams(env_cfg.control_hz, 1.0 / env_cfg.physics_dt, with_z, cfg.skin)]
     todo = [e for e in range(cfg.episodes) if not kept_episode(episode_path(cfg.out, e), e, digest, streams)]
@@ -320,9 +322,9 @@ def run(cfg: Config) -> dict[str, float]:
     if cfg.task == "joystick":
         write_manifest(cfg, settings)
         return run_joystick(cfg, todo, episode_path, {SETTINGS_KEY: digest})
-    if cfg.task == "shake":
+    if cfg.task in ("shake", "oas"):
         write_manifest(cfg, settings)
-        return run_shake(cfg, todo, episode_path, {SETTINGS_KEY: digest})
+        return run_bench(cfg, todo, episode_path, {SETTINGS_KEY: digest})
     env = RotateCupVec(env_cfg, num_envs=m, seed=cfg.seed)  # loads the grasp cache: may still refuse
     write_manifest(cfg, settings)
     if isinstance(policy, PlayPolicy):

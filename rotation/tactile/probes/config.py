@@ -11,6 +11,8 @@ from typing import Literal
 import numpy as np
 
 from envs.constants import FINGERS, PRIV_FIELDS
+from envs.oas import ACTIONS, SURFACES
+from envs.oas import OBJECTS as OAS_OBJECTS
 from envs.shake_contents import CONTENT_NAMES, FILL_LEVELS
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.data.dataset import check_fingers, check_session_sources
@@ -34,9 +36,10 @@ MODALITY_VARIANTS = {"all": None, "image": ("img",), "audio": ("mic",), "imu": (
 the variants of the touch benchmarks (shake, object-action-surface), by the names their reports use."""
 BENCHMARK_VARIANTS = (*MODALITY_VARIANTS, "e2e")
 """The default variants of a run of touch-benchmark tasks."""
-BENCHMARKS = {"shake": ("shake_content", "shake_fill")}
+BENCHMARKS = {"shake": ("shake_content", "shake_fill"), "oas": ("oas_object", "oas_action", "oas_surface")}
 """A benchmark name given as a task stands for its tasks."""
-CLASS_NAMES = {"shake_content": CONTENT_NAMES, "shake_fill": FILL_LEVELS}
+CLASS_NAMES = {"shake_content": CONTENT_NAMES, "shake_fill": FILL_LEVELS, "oas_object": tuple(OAS_OBJECTS),
+               "oas_action": ACTIONS, "oas_surface": SURFACES}
 """Class names of the multi-class tasks (their confusion matrices' axes)."""
 
 
@@ -75,6 +78,9 @@ TASKS: dict[str, Task] = {
                           class_metrics(len(CONTENT_NAMES)), classes=len(CONTENT_NAMES)),
     "shake_fill": Task("fill", len(FILL_LEVELS), False, lambda y, _: y[:, :1], class_metrics(len(FILL_LEVELS)),
                        classes=len(FILL_LEVELS)),
+    **{f"oas_{label}": Task(label, len(names), False, lambda y, _: y[:, :1], class_metrics(len(names)),
+                            classes=len(names))
+       for label, names in (("object", tuple(OAS_OBJECTS)), ("action", ACTIONS), ("surface", SURFACES))},
 }
 """Sparsh-X task name -> definition (see the module docstring)."""
 SKIN_TASKS: dict[str, Task] = {
@@ -104,8 +110,9 @@ class Config:
     out: Path = Path("runs/probe")
     """Report directory: results.json, results.md, probe.png, config.json, tb/."""
     tasks: tuple[str, ...] | None = None
-    """Tasks: Sparsh-X force, contact_force, slip, mass, friction, and the shaking benchmark's shake_content,
-    shake_fill ('shake': both); skin force, pose, joystick. None: every task of the encoder whose label all the
+    """Tasks: Sparsh-X force, contact_force, slip, mass, friction, the shaking benchmark's shake_content, shake_fill
+    ('shake': both) and object-action-surface's oas_object, oas_action, oas_surface ('oas': all three); skin force,
+    pose, joystick. None: every task of the encoder whose label all the
     sessions hold (skin cup sessions: force, pose; joystick sessions: force, joystick)."""
     variants: tuple[str, ...] | None = None
     """Variants among pretrained (frozen), e2e (trained end to end from scratch), image_only (Sparsh-X: frozen,

@@ -25,7 +25,9 @@ faster than ``slip_threshold`` (balanced accuracy); ``mass`` and ``friction`` of
 ``labels/priv``).
 The shaking benchmark (sessions of `rotate collect --task shake`; those where the hand dropped the bottle are
 left out): ``shake_content`` which of pills, rice, lentils, water, oil the bottle holds, ``shake_fill`` which of
-three fill levels (accuracy and balanced accuracy; confusion matrices at the largest budget, <task>_confusion.png).
+three fill levels; object-action-surface (``--task oas``, sessions of `rotate collect --task oas`): ``oas_object``,
+``oas_action``, ``oas_surface``, the held object's material, the action and the surface (accuracy and balanced
+accuracy; confusion matrices at the largest budget, <task>_confusion.png).
 Sparsh-skin tasks (``--encoder skin``, rotation.tactile.probes.skin): ``force`` per pad (instantaneous), ``pose``
 and ``joystick`` (temporal: sequences of ``sequence_windows`` windows, a causal transformer block over the pooled
 windows). Sessions are split into train and test by file; a budget b trains on the first max(1, round(b n)) of
@@ -102,10 +104,10 @@ def _held(path: Path) -> bool:
 def _prepare(cfg: Config) -> tuple[dict[str, Task], dict[bool, ProbeData]]:
     """The run's tasks, and samples for each kind of task: {False: single windows, True: sequences} (those needed)."""
     paths = session_paths(cfg.sessions)
-    if cfg.benchmark:  # a shaking episode whose bottle left the hand is no sample of its contents
+    if cfg.benchmark:  # an episode whose object left the hand is no sample of what it holds or touches
         held = [p for p in paths if _held(p)]
         if len(held) < len(paths):
-            print(f"probe: {len(paths) - len(held)} of {len(paths)} sessions left out: the hand dropped the bottle")
+            print(f"probe: {len(paths) - len(held)} of {len(paths)} sessions left out: the hand dropped the object")
         paths = held
     if len(paths) < 2:
         raise ValueError(f"probe: need at least 2 session files to split into train and test, found {len(paths)} "

@@ -1,5 +1,6 @@
-"""`rotate probe --tasks shake`: the shaking benchmark's content and fill probes (multi-class) for every modality
-variant and end to end, with confusion matrices, on a tiny collection."""
+"""`rotate probe --tasks shake|oas`: the touch benchmarks' multi-class probes (the bottle's content and fill; the
+object, action and surface) for every modality variant and end to end, with confusion matrices, on tiny
+collections."""
 
 from __future__ import annotations
 
@@ -57,3 +58,21 @@ def test_benchmark_variants_and_task_names_are_checked():
         probe.Config(tasks=("shake",), variants=("all", "smell"))
     with pytest.raises(ValueError, match="tasks"):
         probe.Config(tasks=("shake_colour",))
+
+
+def test_a_tiny_oas_probe_through_the_command_line(tmp_path, checkpoint, capsys):
+    """`rotate probe --task oas` (the issue's spelling: argparse takes it for --tasks) on a tiny oas collection."""
+    from rotation.cli import main
+
+    sessions = tmp_path / "oas"
+    collect.run(collect.Config(task="oas", episodes=3, out=sessions, seed=2, shake_s=1.3, progress=False))
+    out = tmp_path / "probe"
+    assert main(["probe", "--checkpoint", str(checkpoint), "--sessions", str(sessions), "--task", "oas",
+                 "--variants", "all", "e2e", "--budgets", "1.0", "--test-fraction", "0.34", "--fingers", "index",
+                 "--stride", "1", "--steps", "1", "--batch-size", "4", "--head-hidden", "8", "--num-workers", "0",
+                 "--device", "cpu",
+                 "--no-progress", "--out", str(out)]) == 0
+    data = json.loads((out / "results.json").read_text())
+    assert {r["task"] for r in data["rows"]} == {"oas_object", "oas_action", "oas_surface"}
+    assert {r["variant"] for r in data["rows"]} == {"all", "e2e"}
+    assert np.asarray(data["confusion"]["oas_surface"]["all"]).shape == (3, 3)

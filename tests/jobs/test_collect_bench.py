@@ -1,6 +1,6 @@
-"""`rotate collect --task shake`: one session per shaking episode, deterministic per seed, whose windows carry the
-content and fill labels of their episode; a resumed collection keeps its files; options that do not apply are
-refused in one line."""
+"""`rotate collect --task shake|oas`: one session per benchmark episode, deterministic per seed, whose windows carry
+the labels of their episode; a resumed collection keeps its files; options that do not apply are refused in one
+line."""
 
 from __future__ import annotations
 
@@ -8,13 +8,15 @@ import numpy as np
 import pytest
 
 from envs.grasp_cache import load_default_cache
+from envs.oas import SURFACES, OasConfig
+from envs.oas import draw_episode as oas_draw
 from envs.shake import ShakeConfig, draw_episode
 from envs.shake_contents import CONTENT_NAMES, FILL_LEVELS
 from rotation.cli import main
 from rotation.data.dataset import TouchWindows, find_sessions
 from rotation.data.session_reader import SessionReader
 from rotation.jobs import collect
-from rotation.jobs.collect_shake import shake_seed
+from rotation.jobs.collect_bench import bench_seed as shake_seed
 
 
 def _collect(out, episodes=2, seed=4):
@@ -65,8 +67,29 @@ def test_a_collection_is_deterministic_and_resumes(sessions, tmp_path, capsys):
 
 @pytest.mark.parametrize("options", [["--policy", "student"], ["--skin"], ["--hand", "digit360"],
                                      ["--shake-s", "1.0"]])
-def test_options_that_do_not_apply_are_refused(options, tmp_path, capsys):
-    assert main(["collect", "--task", "shake", "--episodes", "1", "--out", str(tmp_path / "x"), *options]) == 2
+@pytest.mark.parametrize("task", ["shake", "oas"])
+def test_options_that_do_not_apply_are_refused(options, task, tmp_path, capsys):
+    assert main(["collect", "--task", task, "--episodes", "1", "--out", str(tmp_path / "x"), *options]) == 2
     err = capsys.readouterr().err
-    assert "Traceback" not in err and ("shake" in err or "1.12 s" in err), err
+    assert "Traceback" not in err and (task in err or "1.12 s" in err), err
     assert not (tmp_path / "x").exists()
+
+
+def test_oas_sessions_carry_the_object_action_and_surface_and_the_surface_force(tmp_path):
+    out = tmp_path / "oas"
+    collect.run(collect.Config(task="oas", episodes=2, out=out, seed=3, shake_s=1.3, progress=False))
+    paths = find_sessions(out)
+    grasps = load_default_cache("cup", "", "digit360_v4")
+    for e, path in enumerate(paths):
+        ep = oas_draw(OasConfig(duration_s=1.3), shake_seed(3, e), grasps)
+        with SessionReader(path) as r:
+            props = r.meta.properties
+            assert (props["object"], props["action"], props["surface"]) == (ep.object, ep.action, ep.surface)
+            for name, value in ep.labels.items():
+                assert np.all(r.stream(f"labels/{name}").data == value)
+            force = r.stream("labels/surface_force")
+            assert len(force) == len(r.stream("digit360/index/contact")) == 650 and np.all(force.data >= 0)
+    ds = TouchWindows(paths, labels=("object", "action", "surface"))
+    sample = ds[len(ds) // 2]
+    with SessionReader(paths[int(sample["session"])]) as r:
+        assert int(sample["surface"][0]) == SURFACES.index(r.meta.properties["surface"])
