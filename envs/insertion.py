@@ -1,0 +1,278 @@
+"""Plug insertion by touch: the hand, on a wrist that moves in 6 DoF, holds a plug and pushes it into a socket whose
+pose it does not know exactly; a wrist camera sees the approach, and the fingertips feel the contact.
+
+The scene is the held-hand scene (envs.held_hand): the hand palm up on a welded wrist, holding at one of its cup
+grasps the plug's grip, a cylinder of the cup's outer size, from whose top a prong (PRONG: 12 x 6 mm, 24 mm long)
+sticks up. The socket faces down above it: a plate SOCKET_DEPTH thick with a rectangular hole CLEARANCE wider than
+the prong on each side (1 mm in all, no chamfer), its pose drawn per episode (a few millimetres in the plate's
+plane, a few degrees of yaw and tilt, a few millimetres of height: ``socket_xy``, ``socket_yaw``, ``socket_tilt``,
+``socket_z``) around the prong's settled pose. The plug's grip is in the hand as the rotation env's objects are;
+only the prong meets the socket.
+
+Control: every ``control_dt`` the wrist's target moves by the action, a 6-vector (dx, dy, dz in m; droll, dpitch,
+dyaw in rad, world axes) clipped to ``max_step`` and ``max_turn``. Success: the prong's tip at least
+``success_depth`` into the hole within ``episode_steps``, with the largest socket force below ``max_force``.
+
+Observation (a dict of numpy arrays): ``wrist`` (7,) the wrist target's offset from its start (position, m;
+quaternion wxyz), ``joints`` (16,) the measured joint angles (rad), ``image`` (H, W, 3) uint8 from the wrist camera
+when rendering is on; and, privileged (for the scripted expert and the labels): ``socket`` (7,) the hole's entry
+centre and orientation, ``prong`` (7,) the prong tip's pose, ``depth`` (m, > 0 once inside the hole), ``force``
+(N, the socket's contact force). The fingertips' contact fields of every physics step are in ``contact`` (4, S, F).
+
+The wrist camera (``wrist_cam``) sits on the palm's side and looks up at the prong at a grazing angle: near the
+socket the prong hides the hole's edge from it, so its picture of the final alignment is ambiguous, as in the
+benchmark this task rebuilds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from envs.grasp_cache import GraspCache, load_default_cache
+from envs.held_hand import OBJECT_CONTYPE, WristRun, finish, grip, tilt_quat, wrist_spec
+
+TIMESTEP = 0.002
+PRONG = (0.012, 0.006, 0.024)
+"""Prong size (m): width, thickness, length."""
+CLEARANCE = 0.0005
+"""Hole wider than the prong on each side (m): 1 mm in all."""
+SOCKET_DEPTH = 0.016
+"""Plate thickness = hole depth (m)."""
+ENTRY_GAP = 0.01
+"""The socket's entry sits this far above the prong's settled tip (m), before its drawn offsets."""
+_NO_EFFECTS = (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION, mujoco.mjtRndFlag.mjRND_SKYBOX)
+"""Render flags the wrist camera turns off (a camera sees no shadow maps; a CPU renderer pays 20x for them)."""
+SOCKET_BIT = 8
+"""Collision bit of the socket: only the prong (conaffinity has it) touches it."""
+
+
+@dataclass(frozen=True)
+class InsertionConfig:
+    hand: str = "digit360_v4"
+    control_dt: float = 0.05
+    """Seconds between actions (20 Hz)."""
+    episode_steps: int = 300
+    """Actions per episode (15 s)."""
+    settle_s: float = 0.3
+    """The plug settles in the still hand before the first action."""
+    socket_xy: float = 0.003
+    """Largest socket offset in its plane (m)."""
+    socket_yaw: float = math.radians(5)
+    """Largest socket yaw (rad)."""
+    socket_tilt: float = math.radians(3)
+    """Largest socket tilt (rad)."""
+    socket_z: float = 0.003
+    """Largest socket height offset (m)."""
+    max_step: float = 0.003
+    """Largest wrist translation per action (m)."""
+    max_turn: float = math.radians(2)
+    """Largest wrist rotation per action (rad)."""
+    success_depth: float = 0.012
+    """Prong depth in the hole that counts as seated (m)."""
+    max_force: float = 40.0
+    """A socket force above this (N) fails the episode: excess force."""
+    image_size: tuple[int, int] = (160, 120)
+    """Wrist camera width, height (pixels)."""
+
+    def __post_init__(self) -> None:
+        if self.hand not in ("digit360", "digit360_v4"):
+            raise ValueError(f"insertion: the hand must have Digit 360 fingertips, got {self.hand!r}")
+        steps = self.control_dt / TIMESTEP
+        if abs(steps - round(steps)) > 1e-9 or steps < 1:
+            raise ValueError(f"insertion: control_dt must be a whole number of {TIMESTEP} s steps, got "
+                             f"{self.control_dt}")
+        if self.success_depth > SOCKET_DEPTH:
+            raise ValueError(f"insertion: success_depth must be at most the hole's depth {SOCKET_DEPTH} m")
+
+    @property
+    def substeps(self) -> int:
+        return int(round(self.control_dt / TIMESTEP))
+
+
+@dataclass(frozen=True)
+class InsertionEpisode:
+    seed: int
+    bucket: int
+    grasp_u: float
+    offset: tuple[float, float, float]
+    """Socket entry offset (m) from the prong's settled tip, ENTRY_GAP above it."""
+    yaw: float
+    tilt: tuple[float, float]
+    """Socket roll and pitch (rad)."""
+
+
+def draw_episode(cfg: InsertionConfig, seed: int, grasps: GraspCache) -> InsertionEpisode:
+    rng = np.random.default_rng([int(seed), 0x1A5])
+    r = cfg.socket_xy * math.sqrt(rng.uniform())
+    a = rng.uniform(0, 2 * math.pi)
+    return InsertionEpisode(int(seed), int(rng.integers(len(grasps.scales))), float(rng.uniform()),
+                            (r * math.cos(a), r * math.sin(a), float(rng.uniform(-cfg.socket_z, cfg.socket_z))),
+                            float(rng.uniform(-cfg.socket_yaw, cfg.socket_yaw)),
+                            (float(rng.uniform(-cfg.socket_tilt, cfg.socket_tilt)),
+                             float(rng.uniform(-cfg.socket_tilt, cfg.socket_tilt))))
+
+
+def _add_socket(spec: mujoco.MjSpec) -> list[str]:
+    """The socket plate, facing down, its entry (the hole's lower opening) at its mocap body's origin: four boxes
+    around the hole. Returns their names."""
+    body = spec.worldbody.add_body(name="socket", mocap=True, pos=[0.0, 0.0, 1.0])
+    w, t = PRONG[0] / 2 + CLEARANCE, PRONG[1] / 2 + CLEARANCE  # the hole's half sizes
+    outer = 0.03
+    bar_x, bar_y = ((outer - w) / 2, outer, SOCKET_DEPTH / 2), (w, (outer - t) / 2, SOCKET_DEPTH / 2)
+    boxes = {"socket_px": bar_x, "socket_nx": bar_x, "socket_py": bar_y, "socket_ny": bar_y}  # half sizes: x bars
+    # span the whole plate, y bars fill between them
+    centres = {"socket_px": ((outer + w) / 2, 0), "socket_nx": (-(outer + w) / 2, 0),
+               "socket_py": (0, (outer + t) / 2), "socket_ny": (0, -(outer + t) / 2)}
+    for name, size in boxes.items():
+        cx, cy = centres[name]
+        body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=list(size), pos=[cx, cy, SOCKET_DEPTH / 2],
+                      contype=SOCKET_BIT, conaffinity=0, condim=4, friction=[0.3, 0.005, 0.0001],
+                      rgba=[0.8, 0.8, 0.75, 1.0])
+    body.add_site(name="socket_entry", pos=[0, 0, 0], size=[0.002, 0, 0], rgba=[1, 0, 0, 0])
+    return list(boxes)
+
+
+def _contact_force(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> float:
+    """Sum of the normal forces (N) of the contacts that involve ``body``'s geoms."""
+    total = 0.0
+    for i in range(d.ncon):
+        con = d.contact[i]
+        if m.geom_bodyid[con.geom1] == body or m.geom_bodyid[con.geom2] == body:
+            mujoco.mj_contactForce(m, d, i, wrench)
+            total += wrench[0]
+    return total
+
+
+class InsertionSim:
+    """One insertion episode (see the module docstring)."""
+
+    def __init__(self, cfg: InsertionConfig, episode: InsertionEpisode, grasps: GraspCache | None = None,
+                 render: bool = False) -> None:
+        self.cfg, self.episode = cfg, episode
+        grasps = grasps if grasps is not None else load_default_cache("cup", "", cfg.hand)
+        g = grip(grasps, episode.bucket, episode.grasp_u)
+        spec, self._palm_quat0 = wrist_spec(cfg.hand, TIMESTEP)
+        plug = spec.worldbody.add_body(name="plug", pos=g.pose[:3].tolist(), quat=g.pose[3:].tolist())
+        plug.add_freejoint(name="plug_free")
+        plug.add_geom(name="plug_grip", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[g.radius, g.height / 2, 0],
+                      density=300.0, contype=OBJECT_CONTYPE, conaffinity=1, condim=4, rgba=[0.2, 0.2, 0.22, 1.0])
+        tip_z = g.height / 2 + PRONG[2]
+        plug.add_geom(name="plug_prong", type=mujoco.mjtGeom.mjGEOM_BOX,
+                      size=[PRONG[0] / 2, PRONG[1] / 2, PRONG[2] / 2], pos=[0, 0, g.height / 2 + PRONG[2] / 2],
+                      density=1000.0, contype=OBJECT_CONTYPE, conaffinity=1 | SOCKET_BIT, condim=4,
+                      friction=[0.3, 0.005, 0.0001], rgba=[0.85, 0.7, 0.3, 1.0])
+        plug.add_body(name="plug_tip", pos=[0, 0, tip_z])
+        self._tip_local = np.array([0.0, 0.0, tip_z])
+        self._socket_geoms = _add_socket(spec)
+        palm = spec.body("palm")
+        palm_rot = np.zeros(9)
+        mujoco.mju_quat2Mat(palm_rot, self._palm_quat0)
+        # the wrist camera: 8 cm beside and 3 cm below the prong's tip at the start, tracking the tip
+        tip0 = g.pose[:3] + np.array([0.0, 0.0, tip_z])
+        cam_world = tip0 + np.array([0.06, -0.05, -0.03])
+        palm.add_camera(name="wrist_cam", pos=(palm_rot.reshape(3, 3).T @ cam_world).tolist(),
+                        mode=mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODY, targetbody="plug_tip", fovy=45)
+        self.model = finish(spec, cfg.hand, "plug_")
+        self._run = WristRun(self.model, g, self._palm_quat0, "plug")
+        self.data = self._run.data
+        self._plug, self._socket = self.model.body("plug").id, self.model.body("socket").id
+        self._renderer = mujoco.Renderer(self.model, cfg.image_size[1], cfg.image_size[0]) if render else None
+        self._wrench = np.zeros(6)
+        self.steps = 0
+        self.max_force = 0.0
+        self.contact = np.zeros((4, 0, 0), np.float32)
+
+    # ------------------------------------------------------------------ poses
+    def _pose_of(self, local: np.ndarray) -> np.ndarray:
+        d = self.data
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, d.xquat[self._plug])
+        return np.concatenate([d.xpos[self._plug] + rot.reshape(3, 3) @ local, d.xquat[self._plug]])
+
+    def socket_pose(self) -> np.ndarray:
+        """The hole's entry centre (m) and the socket's orientation (wxyz)."""
+        return np.concatenate([self.data.mocap_pos[1], self.data.mocap_quat[1]])
+
+    def depth(self) -> tuple[float, bool]:
+        """How far (m) the prong's tip is above the socket's entry plane, along the socket's axis, and whether it is
+        within the hole's outline."""
+        d = self.data
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, d.mocap_quat[1])
+        local = rot.reshape(3, 3).T @ (self._pose_of(self._tip_local)[:3] - d.mocap_pos[1])
+        inside = abs(local[0]) <= PRONG[0] / 2 + CLEARANCE + 1e-4 and abs(local[1]) <= PRONG[1] / 2 + CLEARANCE + 1e-4
+        return float(local[2]), bool(inside)
+
+    # ------------------------------------------------------------------ episode
+    def reset(self) -> dict[str, np.ndarray]:
+        """The start: the plug settles in the still hand, then the socket is placed from the episode's draws."""
+        cfg, ep, d = self.cfg, self.episode, self.data
+        self._pos, self._quat = np.zeros(3), self._palm_quat0.copy()
+        self._run.reset(self._pos, self._quat)
+        d.mocap_pos[1] = [0.0, 0.0, 1.0]
+        self._run.run(int(round(cfg.settle_s / TIMESTEP)), self._target)
+        tip = self._pose_of(self._tip_local)[:3]
+        d.mocap_pos[1] = tip + np.array([0.0, 0.0, ENTRY_GAP]) + np.asarray(ep.offset)
+        quat = tilt_quat(np.array([1.0, 0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), ep.yaw)
+        quat = tilt_quat(quat, np.array([1.0, 0.0, 0.0]), ep.tilt[0])
+        d.mocap_quat[1] = tilt_quat(quat, np.array([0.0, 1.0, 0.0]), ep.tilt[1])
+        mujoco.mj_forward(self.model, d)
+        self._start_pos, self._start_quat = self._pos.copy(), self._quat.copy()
+        self.steps, self.max_force = 0, 0.0
+        self.contact = np.zeros((4, 0, 0), np.float32)
+        return self.observe()
+
+    def _target(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        return self._pos, self._quat
+
+    def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], bool, dict[str, float]]:
+        """Move the wrist's target by ``action`` (see the module docstring) and step ``control_dt``; returns the
+        observation, whether the episode ended, and info: success, depth, force, max_force."""
+        cfg = self.cfg
+        a = np.asarray(action, dtype=np.float64).reshape(6)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"insertion: the action must be 6 finite numbers, got {action!r}")
+        move = np.clip(a[:3], -cfg.max_step, cfg.max_step)
+        turn = np.clip(a[3:], -cfg.max_turn, cfg.max_turn)
+        self._pos = self._pos + move
+        for axis, angle in zip(np.eye(3), turn, strict=True):
+            self._quat = tilt_quat(self._quat, axis, float(angle))
+        forces = []
+        _, rows, _ = self._run.run(cfg.substeps, self._target, lambda d: forces.append(
+            _contact_force(self.model, d, self._socket, self._wrench)))
+        self.contact = rows
+        self.steps += 1
+        force = float(max(forces)) if forces else 0.0
+        self.max_force = max(self.max_force, force)
+        depth, inside = self.depth()
+        success = inside and depth >= cfg.success_depth and self.max_force <= cfg.max_force
+        done = success or self.steps >= cfg.episode_steps or self.max_force > cfg.max_force
+        return self.observe(), done, {"success": float(success), "depth": depth, "inside": float(inside),
+                                      "force": force, "max_force": self.max_force}
+
+    def observe(self) -> dict[str, np.ndarray]:
+        d = self.data
+        rel = np.zeros(4)
+        inv = np.zeros(4)
+        mujoco.mju_negQuat(inv, self._start_quat)
+        mujoco.mju_mulQuat(rel, self._quat, inv)
+        obs = {"wrist": np.concatenate([self._pos - self._start_pos, rel]).astype(np.float32),
+               "joints": d.qpos[self._run._joints].astype(np.float32),
+               "socket": self.socket_pose().astype(np.float32),
+               "prong": self._pose_of(self._tip_local).astype(np.float32),
+               "depth": np.float32(self.depth()[0])}
+        if self._renderer is not None:
+            self._renderer.update_scene(d, camera="wrist_cam")
+            for flag in _NO_EFFECTS:  # shadows and reflections: 146 ms a frame on a CPU renderer, 6 ms without
+                self._renderer.scene.flags[flag] = 0
+            obs["image"] = self._renderer.render().copy()
+        return obs
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
