@@ -16,8 +16,10 @@ dyaw in rad, world axes) clipped to ``max_step`` and ``max_turn``. Success: the 
 Observation (a dict of numpy arrays): ``wrist`` (7,) the wrist target's offset from its start (position, m;
 quaternion wxyz), ``joints`` (16,) the measured joint angles (rad), ``image`` (H, W, 3) uint8 from the wrist camera
 when rendering is on; and, privileged (for the scripted expert and the labels): ``socket`` (7,) the hole's entry
-centre and orientation, ``prong`` (7,) the prong tip's pose, ``depth`` (m, > 0 once inside the hole), ``force``
-(N, the socket's contact force). The fingertips' contact fields of every physics step are in ``contact`` (4, S, F).
+centre and orientation, ``prong`` (7,) the prong tip's pose, ``depth`` (m, > 0 once inside the hole), ``force`` (N,
+the socket's contact force). The fingertips' contact fields of the physics steps since the last call (the settling
+after :meth:`reset`, the action's steps after :meth:`step`) are in ``contact`` (4, S, F); the simulation's time in
+``data.time``.
 
 The wrist camera (``wrist_cam``) sits on the palm's side and looks up at the prong at a grazing angle: near the
 socket the prong hides the hole's edge from it, so its picture of the final alignment is ambiguous, as in the
@@ -57,8 +59,9 @@ class InsertionConfig:
     """Seconds between actions (20 Hz)."""
     episode_steps: int = 300
     """Actions per episode (15 s)."""
-    settle_s: float = 0.3
-    """The plug settles in the still hand before the first action."""
+    settle_s: float = 1.2
+    """The plug settles in the still hand before the first action: long enough for a Digit 360 window's 1.12 s of
+    history (the fingertips' contact fields of the settling are kept: :attr:`InsertionSim.contact`)."""
     socket_xy: float = 0.003
     """Largest socket offset in its plane (m)."""
     socket_yaw: float = math.radians(5)
@@ -214,7 +217,7 @@ class InsertionSim:
         self._pos, self._quat = np.zeros(3), self._palm_quat0.copy()
         self._run.reset(self._pos, self._quat)
         d.mocap_pos[1] = [0.0, 0.0, 1.0]
-        self._run.run(int(round(cfg.settle_s / TIMESTEP)), self._target)
+        _, self.contact, _ = self._run.run(int(round(cfg.settle_s / TIMESTEP)), self._target)
         tip = self._pose_of(self._tip_local)[:3]
         d.mocap_pos[1] = tip + np.array([0.0, 0.0, ENTRY_GAP]) + np.asarray(ep.offset)
         quat = tilt_quat(np.array([1.0, 0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), ep.yaw)
@@ -223,7 +226,6 @@ class InsertionSim:
         mujoco.mj_forward(self.model, d)
         self._start_pos, self._start_quat = self._pos.copy(), self._quat.copy()
         self.steps, self.max_force = 0, 0.0
-        self.contact = np.zeros((4, 0, 0), np.float32)
         return self.observe()
 
     def _target(self, t: float) -> tuple[np.ndarray, np.ndarray]:

@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("rotation.jobs.demo", "the end-to-end demo on the shipped defaults"),
     "hand-info": ("rotation.jobs.hand_info", "print a hand's firmware, serial, temperatures and joint positions"),
     "collect": ("rotation.jobs.collect", "record simulated touch sessions (Digit 360 on) with a policy"),
+    "demos": ("rotation.jobs.demos", "record a scripted expert's demonstrations of a task (plug insertion)"),
     "inspect-touch": ("rotation.jobs.inspect_tactile", "plot the four touch streams of a session window (PNG)"),
     "deploy": ("rotation.deploy.job", "run a policy on a real or emulated hand with safety limits and recording"),
     "record": ("rotation.jobs.record", "record a labelled session (the object's measured properties) for adapter "

@@ -60,6 +60,14 @@ def _other_collection(root: Path) -> str:
     return str(out)
 
 
+def _not_a_demo(root: Path) -> str:
+    """An output folder whose first episode's path holds a file that is not a session."""
+    out = root / "demos"
+    (out / "shard_000").mkdir(parents=True)
+    (out / "shard_000" / "episode_000000.h5").write_text("my notes")
+    return str(out)
+
+
 ROWS = {
     # command: argv builder (root -> argv), the words the refusal must contain
     "grasps": (lambda r: ["grasps", "--objects", "cup", "--scales", "3.0", "--per-scale", "1", "--batch-size", "1",
@@ -74,6 +82,7 @@ ROWS = {
     "demo": (lambda r: ["demo", "--out", str(r / "demo")], "ships no teacher"),
     "hand-info": (lambda r: ["hand-info", "--hand", "allegro", "--can", "virtual:nobody-answers"], "no reply"),
     "collect": (lambda r: ["collect", "--out", _other_collection(r), "--episodes", "1"], "other settings"),
+    "demos": (lambda r: ["demos", "--out", _not_a_demo(r), "--episodes", "1"], "not a demonstration of this run"),
     "inspect-touch": (lambda r: ["inspect-touch", _not_a_session(r), "--out", str(r / "i.png")],
                         "not a session file"),
     "deploy": (lambda r: ["deploy", "--hand", "sim-allegro", "--policy", _adapter_with_a_missing_encoder(r),

@@ -56,7 +56,7 @@ from rotation.data.session import SessionError
 from rotation.data.session_reader import SessionReader
 
 LABELS = ("force", "contact_force", "slip", "contact", "object_pose", "priv", "z", "content", "fill", "content_mass",
-          "object", "action", "surface", "surface_force")
+          "object", "action", "surface", "surface_force", "socket", "prong", "depth", "socket_force")
 """Per-step labels a sample may carry (streams ``labels/<name>``)."""
 PER_FINGERTIP = ("force", "contact_force", "slip", "contact")
 """The labels with one value per fingertip (a sample carries its own fingertip's)."""

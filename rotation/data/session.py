@@ -56,6 +56,15 @@ labels/action                 (1,)                float32/64       any        th
 labels/surface                (1,)                float32/64       any        the surface (envs.oas.SURFACES)
 labels/surface_force          (1,)                float32/64       any        the object's normal force on the
                                                                                surface (N)
+camera/wrist                  (H, W, 3)           uint8            any        a wrist camera's frames, RGB
+wrist/pose                    (7,)                float32/64       any        the wrist target's offset from its
+                                                                               start (m, quaternion wxyz)
+actions/wrist                 (6,)                float32/64       any        a wrist action (dx dy dz m, droll
+                                                                               dpitch dyaw rad)
+labels/socket                 (7,)                float32/64       any        insertion: the socket's entry pose
+labels/prong                  (7,)                float32/64       any        the prong tip's pose
+labels/depth                  (1,)                float32/64       any        the prong's depth in the hole (m)
+labels/socket_force           (1,)                float32/64       any        the socket's contact force (N)
 touch/age                     (1,)                float32/64       any        deploy: the touch age (s) of each
                                                                                step acted with a correction
                                                                                (rotation.deploy.recording)
@@ -151,6 +160,13 @@ def _stream_registry() -> dict[str, StreamSpec]:
         "labels/priv": StreamSpec((PRIV_DIM,), _FLOAT, None, "envs.constants.PRIV_FIELDS"),
         "labels/z": StreamSpec((LATENT_DIM,), _FLOAT, None, "latent"),
         "touch/age": StreamSpec((1,), _FLOAT, None, "s"),
+        "camera/wrist": StreamSpec((None, None, 3), ("uint8",), None, "RGB", chunk=1, compression="lzf"),
+        "wrist/pose": StreamSpec((7,), _FLOAT, None, "m, quaternion wxyz"),
+        "actions/wrist": StreamSpec((6,), _FLOAT, None, "m, rad"),
+        "labels/socket": StreamSpec((7,), _FLOAT, None, "m, quaternion wxyz"),
+        "labels/prong": StreamSpec((7,), _FLOAT, None, "m, quaternion wxyz"),
+        "labels/depth": StreamSpec((1,), _FLOAT, None, "m"),
+        "labels/socket_force": StreamSpec((1,), _FLOAT, None, "N"),
         "labels/content": StreamSpec((1,), _FLOAT, None, "class id (envs.shake_contents.CONTENT_NAMES)"),
         "labels/fill": StreamSpec((1,), _FLOAT, None, "level id (envs.shake_contents.FILL_LEVELS)"),
         "labels/content_mass": StreamSpec((1,), _FLOAT, None, "kg"),

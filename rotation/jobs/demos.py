@@ -1,0 +1,183 @@
+"""Record demonstrations of the scripted expert: `rotate demos --task insertion --episodes 100 --out data/demos`.
+
+Episode e (seed ``seed * 1_000_000 + e``: the socket's pose, the grasp and the expert's aim) of the insertion task
+(envs.insertion) is played by the privileged expert (envs.insertion_expert) and written as one session file,
+OUT/shard_<e // 100>/episode_<e>.h5 (rotation.data.session), at the 20 Hz control rate unless noted:
+
+- ``camera/wrist`` (H, W, 3) uint8: the wrist camera's frame the action was chosen on;
+- ``joints/position`` (16,) rad and ``wrist/pose`` (7,): the measured joints and the wrist target's offset from its
+  start (position m, quaternion wxyz): the proprioception a policy reads;
+- ``actions/wrist`` (6,): the expert's action (dx, dy, dz m; droll, dpitch, dyaw rad) on that frame;
+- ``digit360/<finger>/contact`` (500 Hz): the fingertips' contact fields from the start of the plug's settling
+  (t = 0; the first action at 1.2 s, so that its touch window has its 1.12 s of history), which the loader renders
+  into the four Digit 360 streams;
+- ``labels/socket`` (7,), ``labels/prong`` (7,), ``labels/depth`` (1,) m, ``labels/socket_force`` (1,) N:
+  privileged state, for analysis and probes, never a policy's input.
+
+The session's properties record the outcome (``success``, ``steps``, ``max_force``). A run that stops keeps the
+finished episodes; running the same command again records the rest (an episode's file is complete or recorded
+again). Other tasks follow as they are added.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from envs.constants import FINGERS, NUM_JOINTS
+from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
+from rotation.configs import to_jsonable
+from rotation.data.session import SessionMeta, StreamSetup
+from rotation.data.session_writer import SessionWriter
+
+SHARD_SIZE = 100
+
+
+@dataclass(frozen=True)
+class Config:
+    task: Literal["insertion"] = "insertion"
+    """The task to demonstrate."""
+    episodes: int = 100
+    """Episodes (session files) to have in OUT when done."""
+    out: Path = Path("data/demos")
+    """Output directory."""
+    seed: int = 0
+    """Seed of the demonstrations (episode e is seeded seed * 1,000,000 + e)."""
+    image_size: tuple[int, int] = (160, 120)
+    """Wrist camera width and height (pixels)."""
+    episode_steps: int = 300
+    """Actions per episode at most (15 s at 20 Hz)."""
+    flush_interval_s: float = 2.0
+    """Session writers flush at least this often (s)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        check_int("episodes", self.episodes, 1, 10**6)
+        check_seed("seed", self.seed)
+        check_output_dir("out", self.out)
+        check_int("image_size width", self.image_size[0], 16, 640, "pixels")
+        check_int("image_size height", self.image_size[1], 16, 480, "pixels")
+        check_int("episode_steps", self.episode_steps, 1, 100_000)
+        check_number("flush_interval_s", self.flush_interval_s, 0.0, 3600.0, low_open=True, unit="s")
+
+
+def episode_path(out: Path, episode: int) -> Path:
+    return Path(out) / f"shard_{episode // SHARD_SIZE:03d}" / f"episode_{episode:06d}.h5"
+
+
+def demo_streams(image_size: tuple[int, int], control_hz: float) -> list[StreamSetup]:
+    w, h = image_size
+    return [StreamSetup("camera/wrist", shape=(h, w, 3), rate_hz=control_hz),
+            *(StreamSetup(n, rate_hz=control_hz) for n in ("joints/position", "wrist/pose", "actions/wrist",
+                                                           "labels/socket", "labels/prong", "labels/depth",
+                                                           "labels/socket_force")),
+            *(StreamSetup(f"digit360/{f}/contact", rate_hz=500.0) for f in FINGERS)]
+
+
+SAME_RUN = ("task", "seed", "image_size", "episode_steps")
+"""Settings an episode's file must share with this run to be kept (complete) or recorded again (incomplete)."""
+
+
+def _kept(cfg: Config, episode: int) -> bool:
+    """Whether episode ``episode``'s file is this run's and complete (then kept); False when there is none or it is
+    this run's unfinished one (recorded again). Any other file there is refused, never overwritten."""
+    from envs.errors import RequestRefused
+    from rotation.data.session import SessionError
+    from rotation.data.session_reader import SessionReader
+    from rotation.jobs.collect_resume import is_complete
+
+    path = episode_path(cfg.out, episode)
+    if not path.exists():
+        return False
+    try:
+        with SessionReader(path) as r:
+            extra = r.meta.extra
+    except (SessionError, OSError) as err:
+        raise RequestRefused(f"{path} is not a demonstration of this run ({err}); move it away or use another --out") \
+            from None
+    mine = to_jsonable(cfg)
+    theirs = extra.get("demos") or {}
+    if extra.get("episode") != episode or any(theirs.get(k) != mine[k] for k in SAME_RUN):
+        raise RequestRefused(f"{path} holds another run's demonstration (episode {extra.get('episode')}, settings "
+                             f"{ {k: theirs.get(k) for k in SAME_RUN} }); use another --out")
+    return is_complete(path)
+
+
+def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
+    """Play and write episode ``episode``; returns its outcome."""
+    from envs.insertion import TIMESTEP, InsertionConfig, InsertionSim, draw_episode
+    from envs.insertion_expert import InsertionExpert
+    from envs.rng import splitmix64
+    from envs.scene import touch_model
+
+    icfg = InsertionConfig(image_size=cfg.image_size, episode_steps=cfg.episode_steps)
+    seed = cfg.seed * 1_000_000 + episode
+    ep = draw_episode(icfg, seed, grasps)
+    sim = InsertionSim(icfg, ep, grasps, render=True)
+    expert = InsertionExpert(icfg, seed)
+    with np.errstate(over="ignore"):
+        key = int(splitmix64(np.asarray([seed], dtype=np.uint64))[0])
+    meta_base = dict(source="sim", object="plug", control_hz=1.0 / icfg.control_dt, seed=seed)
+    extra = {"episode": episode, "task": "insertion", "touch_key": key, "sim_hand": icfg.hand,
+             "touch_generation": touch_model(icfg.hand).generation, "physics_dt": TIMESTEP,
+             "insertion": to_jsonable(ep), "demos": to_jsonable(cfg)}
+    path = episode_path(cfg.out, episode)
+    frames: list[tuple] = []
+    try:
+        obs, info = sim.reset(), {"force": 0.0}
+        settle = sim.contact.copy()  # the settling's contact fields, from t = 0: the first windows' history
+        done = False
+        while not done:
+            action = expert.act(obs, info)
+            t = sim.data.time
+            frames.append((t, obs, action, info.get("force", 0.0)))
+            obs, done, info = sim.step(action)
+            frames[-1] = (*frames[-1], sim.contact.copy(), t + np.arange(icfg.substeps) * TIMESTEP)
+    finally:
+        sim.close()
+    outcome = {"success": bool(info["success"]), "steps": sim.steps, "max_force": float(info["max_force"])}
+    meta = SessionMeta(**meta_base, properties=outcome, extra=extra)
+    with SessionWriter(path, meta, demo_streams(cfg.image_size, 1.0 / icfg.control_dt),
+                       flush_interval_s=cfg.flush_interval_s, overwrite=True) as w:
+        t_settle = np.arange(settle.shape[1]) * TIMESTEP
+        for f, finger in enumerate(FINGERS):
+            w.append(f"digit360/{finger}/contact", settle[f], t_settle)
+        for t, o, action, force, rows, t_rows in frames:
+            ts = np.array([t])
+            w.append("camera/wrist", o["image"][None], ts)
+            w.append("joints/position", o["joints"][None, :NUM_JOINTS].astype(np.float64), ts)
+            w.append("wrist/pose", o["wrist"][None].astype(np.float64), ts)
+            w.append("actions/wrist", np.asarray(action, np.float64)[None], ts)
+            w.append("labels/socket", o["socket"][None].astype(np.float64), ts)
+            w.append("labels/prong", o["prong"][None].astype(np.float64), ts)
+            w.append("labels/depth", np.array([[float(o["depth"])]]), ts)
+            w.append("labels/socket_force", np.array([[float(force)]]), ts)
+            for f, finger in enumerate(FINGERS):
+                w.append(f"digit360/{finger}/contact", rows[f], t_rows)
+    return outcome
+
+
+def run(cfg: Config) -> dict[str, Any]:
+    """Record every episode OUT does not hold complete yet; returns the counts."""
+    from envs.grasp_cache import load_default_cache
+
+    grasps = load_default_cache("cup", "", "digit360_v4")
+    todo = [e for e in range(cfg.episodes) if not _kept(cfg, e)]
+    if not todo:
+        print(f"demos: {cfg.out} already holds {cfg.episodes} complete demonstrations")
+        return {"episodes": 0, "successes": 0}
+    successes, t0 = 0, time.perf_counter()
+    with tqdm(todo, unit="episode", desc="demos", disable=not cfg.progress, dynamic_ncols=True) as bar:
+        for e in bar:
+            successes += record_episode(cfg, e, grasps)["success"]
+            bar.set_postfix(success=f"{successes}/{bar.n + 1}")
+    elapsed = time.perf_counter() - t0
+    print(f"demos: {len(todo)} insertion demonstrations ({successes} seated) in {elapsed:.0f} s -> {cfg.out}")
+    return {"episodes": len(todo), "successes": successes, "wall_s": elapsed}

@@ -1,0 +1,52 @@
+"""`rotate demos --task insertion`: the expert's demonstrations as sessions (camera, proprioception, actions,
+touch, privileged labels), the touch history there from the first action, deterministic and resumable."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rotation.cli import main
+from rotation.data.dataset import TouchWindows, find_sessions
+from rotation.data.session_reader import SessionReader
+from rotation.jobs import demos
+
+
+def test_demonstrations_are_sessions_a_policy_can_learn_from(tmp_path, capsys):
+    out = tmp_path / "demos"
+    cfg = demos.Config(episodes=2, out=out, seed=5, image_size=(48, 36), progress=False)
+    assert demos.run(cfg)["episodes"] == 2
+    paths = find_sessions(out)
+    assert len(paths) == 2
+    for path in paths:
+        with SessionReader(path) as r:
+            steps = r.meta.properties["steps"]
+            assert r.meta.properties["success"] is True and steps >= 5
+            for name in ("camera/wrist", "joints/position", "wrist/pose", "actions/wrist", "labels/depth"):
+                assert len(r.stream(name, lazy=True)) == steps, name
+            assert r.stream("camera/wrist", lazy=True).data.shape[1:] == (36, 48, 3)
+            t_first = r.stream("actions/wrist").timestamps[0]
+            assert t_first >= 1.12  # the touch window of the first action has its history
+            depth = r.stream("labels/depth").data[:, 0]
+            assert depth[0] < 0 and depth[-1] > 0.01  # from below the socket to seated
+    windows = TouchWindows(paths, labels=("depth",))
+    assert min(float(windows[i]["time"]) for i in range(0, len(windows), 50)) <= 1.2 + 1e-6
+    with SessionReader(paths[0]) as r:
+        first = r.stream("actions/wrist").data.copy()
+    # the same command again: nothing left to record; another run with the same seed records the same actions
+    assert demos.run(cfg)["episodes"] == 0
+    again = tmp_path / "again"
+    demos.run(demos.Config(episodes=1, out=again, seed=5, image_size=(48, 36), progress=False))
+    with SessionReader(find_sessions(again)[0]) as r:
+        assert np.array_equal(r.stream("actions/wrist").data, first)
+    assert main(["demos", "--episodes", "0", "--out", str(tmp_path / "x")]) == 2
+    assert "episodes" in capsys.readouterr().err
+
+
+def test_another_runs_demonstration_is_refused_not_overwritten(tmp_path, capsys):
+    out = tmp_path / "demos"
+    demos.run(demos.Config(episodes=1, out=out, seed=5, image_size=(48, 36), progress=False))
+    path = find_sessions(out)[0]
+    before = path.read_bytes()
+    assert main(["demos", "--episodes", "1", "--out", str(out), "--seed", "6", "--image-size", "48", "36"]) == 1
+    assert "another run's demonstration" in capsys.readouterr().err
+    assert path.read_bytes() == before
