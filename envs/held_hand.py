@@ -149,3 +149,46 @@ def tilt_quat(base: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
     out = np.zeros(4)
     mujoco.mju_mulQuat(out, turn, base)
     return out
+
+
+class TouchHistory:
+    """The fingertips' recent contact fields, rendered on request into the Digit 360 windows a policy reads: the
+    same windows the session loader renders from a recorded session with the same noise ``key``
+    (rotation.data.dataset.session_key), so a closed-loop policy meets the touch it was trained on."""
+
+    KEEP_S = 1.5
+    """History kept (s): a window needs 1.12 s of it."""
+
+    def __init__(self, key: int, dt: float, hand: str) -> None:
+        from envs.scene import touch_model
+
+        self.key, self.dt, self.model = int(key), float(dt), touch_model(hand)
+        self.times = np.zeros(0)
+        self.rows = np.zeros((4, 0, NUM_FIELDS), np.float32)
+
+    def extend(self, times: np.ndarray, rows: np.ndarray) -> None:
+        """Append the contact fields (4, S, NUM_FIELDS) of times (S,)."""
+        self.times = np.concatenate([self.times, np.asarray(times, dtype=np.float64)])
+        self.rows = np.concatenate([self.rows, np.asarray(rows, dtype=np.float32)], axis=1)
+        keep = self.times >= self.times[-1] - self.KEEP_S
+        self.times, self.rows = self.times[keep], self.rows[:, keep]
+
+    def windows(self, fingers: tuple[str, ...] | None = None) -> dict[str, dict[str, np.ndarray]]:
+        """{finger: raw window} ending at the newest 30 fps frame the history covers (envs.sensors.digit360_render:
+        ``image`` (2, 224, 224, 3) uint8, ``audio`` (2, 27000), ``imu`` (224, 3), ``pressure`` (224,)); a
+        ValueError when the history is shorter than a window."""
+        from envs import constants as C
+        from envs.sensors.digit360_model import IMAGE_HZ, ContactTrack, finger_key
+        from envs.sensors.digit360_render import WindowIndex, render_window
+
+        if not len(self.times):
+            raise ValueError("TouchHistory: no contact fields yet")
+        frame = int(math.floor(self.times[-1] * IMAGE_HZ + 1e-6))
+        if WindowIndex(frame).start_time < self.times[0] - 1e-6:
+            raise ValueError(f"TouchHistory: {self.times[-1] - self.times[0]:.2f} s of history, a window needs 1.12 s")
+        out = {}
+        for finger in fingers or C.FINGERS:
+            f = C.FINGERS.index(finger)
+            track = ContactTrack(self.times, self.rows[f], self.dt)
+            out[finger] = render_window(track, frame, int(finger_key(self.key, f)), f, self.model)
+        return out

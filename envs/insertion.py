@@ -35,7 +35,8 @@ import mujoco
 import numpy as np
 
 from envs.grasp_cache import GraspCache, load_default_cache
-from envs.held_hand import OBJECT_CONTYPE, WristRun, finish, grip, tilt_quat, wrist_spec
+from envs.held_hand import OBJECT_CONTYPE, TouchHistory, WristRun, finish, grip, tilt_quat, wrist_spec
+from envs.rng import splitmix64
 
 TIMESTEP = 0.002
 PRONG = (0.012, 0.006, 0.024)
@@ -185,6 +186,11 @@ class InsertionSim:
         self._plug, self._socket = self.model.body("plug").id, self.model.body("socket").id
         self._renderer = mujoco.Renderer(self.model, cfg.image_size[1], cfg.image_size[0]) if render else None
         self._wrench = np.zeros(6)
+        with np.errstate(over="ignore"):
+            self.touch_key = int(splitmix64(np.asarray([episode.seed], dtype=np.uint64))[0])
+        """The episode's touch noise key: a recorded demonstration stores it as its session's (rotation.jobs.demos)."""
+        self.touch = TouchHistory(self.touch_key, TIMESTEP, cfg.hand)
+        """The fingertips' recent contact fields; ``touch.windows()`` renders what the Digit 360s show now."""
         self.steps = 0
         self.max_force = 0.0
         self.contact = np.zeros((4, 0, 0), np.float32)
@@ -217,7 +223,9 @@ class InsertionSim:
         self._pos, self._quat = np.zeros(3), self._palm_quat0.copy()
         self._run.reset(self._pos, self._quat)
         d.mocap_pos[1] = [0.0, 0.0, 1.0]
-        _, self.contact, _ = self._run.run(int(round(cfg.settle_s / TIMESTEP)), self._target)
+        times, self.contact, _ = self._run.run(int(round(cfg.settle_s / TIMESTEP)), self._target)
+        self.touch = TouchHistory(self.touch_key, TIMESTEP, cfg.hand)
+        self.touch.extend(times, self.contact)
         tip = self._pose_of(self._tip_local)[:3]
         d.mocap_pos[1] = tip + np.array([0.0, 0.0, ENTRY_GAP]) + np.asarray(ep.offset)
         quat = tilt_quat(np.array([1.0, 0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), ep.yaw)
@@ -244,9 +252,10 @@ class InsertionSim:
         for axis, angle in zip(np.eye(3), turn, strict=True):
             self._quat = tilt_quat(self._quat, axis, float(angle))
         forces = []
-        _, rows, _ = self._run.run(cfg.substeps, self._target, lambda d: forces.append(
+        times, rows, _ = self._run.run(cfg.substeps, self._target, lambda d: forces.append(
             _contact_force(self.model, d, self._socket, self._wrench)))
         self.contact = rows
+        self.touch.extend(times, rows)
         self.steps += 1
         force = float(max(forces)) if forces else 0.0
         self.max_force = max(self.max_force, force)

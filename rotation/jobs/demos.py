@@ -114,7 +114,6 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
     """Play and write episode ``episode``; returns its outcome."""
     from envs.insertion import TIMESTEP, InsertionConfig, InsertionSim, draw_episode
     from envs.insertion_expert import InsertionExpert
-    from envs.rng import splitmix64
     from envs.scene import touch_model
 
     icfg = InsertionConfig(image_size=cfg.image_size, episode_steps=cfg.episode_steps)
@@ -122,8 +121,7 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
     ep = draw_episode(icfg, seed, grasps)
     sim = InsertionSim(icfg, ep, grasps, render=True)
     expert = InsertionExpert(icfg, seed)
-    with np.errstate(over="ignore"):
-        key = int(splitmix64(np.asarray([seed], dtype=np.uint64))[0])
+    key = sim.touch_key
     meta_base = dict(source="sim", object="plug", control_hz=1.0 / icfg.control_dt, seed=seed)
     extra = {"episode": episode, "task": "insertion", "touch_key": key, "sim_hand": icfg.hand,
              "touch_generation": touch_model(icfg.hand).generation, "physics_dt": TIMESTEP,

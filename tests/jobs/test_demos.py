@@ -50,3 +50,33 @@ def test_another_runs_demonstration_is_refused_not_overwritten(tmp_path, capsys)
     assert main(["demos", "--episodes", "1", "--out", str(out), "--seed", "6", "--image-size", "48", "36"]) == 1
     assert "another run's demonstration" in capsys.readouterr().err
     assert path.read_bytes() == before
+
+
+def test_the_closed_loop_touch_is_the_touch_the_demonstrations_hold(tmp_path):
+    """A policy acting in the env reads touch windows rendered from the live contact history; they equal the windows
+    the loader renders from the recorded demonstration of the same episode."""
+    from envs.grasp_cache import load_default_cache
+    from envs.insertion import InsertionConfig, InsertionSim, draw_episode
+    from envs.insertion_expert import InsertionExpert
+    from envs.sensors.digit360_image import pack_image
+
+    out = tmp_path / "demos"
+    demos.run(demos.Config(episodes=1, out=out, seed=7, image_size=(48, 36), progress=False))
+    recorded = TouchWindows(find_sessions(out))
+    cfg = InsertionConfig(image_size=(48, 36))
+    grasps = load_default_cache("cup", "", "digit360_v4")
+    seed = 7 * 1_000_000
+    sim = InsertionSim(cfg, draw_episode(cfg, seed, grasps), grasps)
+    expert = InsertionExpert(cfg, seed)
+    obs, info = sim.reset(), {}
+    for _ in range(6):
+        obs, _, info = sim.step(expert.act(obs, info))
+    live = sim.touch.windows(("index", "thumb"))
+    frame_time = float(np.floor(sim.touch.times[-1] * 30 + 1e-6) / 30)
+    times = np.array([float(recorded[i]["time"]) for i in range(len(recorded))])
+    for finger, f in (("index", 0), ("thumb", 3)):
+        i = next(i for i in np.flatnonzero(np.isclose(times, frame_time)) if int(recorded[i]["finger"]) == f)
+        sample = recorded[int(i)]
+        assert np.allclose(sample["imu"].numpy(), live[finger]["imu"], atol=1e-6)
+        assert np.allclose(sample["pressure"].numpy()[:, 0], live[finger]["pressure"], atol=1e-4)
+        assert np.allclose(sample["image"].numpy(), pack_image(live[finger]["image"]), atol=1e-6)
