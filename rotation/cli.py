@@ -50,6 +50,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "touch-report": ("rotation.tactile.ladder.job",
                      "how much friction, mass, force and slip each stage of the touch path still holds"),
     "finetune-adapter": ("adapters.finetune.job", "fine-tune the tactile adapter toward the teacher's latent"),
+    "train-il": ("rotation.il.job", "train an imitation policy (action chunks) on demonstrations (plug insertion)"),
     "ensemble-adapters": ("adapters.ensemble_job", "combine tactile adapters of one student into one policy"),
 }
 """Subcommand registry; later issues add their jobs here."""

@@ -100,6 +100,7 @@ ROWS = {
                          str(r / "probe")], "no session files"),
     "touch-report": (lambda r: ["touch-report", "--sessions", str(r), "--stages", "1", "--out", str(r / "report")],
                      "no session files"),
+    "train-il": (lambda r: ["train-il", "--demos", str(r), "--out", str(r / "il")], "no demonstration sessions"),
     "finetune-adapter": (lambda r: ["finetune-adapter", "--sessions", str(r), "--out", str(r / "adapter")],
                          "no .h5 session files"),
     "ensemble-adapters": (lambda r: ["ensemble-adapters", "--members", str(MEMBER), str(MEMBER), "--out",

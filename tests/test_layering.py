@@ -20,7 +20,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("rotation.configs", "rotation.interrupt", "rotation.runs", "rotation.hardware", "rotation.policies"),
     ("rotation.policy", "rotation.data", "rotation.sim_warp", "rotation.sim_hardware"),
     ("rotation.tactile.models", "rotation.tactile.ssl"),
-    ("rotation.tactile", "rotation.train"),
+    ("rotation.tactile", "rotation.train", "rotation.il"),
     ("adapters",),
     ("rotation.bundles",),
     ("rotation.evaluate", "rotation.deploy"),

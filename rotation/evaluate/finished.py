@@ -35,7 +35,7 @@ RESUMABLE_CHANGES = frozenset({"out", "resume", "progress", "nthread", "video", 
 """Config fields that do not change a single result row (threads of MuJoCo, where and whether videos are drawn):
 they may differ between a run and its continuation. Everything else must match."""
 
-LATER_FIELDS = {"touch_delay": "0", "contact": None, "physics_dt": None}
+LATER_FIELDS = {"touch_delay": "0", "contact": None, "physics_dt": None, "task": "rotation"}
 """Config fields added after evaluations were first recorded, with their defaults: at its default such a field is
 left out of the identity, so an interrupted evaluation recorded before it existed still continues."""
 

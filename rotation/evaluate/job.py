@@ -122,6 +122,12 @@ def run(cfg: Config) -> list[dict]:
     if cfg.episodes < 1 or cfg.num_envs < 1:
         raise ValueError(f"episodes and num_envs must be >= 1, got {cfg.episodes} and {cfg.num_envs}")
     torch.set_num_threads(cfg.torch_threads)
+    if cfg.task == "insertion":
+        from rotation.il.rollout import evaluate_insertion
+
+        rows = evaluate_insertion(cfg.policies, cfg.episodes, cfg.seed, Path(cfg.out), cfg.video, cfg.progress)
+        print(f"evaluate: {len(rows)} insertion rows -> {Path(cfg.out) / 'results.md'}")
+        return rows
     bundles = load_policies(cfg)
     first = next(iter(bundles.values()))
     out = Path(cfg.out)

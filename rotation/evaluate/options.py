@@ -20,6 +20,9 @@ from rotation.sim_warp.host import BACKEND_HELP, BACKENDS
 class Config:
     """`rotate evaluate`."""
 
+    task: Literal["rotation", "insertion"] = "rotation"
+    """'rotation': rotation policies under the conditions below; 'insertion': imitation policies on plug insertion
+    (rotation.il.rollout: --policy, --episodes, --seed, --out, --video apply)."""
     policies: dict[str, str] = field(default_factory=dict)
     """Policy label -> bundle directory or shipped bundle name; empty = every shipped bundle."""
     suite: str | None = None
@@ -128,6 +131,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="NAME=PATH", help="a policy to evaluate: label=bundle directory or shipped bundle "
                         f"name (repeatable; shipped: {', '.join(shipped_bundles()) or 'none yet'}); a bare name "
                         "or path is its own label. Default: every shipped bundle")
+    parser.add_argument("--task", choices=("rotation", "insertion"), default=d.task,
+                        help="rotation (default): rotation policies under perturbations; insertion: imitation "
+                        "policies (rotate train-il bundles) inserting a plug, success rate with its 95%% interval")
     parser.add_argument("--suite", nargs="?", const="perturbations", default=None, choices=list(SUITES),
                         help="run a suite of conditions (bare --suite = perturbations)")
     parser.add_argument("--conditions", nargs="+", default=[], metavar="NAME",
@@ -194,7 +200,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
         raise ValueError(f"--policy: label(s) {duplicated} given more than once; give each policy its own label "
                          "(--policy NAME=PATH)")
     return Config(
-        policies=dict(args.policies), suite=args.suite, conditions=tuple(args.conditions),
+        task=args.task, policies=dict(args.policies), suite=args.suite, conditions=tuple(args.conditions),
         friction_scale=args.friction_scale, added_mass=args.added_mass,
         com_shift=tuple(args.com_shift) if args.com_shift is not None else None, episodes=args.episodes,
         seed=args.seed, out=args.out, num_envs=args.num_envs, object=args.object, grasp_cache=args.grasp_cache,

@@ -1,0 +1,1 @@
+"""Imitation learning from demonstrations (`rotate train-il`): the touch benchmarks' policies, plug insertion first."""

@@ -1,0 +1,92 @@
+"""The imitation policy's bundle: ``config.json`` (kind ``il``, the task, the touch it reads, the network's config,
+a card) and ``model.safetensors``; :class:`ILPolicy` acts from an observation with temporal ensembling (ACT: every
+step predicts a chunk; the action taken is the exponentially weighted mean of all predictions for this step, the
+oldest weighted most, ``exp(-0.01 i)``)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from envs.constants import FINGERS
+from rotation.il.data import proprio_of
+from rotation.il.model import ChunkPolicy, PolicyConfig
+
+ENSEMBLE_DECAY = 0.01
+"""ACT's temporal ensembling weight exp(-decay x age index)."""
+SHIPPED_IL = Path(__file__).resolve().parents[1] / "policies"
+"""Where shipped bundles live (rotation/policies/<name>)."""
+
+
+class ILPolicy:
+    """An imitation policy loaded from its bundle (see the module docstring)."""
+
+    def __init__(self, model: ChunkPolicy, meta: dict[str, Any]) -> None:
+        self.model, self.meta = model.eval(), meta
+        self.touch_modalities: str = meta.get("touch", "none")
+        self.encoder: str | None = meta.get("encoder")
+        self._embedder = None
+        self.reset()
+
+    @property
+    def reads_touch(self) -> bool:
+        return self.touch_modalities != "none"
+
+    def reset(self) -> None:
+        """A new episode: forget the earlier predictions."""
+        self._pending: list[tuple[int, np.ndarray]] = []  # (step predicted at, chunk (K, 6))
+        self._step = 0
+
+    def embed(self, windows: Mapping[str, Mapping[str, np.ndarray]]) -> torch.Tensor:
+        if self._embedder is None:
+            from rotation.il.touch import TouchEmbedder
+
+            self._embedder = TouchEmbedder(self.encoder, self.touch_modalities)
+        return self._embedder.embed_raw(windows, FINGERS)
+
+    @torch.no_grad()
+    def act(self, obs: Mapping[str, np.ndarray], windows: Mapping[str, Mapping[str, np.ndarray]] | None = None
+            ) -> np.ndarray:
+        """The action (6,) for this step from the observation (image, wrist, joints) and, for a touch-reading
+        policy, the fingertips' raw windows."""
+        image = torch.from_numpy(np.ascontiguousarray(obs["image"]))[None]
+        proprio = torch.from_numpy(proprio_of(obs["wrist"], obs["joints"]))[None]
+        touch = self.embed(windows)[None] if self.reads_touch else None
+        chunk = self.model.actions(self.model(image, proprio, touch))[0].numpy()
+        self._pending = [(s, c) for s, c in self._pending if self._step - s < len(c)] + [(self._step, chunk)]
+        preds = np.stack([c[self._step - s] for s, c in self._pending])  # oldest first
+        w = np.exp(-ENSEMBLE_DECAY * np.arange(len(preds)))
+        self._step += 1
+        return (w[:, None] * preds).sum(0) / w.sum()
+
+
+def save_il(path: Path, model: ChunkPolicy, meta: dict[str, Any]) -> Path:
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(path / "model.safetensors"))
+    (path / "config.json").write_text(json.dumps({"kind": "il", **meta, "policy": model.cfg.to_json()}, indent=2)
+                                      + "\n")
+    return path
+
+
+def load_il(name_or_path: str | Path) -> ILPolicy:
+    """An imitation policy bundle by directory or shipped name; ValueError naming what is wrong."""
+    path = Path(name_or_path)
+    if not path.exists() and (SHIPPED_IL / str(name_or_path)).is_dir():
+        path = SHIPPED_IL / str(name_or_path)
+    try:
+        meta = json.loads((path / "config.json").read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{name_or_path}: not an imitation policy bundle ({err})") from None
+    if meta.get("kind") != "il":
+        raise ValueError(f"{name_or_path}: a {meta.get('kind', 'plain')} bundle, not an imitation policy (kind 'il')")
+    cfg = meta.pop("policy")
+    model = ChunkPolicy(PolicyConfig(**{**cfg, "image_size": tuple(cfg["image_size"])}))
+    model.load_state_dict(load_file(str(path / "model.safetensors")), strict=True)
+    return ILPolicy(model, meta)

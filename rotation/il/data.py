@@ -1,0 +1,100 @@
+"""Demonstrations as training samples: each action step of each demonstration (rotation.jobs.demos) with its camera
+frame, proprioception, the fingertips' touch embeddings and the chunk of actions that follows.
+
+Touch: the window of each fingertip ending at the newest 30 fps frame at or before the step's time (what the
+closed-loop policy reads then: envs.held_hand.TouchHistory), through the frozen encoder once; the embeddings are
+cached beside the run (OUT/touch_<encoder>_<modalities>.npz, named by the demonstrations' files and sizes, so a
+second policy on the same demonstrations and encoder reuses them).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+from tqdm import tqdm
+
+from envs.constants import FINGERS
+from rotation.data.session_reader import SessionReader
+
+IMAGE_HZ = 30.0
+
+
+def proprio_of(wrist: np.ndarray, joints: np.ndarray) -> np.ndarray:
+    """The policy's proprioception: the wrist target's offset (7) and the joints (16)."""
+    return np.concatenate([np.asarray(wrist, np.float32), np.asarray(joints, np.float32)], axis=-1)
+
+
+class Demos(Dataset):
+    """Samples of demonstration sessions ``paths`` for a policy predicting ``chunk`` actions (see the module
+    docstring); ``touch``: per-step fingertip embeddings (T_total, 4, D) in step order, or None."""
+
+    def __init__(self, paths: list[Path], chunk: int, touch: np.ndarray | None = None) -> None:
+        self.paths, self.chunk = list(paths), int(chunk)
+        images, proprio, actions, times, starts = [], [], [], [], []
+        for path in self.paths:
+            with SessionReader(path) as r:
+                images.append(np.asarray(r.stream("camera/wrist").data, np.uint8))
+                proprio.append(proprio_of(r.stream("wrist/pose").data, r.stream("joints/position").data))
+                actions.append(np.asarray(r.stream("actions/wrist").data, np.float32))
+                times.append(np.asarray(r.stream("actions/wrist").timestamps))
+            starts.append(sum(len(a) for a in actions[:-1]))
+        if not actions or not sum(len(a) for a in actions):
+            raise ValueError("no demonstration steps in the sessions")
+        self.images, self.proprio = np.concatenate(images), np.concatenate(proprio)
+        self.actions, self.times = np.concatenate(actions), times
+        self.episode_of = np.concatenate([np.full(len(a), i) for i, a in enumerate(actions)])
+        self.ends = np.array([s + len(a) for s, a in zip(starts, actions, strict=True)])
+        self.touch = None if touch is None else np.asarray(touch, np.float32)
+        if self.touch is not None and len(self.touch) != len(self.actions):
+            raise ValueError(f"{len(self.touch)} touch embeddings for {len(self.actions)} steps")
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        end = int(self.ends[self.episode_of[i]])
+        rows = np.arange(i, i + self.chunk)
+        valid = rows < end
+        chunk = self.actions[np.minimum(rows, end - 1)]  # past the episode's end: its last action, masked out
+        out = {"image": torch.from_numpy(self.images[i]), "proprio": torch.from_numpy(self.proprio[i]),
+               "actions": torch.from_numpy(chunk), "mask": torch.from_numpy(valid)}
+        if self.touch is not None:
+            out["touch"] = torch.from_numpy(self.touch[i])
+        return out
+
+
+def touch_embeddings(paths: list[Path], encoder: str, modalities: str, cache_dir: Path, progress: bool = True
+                     ) -> np.ndarray:
+    """(T_total, 4, D) embeddings of every step's fingertip windows (module docstring), cached in ``cache_dir``."""
+    from rotation.data.dataset import TouchWindows
+    from rotation.il.touch import TouchEmbedder
+
+    ident = json.dumps([encoder, modalities, [(str(p), p.stat().st_size) for p in paths]])
+    cache = cache_dir / f"touch_{Path(encoder).name}_{modalities}_{hashlib.sha256(ident.encode()).hexdigest()[:12]}.npz"
+    if cache.is_file():
+        return np.load(cache)["touch"]
+    embedder = TouchEmbedder(encoder, modalities)
+    windows = TouchWindows(paths)
+    where = {(int(s), int(f), int(e)): k for k, (s, f, e) in enumerate(windows.index)}  # (session, finger, frame)
+    steps = []
+    for s, path in enumerate(paths):
+        with SessionReader(path) as r:
+            t = np.asarray(r.stream("actions/wrist").timestamps)
+        steps += [(s, int(np.floor(ti * IMAGE_HZ + 1e-6))) for ti in t]
+    out = np.zeros((len(steps), len(FINGERS), embedder.width), np.float32)
+    batch = 16
+    for a in tqdm(range(0, len(steps), batch), desc="touch embeddings", unit="batch", disable=not progress):
+        rows = [where[(s, f, frame)] for s, frame in steps[a:a + batch] for f in range(len(FINGERS))]
+        samples = [windows[k] for k in rows]
+        x = {key: torch.stack([smp[key] for smp in samples]) for key in ("image", "audio", "imu", "pressure")}
+        out[a:a + batch] = embedder.embed(x).reshape(-1, len(FINGERS), embedder.width).numpy()
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    tmp = cache.with_suffix(".tmp.npz")
+    np.savez(tmp, touch=out)
+    tmp.replace(cache)
+    return out

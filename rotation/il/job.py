@@ -1,0 +1,150 @@
+"""`rotate train-il`: train an imitation policy (rotation.il.model) on demonstrations (`rotate demos`).
+
+    rotate train-il --demos data/demos --touch none --out runs/il_camera                 # camera only
+    rotate train-il --demos data/demos --touch image --encoder sparshx-tinier-sim --out runs/il_touch_image
+    rotate train-il --demos data/demos --touch all --encoder sparshx-tinier-sim --out runs/il_touch_all
+
+``--touch`` picks what the policy reads besides the wrist camera and proprioception: nothing (``none``), the frozen
+encoder's image tokens (``image``) or all of its modalities (``all``), one embedding per fingertip, computed once
+per step of the demonstrations and cached in OUT. Loss: L1 between the predicted and the demonstrated chunk of the
+next ``chunk`` actions (standardized; steps past an episode's end masked out), AdamW. A checkpoint is written every
+``checkpoint_every`` steps; the same command with ``--resume`` continues it exactly. OUT: bundle/ (rotation.il.bundle,
+with a card: the command's settings, the demonstrations, steps, wall time), curves.jsonl, checkpoint.pt.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from envs.errors import RequestRefused
+from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
+from rotation.configs import save_config, to_jsonable
+from rotation.il.bundle import save_il
+from rotation.il.data import Demos, touch_embeddings
+from rotation.il.model import ChunkPolicy, PolicyConfig
+
+
+@dataclass(frozen=True)
+class Config:
+    demos: Path = Path("data/demos")
+    """Demonstration sessions (a folder of `rotate demos`)."""
+    out: Path = Path("runs/il")
+    """Run folder."""
+    touch: Literal["none", "image", "all"] = "none"
+    """What touch the policy reads (see the module docstring)."""
+    encoder: str = "sparshx-tinier-sim"
+    """The frozen touch encoder (a shipped name, a `rotate pretrain` run or an encoder file)."""
+    chunk: int = 10
+    """Actions predicted at once."""
+    width: int = 128
+    """Transformer width."""
+    steps: int = 3000
+    """Optimizer steps."""
+    batch_size: int = 32
+    lr: float = 3e-4
+    weight_decay: float = 1e-4
+    checkpoint_every: int = 500
+    seed: int = 0
+    resume: bool = False
+    """Continue the run in OUT from its checkpoint."""
+    torch_threads: int = 2
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        check_types(self)
+        check_output_dir("out", self.out)
+        for name, low, high in (("chunk", 1, 100), ("width", 16, 1024), ("steps", 1, 10**7), ("batch_size", 1, 4096),
+                                ("checkpoint_every", 1, 10**7), ("torch_threads", 1, 256)):
+            check_int(name, getattr(self, name), low, high)
+        check_number("lr", self.lr, 0.0, 1.0, low_open=True)
+        check_number("weight_decay", self.weight_decay, 0.0, 1.0)
+        check_seed("seed", self.seed)
+
+
+def _paths(demos: Path) -> list[Path]:
+    from rotation.data.dataset import find_sessions
+
+    paths = find_sessions(demos) if Path(demos).exists() else []
+    if not paths:
+        raise RequestRefused(f"demos: no demonstration sessions in {demos} (record them with `rotate demos`)")
+    return paths
+
+
+def run(cfg: Config) -> dict:
+    torch.set_num_threads(cfg.torch_threads)
+    paths = _paths(cfg.demos)
+    out = Path(cfg.out)
+    ckpt = out / "checkpoint.pt"
+    if cfg.resume and not ckpt.is_file():
+        raise RequestRefused(f"resume: no checkpoint in {out}")
+    if not cfg.resume and ckpt.is_file():
+        raise RequestRefused(f"out: {out} holds a run; continue it with --resume or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out / "config.json")
+    touch = None if cfg.touch == "none" else touch_embeddings(paths, cfg.encoder, cfg.touch, out, cfg.progress)
+    data = Demos(paths, cfg.chunk, touch)
+    h, w = data.images.shape[1:3]
+    torch.manual_seed(cfg.seed)  # the initial weights
+    model = ChunkPolicy(PolicyConfig(image_size=(w, h), chunk=cfg.chunk, width=cfg.width,
+                                     touch_dim=0 if touch is None else touch.shape[-1]))
+    model.set_stats(torch.from_numpy(data.proprio), torch.from_numpy(data.actions),
+                    None if touch is None else torch.from_numpy(touch))
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    start, wall_before, history = 0, 0.0, []
+    if cfg.resume:
+        state = torch.load(ckpt, weights_only=False)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["opt"])
+        start, wall_before, history = state["step"], state["wall_s"], state["history"]
+    t0 = time.perf_counter()
+    model.train()
+    bar = tqdm(total=cfg.steps, initial=start, desc="train-il", unit="step", disable=not cfg.progress,
+               dynamic_ncols=True)
+    loss_sum, n_sum = 0.0, 0
+    for step in range(start, cfg.steps):
+        g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)  # a resumed run draws the same batches
+        idx = torch.randint(0, len(data), (min(cfg.batch_size, len(data)),), generator=g)
+        batch = [data[int(i)] for i in idx]
+        b = {k: torch.stack([s[k] for s in batch]) for k in batch[0]}
+        torch.manual_seed(cfg.seed * 1_000_003 + step)  # dropout
+        pred = model(b["image"], b["proprio"], b.get("touch"))
+        target = (b["actions"] - model.action_mean) / model.action_std
+        err = (pred - target).abs().mean(-1)
+        loss = (err * b["mask"]).sum() / b["mask"].sum().clamp_min(1)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+        opt.step()
+        loss_sum, n_sum = loss_sum + loss.item(), n_sum + 1
+        bar.update(1)
+        if (step + 1) % 50 == 0 or step + 1 == cfg.steps:
+            history.append({"step": step + 1, "loss": loss_sum / n_sum})
+            bar.set_postfix(loss=f"{loss_sum / n_sum:.3f}")
+            loss_sum, n_sum = 0.0, 0
+        if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == cfg.steps:
+            wall = wall_before + time.perf_counter() - t0
+            tmp = ckpt.with_suffix(".tmp")
+            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "step": step + 1, "wall_s": wall,
+                        "history": history}, tmp)
+            tmp.replace(ckpt)
+    bar.close()
+    wall = wall_before + time.perf_counter() - t0
+    (out / "curves.jsonl").write_text("".join(json.dumps(h) + "\n" for h in history))
+    model.eval()
+    card = {"trained_by": "rotate train-il", "config": to_jsonable(cfg), "demonstrations": len(paths),
+            "samples": len(data), "steps": cfg.steps, "wall_time_s": round(wall, 1),
+            "final_loss": history[-1]["loss"] if history else math.nan}
+    bundle = save_il(out / "bundle", model, {"task": "insertion", "touch": cfg.touch,
+                                             "encoder": None if cfg.touch == "none" else cfg.encoder, "card": card})
+    print(f"train-il: {cfg.steps} steps on {len(paths)} demonstrations ({len(data)} samples) in {wall:.0f} s, "
+          f"final loss {card['final_loss']:.3f}; bundle at {bundle}")
+    return {"bundle": str(bundle), "history": history, "final_loss": float(np.nan_to_num(card["final_loss"]))}
