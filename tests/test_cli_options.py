@@ -76,6 +76,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "evaluate:com_shift": {"zero": "no shift of the centre of mass"},
     "pretrain:drop_path": {"zero": "no stochastic depth"},
     "pretrain:weight_decay": {"zero": "no weight decay"},
+    "train-il:weight_decay": {"zero": "no weight decay"},
     "pretrain:weight_decay_end": {"zero": "no weight decay at the end of the cosine schedule"},
     "pretrain:warmup_fraction": {"zero": "no learning-rate warm-up"},
     "pretrain:teacher_temp_warmup_fraction": {"zero": "the teacher temperature starts at its final value"},
