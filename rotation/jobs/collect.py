@@ -89,10 +89,12 @@ class Config:
     skin: bool = False
     """Record the simulated Xela skin on the Xela hand (stock fingertips, 18 pads; docs/skin.md) instead of the
     Digit 360 fingertips: streams skin/xela, skin/taxel_pos, labels/skin_force at 100 Hz."""
-    hand: Literal["auto", "digit360", "digit360_v4"] = "auto"
+    hand: Literal["auto", "digit360", "digit360_v4", "xela_v4"] = "auto"
     """The Digit 360 hand: 'auto' is a policy bundle's own hand, and 'digit360' for the scripted policies (the
     Xela hand with --skin); 'digit360_v4' (the vendor's kinematics, generation-2 touch: envs.scene.touch_model) for
-    the scripted policies, or to check a bundle's hand."""
+    the scripted policies, or to check a bundle's hand. With --skin: 'auto' is the Xela hand of the first model
+    ('xela'), 'xela_v4' the Xela skin on the vendor's kinematics (scripted cup play; the joystick fixture is built
+    for the first model)."""
     task: Literal["cup", "joystick", "shake", "oas"] = "cup"
     """'cup': the RotateCup env with the object; 'joystick': the Xela hand presses and pushes the spring-returned
     joystick fixture (needs --skin and policy 'play' or 'random'; adds labels/joystick; the object and
@@ -120,8 +122,13 @@ class Config:
             raise ValueError(f"com_shift needs 3 values (X Y Z, m), got {self.com_shift!r}")
         check_number("flush_interval_s", self.flush_interval_s, 0.0, 3600.0, low_open=True, unit="s")
         check_output_dir("out", self.out)
-        if self.hand != "auto" and self.skin:
-            raise ValueError(f"hand: --skin records the Xela hand; leave --hand at auto, got {self.hand!r}")
+        if self.skin and self.hand not in ("auto", "xela_v4"):
+            raise ValueError(f"hand: --skin records a Xela hand: leave --hand at auto or give xela_v4, got "
+                             f"{self.hand!r}")
+        if not self.skin and self.hand == "xela_v4":
+            raise ValueError("hand: xela_v4 is the Xela skin's hand; add --skin")
+        if self.task == "joystick" and self.hand == "xela_v4":
+            raise ValueError("hand: the joystick fixture is built for the first Xela hand; leave --hand at auto")
         if self.task == "joystick" and not self.skin:
             raise ValueError("task: the joystick task records the Xela skin; add --skin")
         if self.task in ("shake", "oas") and (self.skin or self.hand == "digit360" or self.policy != "random"):
@@ -139,7 +146,7 @@ class Config:
 def _sensors(skin: bool, hand: str = "auto") -> dict[str, Any]:
     """The env's touch settings: Digit 360 fingertips (on ``hand`` unless 'auto'), or the Xela hand with its skin."""
     if skin:
-        return dict(hand="xela", skin=True, tactile=False)
+        return dict(hand="xela_v4" if hand == "xela_v4" else "xela", skin=True, tactile=False)
     return dict(tactile=True) if hand == "auto" else dict(tactile=True, hand=hand)
 
 
@@ -233,7 +240,7 @@ class _Recorder:
                         "friction": float(p["friction"][slot]), "com": p["com"][slot].tolist()},
             extra={"episode": episode, "slot": slot, "physics_dt": env.cfg.physics_dt, "collect": to_jsonable(cfg),
                    SETTINGS_KEY: digest,
-                   **({"hand": "xela", "skin_key": int(env.skin.skin.keys[slot]), "skin": skin_metadata()}
+                   **({"hand": env.cfg.hand, "skin_key": int(env.skin.skin.keys[slot]), "skin": skin_metadata()}
                       if env.skin is not None else {"touch_key": int(env.touch.episode_keys[slot]),
                                                     "sim_hand": env.cfg.hand,
                                                     "touch_generation": env.touch.sensor.generation})},

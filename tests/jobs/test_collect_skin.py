@@ -81,3 +81,24 @@ def test_bad_combinations_are_cli_errors(argv, message, tmp_path, capsys):
     err = capsys.readouterr().err
     assert status == 2 and message in err and "Traceback" not in err
     assert not (tmp_path / "x").exists()  # refused before any work
+
+
+def test_skin_sessions_on_the_vendor_kinematics_hand(tmp_path, capsys):
+    """--skin --hand xela_v4: the Xela skin on the vendor's kinematics (what the skin encoder pretrains on), its
+    sessions name their hand; the joystick fixture and a hand without the skin are refused in one line."""
+    from rotation.cli import main
+    from rotation.data.dataset import find_sessions
+    from rotation.data.session_reader import SessionReader
+    from rotation.data.skin import SkinWindows
+
+    out = tmp_path / "skin_v4"
+    assert main(["collect", "--skin", "--hand", "xela_v4", "--policy", "play", "--episodes", "1", "--num-envs", "1",
+                 "--episode-steps", "30", "--out", str(out), "--no-progress"]) == 0
+    [path] = find_sessions(out)
+    with SessionReader(path) as r:
+        assert r.meta.extra["hand"] == "xela_v4"
+    assert len(SkinWindows([path])) > 0
+    for bad in (["--hand", "xela_v4"], ["--skin", "--hand", "digit360_v4"],
+                ["--skin", "--task", "joystick", "--hand", "xela_v4"]):
+        assert main(["collect", "--policy", "play", "--episodes", "1", "--out", str(tmp_path / "x"), *bad]) == 2
+        assert "hand" in capsys.readouterr().err
