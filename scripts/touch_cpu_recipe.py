@@ -12,7 +12,7 @@ Steps (each a `rotate` command; a finished one is skipped, a stopped one resumes
 4. the report's own sessions (other seeds: randomization draws the encoder never saw) and `rotate touch-report`
    with all four rungs into OUT/touch_report.
 
-    python scripts/touch_cpu_recipe.py --policy runs/sim_v4/teacher/stage5/bundle --out runs/touch_cpu
+    python scripts/touch_cpu_recipe.py --policy runs/sim_v4/teacher/stage5/bundle --out runs/touch_cpu   # 3 + 1 layers
     python scripts/touch_cpu_recipe.py --policy ... --out runs/touch_cpu --dry-run     # the commands, run nothing
 
 Budget on 2 CPU cores: the collections take minutes; pretraining runs at about 12.7 windows/s (tinier, batch 32,
@@ -62,10 +62,12 @@ class Config:
     """Policy steps per episode (20 s)."""
     size: str = "tinier"
     """Encoder size (rotate pretrain --size)."""
-    layers: tuple[int, ...] = ()
-    """Unimodal and fusion layers instead of the size's (rotate pretrain --unimodal-layers, --fusion-layers), e.g.
-    3 1: the per-step touch path's target is 50 ms on 2 cores, and the tinier encoder's forward for 4 fingertips
-    takes 61 ms with its 6 + 2 layers, 31 ms with 3 + 1; empty: the size's."""
+    layers: tuple[int, ...] = (3, 1)
+    """Unimodal and fusion layers instead of the size's (rotate pretrain --unimodal-layers, --fusion-layers); empty:
+    the size's (6 + 2). The per-step touch path's target is 50 ms on 2 cores: a fresh all-modality adapter's touch
+    step takes 41 ms with 3 + 1 layers and 89 ms with 6 + 2 (scripts/bench_adapter.py, both threads, the machine
+    otherwise idle); in an emulated deploy its correction acts 2-5 control steps after its touch (median 3) against
+    3-7 (median 4), without the emulator's rendering (bench_adapter --deploy 40, docs/adapter.md)."""
     steps: int = 3000
     """Pretraining steps."""
     batch_size: int = 32

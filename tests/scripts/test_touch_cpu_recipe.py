@@ -42,9 +42,11 @@ def test_the_recipe_lists_every_step_and_each_command_parses(recipe, tmp_path):
             assert parsed.hand == "digit360_v4" and parsed.policy in ("teacher", "random")
     seeds = {int(a[a.index("--seed") + 1]) for _, a in steps if a[0] == "collect"}
     assert recipe.REPORT_SEED in seeds and len(seeds) == len(recipe.COLLECTIONS) + 1  # the report's draws are new
-    faster = recipe.commands(recipe.Config(policy="teacher", out=tmp_path / "r", progress=False, layers=(3, 1)))
-    parsed = _parsed(next(a for w, a in faster if w.startswith("pretrain")))
+    parsed = _parsed(next(a for w, a in steps if w.startswith("pretrain")))  # the default: 3 + 1 layers
     assert (parsed.unimodal_layers, parsed.fusion_layers) == (3, 1)
+    sized = recipe.commands(recipe.Config(policy="teacher", out=tmp_path / "r", progress=False, layers=()))
+    parsed = _parsed(next(a for w, a in sized if w.startswith("pretrain")))  # empty: the size's own
+    assert (parsed.unimodal_layers, parsed.fusion_layers) == (None, None)
     with pytest.raises(ValueError, match="layers: give two counts"):
         recipe.Config(policy="teacher", out=tmp_path / "r", layers=(3,))
 
