@@ -195,9 +195,11 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: H
                 from rotation.sim_hardware.digit360_emulator import Digit360Emulator
 
                 linacc = imu_channel == "linacc"  # the emulator then also sends the linear acceleration
-                emulator = Digit360Emulator(linacc=linacc) if physics is None else Digit360Emulator(
+                emulator = Digit360Emulator(epoch=epoch, linacc=linacc) if physics is None else Digit360Emulator(
                     physics=physics, finger=finger, epoch=epoch, linacc=linacc)
-                cfg = Digit360Config(port=stack.enter_context(emulator).path, imu_channel=imu_channel)
+                # an emulated sensor runs on this host's clock: the reader times its samples exactly
+                cfg = Digit360Config(port=stack.enter_context(emulator).path, imu_channel=imu_channel,
+                                     host_epoch_s=epoch)
                 rendered = emulator.media
                 if emulators is not None:
                     emulators[finger] = emulator

@@ -10,10 +10,9 @@ A schedule is a comma-separated list; times are seconds after the control loop s
 ``corrupt=FINGER@T+N``        the fingertip sends N corrupt frames at T: each is dropped, counted and logged
 ``stall=FINGER@T+D``          the fingertip stops streaming for D s (samples lost): its windows go stale
 ``lag=FINGER@T+L``            from T on the fingertip delivers each sample L s after its device time (a slower
-                              link): its windows end L further in the past, and the summary's touch ages grow by
-                              L (up to about 35 ms: past the reader's 50 ms re-anchoring bound, less the emulator's
-                              10 ms bursts, the reader takes the later arrivals as its clock and the delay no
-                              longer shows)
+                              link): its windows end L further in the past and the summary's touch ages grow by L
+                              (the emulated fingertips run on the host's clock; past the reader's stale limit,
+                              0.1 s with the newest sample's own age, touch is stale)
 ``late=T+D``                  the hand's joint feedback stops for D s at T (Allegro: its position stream pauses;
                               LEAP: its status replies are dropped for D s): late control steps; longer than the
                               driver's feedback timeout, the motors go off and the run ends with a fault

@@ -41,7 +41,8 @@ class RefreshTiming(NamedTuple):
     t_read: float
     """When the worker had read every fingertip's window."""
     read_age_s: float
-    """How old the touch was then (the sensors' and their link's share of the touch age)."""
+    """How old the touch it read was when the refresh started (the sensors' and their link's share of the touch
+    age; slightly negative when a sample newer than the start arrived before its fingertip was read)."""
     start_s: float
     """From the observation it was asked with to its start (the policy's inference on that step)."""
     read_s: float
@@ -332,14 +333,15 @@ class TouchWorker:
             try:
                 result = _Result(seq, t_obs, *self._refresh(obs))
             except (SensorStale, WindowNotReady, TouchUnavailable) as err:  # the expected ways touch goes missing
-                result = _Result(seq, t_obs, None, f"{type(err).__name__}: {err}")
+                result = _Result(seq, t_obs, None, cause=f"{type(err).__name__}: {err}")
             except Exception as err:  # a reader's or the encoder's bug must not stop the hand: fall back, say why
-                result = _Result(seq, t_obs, None, f"the touch refresh raised {type(err).__name__}: {err}", err)
+                result = _Result(seq, t_obs, None, cause=f"the touch refresh raised {type(err).__name__}: {err}",
+                                 error=err)
             done = time.monotonic()
             with self._cv:
                 self.stats.refresh_s.append(done - start)
                 if result.correction is not None:
-                    self.stats.timings.append(RefreshTiming(self._t_read, self._t_read - result.t_touch,
+                    self.stats.timings.append(RefreshTiming(self._t_read, start - result.t_touch,
                                                             start - t_obs, self._t_read - start, done - self._t_read))
                 if result.correction is None:
                     self.stats.failed_refreshes += 1

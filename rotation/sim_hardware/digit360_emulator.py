@@ -64,11 +64,10 @@ class Digit360Faults:
     pause_s: float = 0.0
     """Stop streaming once for this long [window() raises SensorStale after stale_timeout_s]."""
     latency_s: float = 0.0
-    """Deliver every sample this long after its device time, from now on (a slower link) [the reader's clock map
-    keeps its anchor while a sample arrives within its re-anchoring bound (50 ms) of its device time, so its
-    windows end that much further in the past and a deploy's touch age grows by it; the first sample of a 10 ms
-    burst arrives 10 ms later than the last, so beyond about 35 ms the reader re-anchors and the delay no longer
-    shows]."""
+    """Deliver every sample this long after its device time, from now on (a slower link) [a reader on the host's
+    clock (``Digit360Config.host_epoch_s``, as deploy gives its emulated fingertips) sees its windows end that much
+    further in the past, and a deploy's touch age grows by it; a reader that learns the clock (a real sensor's)
+    takes a delay that stays for its clock and cannot see it]."""
 
 
 class Digit360Emulator(EmulatorThread):

@@ -94,15 +94,16 @@ def test_adapter_policy_on_the_emulated_hand_starts_its_sensors_and_acts(adapter
     assert touch["first_correction_step"] is not None and 0 <= touch["first_correction_step"] <= 10, touch
 
 
-def test_the_recorded_touch_age_follows_a_latency_injected_into_the_fingertips(adapter_dir, caplog, hand_hook,
-                                                                                tmp_path, monkeypatch):
+def test_the_recorded_touch_age_follows_a_latency_injected_into_the_fingertips(caplog, hand_hook, tmp_path,
+                                                                                monkeypatch, policy):
     """Each step records the age of the touch it acted on (touch/age); when the emulated fingertips start delivering
-    their samples 25 ms late (sim fault `lag`), the ages grow by that latency, within one control step: the touch
+    their samples 60 ms late (sim fault `lag`), the ages grow by that latency, within one control step: the touch
     path's latency that training and evaluation apply in simulation (adapters.touch_delay) is what deploy sees.
-    (25 ms: with the emulator's 10 ms bursts the earliest sample of a burst then arrives 35 ms after its device
-    time, below the reader's 50 ms re-anchoring bound, beyond which a latency no longer shows.)"""
+    (The emulated fingertips run on the host's clock; 60 ms stays below the readers' 0.1 s stale limit.)"""
     caplog.set_level(logging.INFO, logger="rotation")
-    lag_s, at_s = 0.025, 2.0
+    lag_s, at_s = 0.06, 2.0
+    adapter_dir = str(tmp_path / "every_step")  # refreshed every step: many refreshes on both sides of the fault
+    build_adapted(policy, ENCODER, ("pressure",), touch_every=1).save(adapter_dir)
     faults = ",".join(f"lag={f}@{at_s}+{lag_s}" for f in FINGERS)
     workers, loops = [], []
     real_worker, real_loop = TouchWorker.__init__, ControlLoop.__init__
@@ -151,9 +152,9 @@ def test_the_recorded_touch_age_follows_a_latency_injected_into_the_fingertips(a
     t_read -= loops[-1].t0  # host -> session time
     grown = float(np.median(read_age[t_read > applied + 0.3]) - np.median(read_age[t_read < applied - 0.1]))
     period = 1.0 / summary["control_hz"]
-    assert abs(grown - lag_s) < 0.4 * period, (grown, read_age)
-    # and the recorded ages, read after the latency started, are older by about as much (within a control step)
-    assert np.median(after) - np.median(before) > lag_s - period
+    assert abs(grown - lag_s) < 0.2 * period, (grown, read_age)
+    # and the recorded ages, read after the latency started, are older by as much within a control step
+    assert abs(np.median(after) - np.median(before) - lag_s) < period, (np.median(before), np.median(after))
 
 
 def test_the_shipped_adapter_turns_the_emulated_cup(capsys, caplog, hand_hook):

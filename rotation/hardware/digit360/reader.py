@@ -22,11 +22,12 @@ emulated fingertips of rotation.sim_hardware render them from their contact hist
 rendering every frame at 30 fps would cost more than the control loop can spare). Configs stay plain data: the
 media object is a constructor argument, not a config field, and with it OpenCV and sounddevice are never imported.
 
-Timestamps are host ``time.monotonic()`` seconds. Serial samples carry the device's millisecond clock; it is
-mapped to host time by the smallest observed (receive time - device time) offset (USB delivers in bursts, the
-minimum is the least-delayed sample), allowed to drift by 100 ppm and re-anchored when a sample would map more
-than 50 ms before its arrival. The windowed IMU channel's samples are timed more finely by their sensor time stamp
-where it proves to be a finer clock that agrees with the millisecond one (rotation.hardware.digit360.fine_clock).
+Timestamps are host ``time.monotonic()`` seconds. Serial samples carry the device's millisecond clock; it is mapped
+to host time by the smallest observed (receive time - device time) offset (USB delivers in bursts, the minimum is
+the least-delayed sample), allowed to drift by 100 ppm and re-anchored when a sample would map more than 50 ms
+before its arrival; a sensor on this host's clock (emulated: ``host_epoch_s``) is timed exactly. The windowed IMU
+channel's samples are timed more finely by their sensor time stamp where it proves to be a finer clock that agrees
+with the millisecond one (rotation.hardware.digit360.fine_clock).
 
 Faults: an undecodable frame is logged and dropped; a disconnect is logged, the port is reopened every
 ``reconnect_s``; :meth:`window` raises :class:`SensorStale` when the newest serial sample is older than
@@ -98,6 +99,11 @@ class Digit360Config:
     budget on a slower 2-core machine. The samples keep their device time stamps; 0 reads every frame at once."""
     buffer_s: float = 3.0
     """History kept per stream (s); must exceed the longest window (pressure, 1.12 s)."""
+    host_epoch_s: float | None = None
+    """For a sensor on this host's clock (an emulated one): the host ``time.monotonic()`` of its device time 0. Its
+    samples are then timed exactly (epoch + device time), so a delay in their delivery shows in every age the
+    reader and deploy report. None (a real sensor): the minimum-offset mapping of the module docstring, which
+    cannot see a delay that stays."""
 
     def __post_init__(self) -> None:
         if self.serial_number is None and self.port is None:
@@ -132,13 +138,20 @@ class _ClockMap:
     """A sample mapped more than this before its arrival means the mapping is wrong (device clock paused or
     reset), not that USB was that slow: re-anchor on it."""
 
-    def __init__(self, hz: float) -> None:
+    def __init__(self, hz: float, epoch: float | None = None) -> None:
         self.hz = hz
-        self.offset: float | None = None
+        self.epoch = epoch
+        """Host time of device time 0 for a device on this host's clock (Digit360Config.host_epoch_s), else None."""
+        self.offset: float | None = epoch
         self.t_last = 0.0
         self.ts_last = 0
 
     def __call__(self, ts: int, t_recv: float) -> float:
+        if self.epoch is not None:  # the host's own clock: exact, whatever the delivery's delay
+            if ts < self.ts_last and self.ts_last - ts > 2**31:
+                self.offset += 2**32 / self.hz  # type: ignore[operator]  # counter wrapped
+            self.ts_last = ts
+            return min(ts / self.hz + self.offset, t_recv)  # type: ignore[operator]
         if self.offset is not None and ts < self.ts_last and self.ts_last - ts > 2**31:
             self.offset += 2**32 / self.hz  # counter wrapped
         elif self.offset is not None and ts < self.ts_last - 1:  # (within a tick: a sub-tick IMU time before it)
@@ -186,7 +199,7 @@ class Digit360:
         """Stream -> samples decoded since the reader started (the streams of :attr:`latest`)."""
         self._msg = messages()["Digit360Message"]
         self._window_imu = IMU_TYPE["ACC"] if cfg.imu_channel == "acc" else IMU_TYPE["AUX_IMU"]
-        self._clock = _ClockMap(cfg.device_clock_hz)
+        self._clock = _ClockMap(cfg.device_clock_hz, cfg.host_epoch_s)
         self._fine = FineClock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
