@@ -371,6 +371,7 @@ def test_a_nested_option_keeps_the_rest_of_its_config():
 CHOICE_NEEDS: dict[str, str] = {
     # "command:--option choice": what else that documented choice needs (its refusal must say so), with the reason
     "train-teacher:--backend warp": "cuda",
+    "collect:--hand xela_v4": "--skin",  # the Xela skin's hand: it is the hand of a skin collection
     "train-student:--backend warp": "cuda",
     "finetune-student:--backend warp": "cuda",
     "evaluate:--backend warp": "cuda",

@@ -50,7 +50,8 @@ class Config:
     grasp_cache: str = ""
     """Grasp cache file; empty = the one shipped for the object."""
     episode_steps: int = 400
-    """Episode length in policy steps (400 = 20 s at 20 Hz); ttf is relative to it."""
+    """Episode length in policy steps (400 = 20 s at 20 Hz); ttf is relative to it. With --task insertion: a
+    trial's action limit when given (unset: the task's own, 300 = 15 s)."""
     randomize: bool = True
     """Keep the training domain randomization (the perturbations apply on top); off = nominal physics, no pushes."""
     video: bool = False

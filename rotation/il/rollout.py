@@ -33,12 +33,14 @@ def wilson(successes: int, n: int) -> tuple[float, float]:
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
-def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool) -> tuple[dict[str, float], list[np.ndarray]]:
-    """One closed-loop episode; its outcome and (``keep_frames``) the wrist camera's frames."""
+def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool, episode_steps: int | None = None
+              ) -> tuple[dict[str, float], list[np.ndarray]]:
+    """One closed-loop episode (at most ``episode_steps`` actions; None: the task's); its outcome and
+    (``keep_frames``) the wrist camera's frames."""
     from envs.insertion import InsertionConfig, InsertionSim, draw_episode
 
     w, h = policy.model.cfg.image_size
-    cfg = InsertionConfig(image_size=(w, h))
+    cfg = InsertionConfig(image_size=(w, h), **({} if episode_steps is None else {"episode_steps": episode_steps}))
     sim = InsertionSim(cfg, draw_episode(cfg, seed, grasps), grasps, render=True)
     policy.reset()
     frames: list[np.ndarray] = []
@@ -56,7 +58,7 @@ def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool) -> tuple[d
 
 
 def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: Path, video: bool = True,
-                       progress: bool = True) -> list[dict[str, Any]]:
+                       progress: bool = True, episode_steps: int | None = None) -> list[dict[str, Any]]:
     """Evaluate every policy on ``episodes`` trials (module docstring); returns the rows."""
     import imageio.v2 as imageio
 
@@ -75,7 +77,7 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
         trials, kept = [], {}
         for j in range(episodes):
             want = video and len(kept) < 2
-            result, frames = run_trial(policy, seed + j, grasps, want)
+            result, frames = run_trial(policy, seed + j, grasps, want, episode_steps)
             trials.append(result)
             kind = "success" if result["success"] else "failure"
             if want and kind not in kept:

@@ -312,7 +312,8 @@ class FakeReader:
     def window(self, serial_only: bool = False) -> dict:
         if self.stale:
             raise SensorStale("digit360-thumb: newest IMU/pressure sample is 0.200 s old")
-        return {"imu": np.zeros((224, 3), np.float32), "pressure": np.full((224, 1), 1013.0, np.float32)}
+        return {"imu": np.zeros((224, 3), np.float32), "pressure": np.full((224, 1), 1013.0, np.float32),
+                "t_end": time.monotonic()}  # the reader's window: its newest sample's host time
 
 
 class SlowReader(FakeReader):

@@ -77,10 +77,10 @@ def test_a_touch_policy_runs_in_closed_loop_and_is_reported(demo_dir, tmp_path):
     bundle = _train(demo_dir, tmp_path / "touch", touch="all", steps=2)["bundle"]
     out = tmp_path / "eval"
     assert main(["evaluate", "--task", "insertion", "--policy", f"touch={bundle}", "--episodes", "1", "--seed",
-                 "900", "--out", str(out), "--video", "--no-progress"]) == 0
+                 "900", "--episode-steps", "12", "--out", str(out), "--video", "--no-progress"]) == 0
     rows = json.loads((out / "results.json").read_text())["rows"]
     assert [r["policy"] for r in rows] == ["touch"] and 0 <= rows[0]["success_rate"] <= 1
-    assert rows[0]["touch"] == "all" and rows[0]["trials"][0]["steps"] >= 1
+    assert rows[0]["touch"] == "all" and 1 <= rows[0]["trials"][0]["steps"] <= 12
     assert any((out / "videos").glob("touch_*.mp4")) and (out / "success.png").is_file()
 
 
