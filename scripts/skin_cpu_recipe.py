@@ -23,13 +23,12 @@ docs/pretraining.md's Sparsh-skin recipe. """
 
 from __future__ import annotations
 
-import shlex
-import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from rotation.configs import script_main
+from rotation.jobs.recipe import pretrained, run_steps
 
 PROBE_SEED = 300
 """Seed of the probe's sessions (the pretraining collection uses 0)."""
@@ -69,14 +68,6 @@ def _progress(cfg: Config) -> list[str]:
     return [] if cfg.progress else ["--no-progress"]
 
 
-def _pretrained(run: Path, steps: int) -> bool:
-    ckpts = sorted(run.glob("ckpt_*.safetensors"))
-    try:
-        return bool(ckpts) and int(ckpts[-1].stem.split("_")[1]) >= steps
-    except (IndexError, ValueError):
-        return False
-
-
 def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     """(what, command) still to run, in order (collections are always listed: `rotate collect` keeps what is
     complete)."""
@@ -87,7 +78,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     todo.append(("collect the probe's sessions", ["collect", *common, "--episodes", str(cfg.probe_episodes),
                                                   "--seed", str(PROBE_SEED), "--out", str(out / "probe_sessions")]))
     pretrain = out / "pretrain"
-    if not _pretrained(pretrain, cfg.steps):
+    if not pretrained(pretrain, cfg.steps):
         resume = ["--resume"] if any(pretrain.glob("ckpt_*.safetensors")) else []
         todo.append((f"pretrain: {cfg.steps} steps of {cfg.batch_size} windows{' (resumed)' if resume else ''}",
                      ["pretrain", "--encoder", "skin", "--sessions", str(out / "sessions"), "--out", str(pretrain),
@@ -110,21 +101,10 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
 
 
 def run(cfg: Config) -> int:
-    from rotation import cli
-
-    for what, args in commands(cfg):
-        shown = shlex.join(args) if args[0] == "python" else f"rotate {shlex.join(args)}"
-        print(f"skin_cpu_recipe: {what}\n  {shown}", flush=True)
-        if cfg.dry_run:
-            continue
-        status = subprocess.call([sys.executable, *args[1:]]) if args[0] == "python" else cli.main(args)
-        if status != 0:
-            print(f"skin_cpu_recipe: stopped ({what} ended with status {status}); run the script again to continue",
-                  file=sys.stderr)
-            return status
-    if not cfg.dry_run:
+    status = run_steps("skin_cpu_recipe", commands(cfg), cfg.dry_run)
+    if status == 0 and not cfg.dry_run:
         print(f"skin_cpu_recipe: done; the encoder is {cfg.out / 'encoder'}, the probe {cfg.out / 'probe'}")
-    return 0
+    return status
 
 
 def main(argv: list[str] | None = None) -> int:

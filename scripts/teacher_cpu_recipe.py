@@ -42,13 +42,13 @@ it by its evaluation, as the report does.
 from __future__ import annotations
 
 import json
-import shlex
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from envs.grasp_cache import default_cache_path
 from rotation.configs import script_main
+from rotation.jobs.recipe import run_steps
 
 STAGE2_PPO = ["--critic-warmup", "20", "--num-envs", "512", "--n-steps", "32", "--batch-size", "4096", "--n-epochs",
               "5", "--learning-rate", "3e-4", "--log-std-init", "-1.0", "--rotate-back-clip", "5", "--no-overlap"]
@@ -249,21 +249,13 @@ def _result(cfg: Config) -> str:
 
 
 def run(cfg: Config) -> int:
-    from rotation import cli
-
     todo = commands(cfg)
     if not todo:
         print(f"teacher_cpu_recipe: every stage is done; {_result(cfg)}")
         return 0
-    for what, args in todo:
-        print(f"teacher_cpu_recipe: {what}\n  rotate {shlex.join(args)}", flush=True)
-        if cfg.dry_run:
-            continue
-        status = cli.main(args)
-        if status != 0:
-            print(f"teacher_cpu_recipe: stopped ({what} ended with status {status}); run the script again to "
-                  "continue", file=sys.stderr)
-            return status
+    status = run_steps("teacher_cpu_recipe", todo, cfg.dry_run)
+    if status != 0:
+        return status
     if not cfg.dry_run:
         print(f"teacher_cpu_recipe: done; {_result(cfg)}"
               + (f"; evaluated in {_evaluation(cfg)[0] / 'results.md'}" if cfg.eval_episodes else "")

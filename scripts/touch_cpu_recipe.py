@@ -24,13 +24,12 @@ one H200 from a window cache; see its model card).
 
 from __future__ import annotations
 
-import shlex
-import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from rotation.configs import script_main
+from rotation.jobs.recipe import pretrained, run_steps
 
 COLLECTIONS: tuple[tuple[str, bool, int, list[str]], ...] = (
     ("policy", True, 0, []),
@@ -111,7 +110,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
                                          str(cfg.episodes), "--seed", str(seed), "--out", str(out / "sessions" / name),
                                          *options, *common]))
     pretrain = out / "pretrain"
-    if not _pretrained(pretrain, cfg.steps):
+    if not pretrained(pretrain, cfg.steps):
         resume = ["--resume"] if any(pretrain.glob("ckpt_*.safetensors")) else []
         todo.append((f"pretrain: {cfg.steps} steps of {cfg.batch_size} windows{' (resumed)' if resume else ''}",
                      ["pretrain", "--sessions", str(out / "sessions"), "--out", str(pretrain), "--size", cfg.size,
@@ -138,32 +137,12 @@ def _layers(cfg: Config) -> list[str]:
     return [] if not cfg.layers else ["--unimodal-layers", str(cfg.layers[0]), "--fusion-layers", str(cfg.layers[1])]
 
 
-def _pretrained(run: Path, steps: int) -> bool:
-    """Whether the pretraining run holds its last step's checkpoint."""
-    ckpts = sorted(run.glob("ckpt_*.safetensors"))
-    try:
-        return bool(ckpts) and int(ckpts[-1].stem.split("_")[1]) >= steps
-    except (IndexError, ValueError):
-        return False
-
-
 def run(cfg: Config) -> int:
-    from rotation import cli
-
-    for what, args in commands(cfg):
-        shown = shlex.join(args) if args[0] == "python" else f"rotate {shlex.join(args)}"
-        print(f"touch_cpu_recipe: {what}\n  {shown}", flush=True)
-        if cfg.dry_run:
-            continue
-        status = subprocess.call([sys.executable, *args[1:]]) if args[0] == "python" else cli.main(args)
-        if status != 0:
-            print(f"touch_cpu_recipe: stopped ({what} ended with status {status}); run the script again to continue",
-                  file=sys.stderr)
-            return status
-    if not cfg.dry_run:
+    status = run_steps("touch_cpu_recipe", commands(cfg), cfg.dry_run)
+    if status == 0 and not cfg.dry_run:
         print(f"touch_cpu_recipe: done; the encoder is {cfg.out / 'encoder'}, the ladder "
               f"{cfg.out / 'touch_report' / 'results.md'}")
-    return 0
+    return status
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,36 @@
+"""What the CPU recipes of scripts/ share: running their steps in order (each a `rotate` command, or a Python script
+given as ``["python", path, ...]``), stopping at the first that fails, and whether a pretraining run is done."""
+
+from __future__ import annotations
+
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+
+def pretrained(run: Path, steps: int) -> bool:
+    """Whether the `rotate pretrain` run ``run`` holds its checkpoint of step ``steps`` (or later)."""
+    ckpts = sorted(Path(run).glob("ckpt_*.safetensors"))
+    try:
+        return bool(ckpts) and int(ckpts[-1].stem.split("_")[1]) >= steps
+    except (IndexError, ValueError):
+        return False
+
+
+def run_steps(name: str, todo: list[tuple[str, list[str]]], dry_run: bool) -> int:
+    """Print and (unless ``dry_run``) run each (what, command) of ``todo``; the first non-zero status stops the
+    recipe and is returned (the recipe continues from there when run again)."""
+    from rotation import cli
+
+    for what, args in todo:
+        shown = shlex.join(args) if args[0] == "python" else f"rotate {shlex.join(args)}"
+        print(f"{name}: {what}\n  {shown}", flush=True)
+        if dry_run:
+            continue
+        status = subprocess.call([sys.executable, *args[1:]]) if args[0] == "python" else cli.main(args)
+        if status != 0:
+            print(f"{name}: stopped ({what} ended with status {status}); run the script again to continue",
+                  file=sys.stderr)
+            return status
+    return 0
