@@ -14,8 +14,8 @@ rings, plastic and wood between), not measured figures. Where the hand holds it,
 the rotation env's objects do (a grip sleeve of one material: a bouncy metal contact in the hand threw the object
 out of the grasps).
 
-Surfaces (SURFACES): ``flat`` (a plate), ``ridged`` (2 mm ridges every 8 mm across the plate), ``rough`` (a height
-field of random bumps up to 1.5 mm on a 3 mm grain).
+Surfaces (SURFACES): ``flat`` (a plate), ``ridged`` (rounded 2 mm ridges every 8 mm across the plate), ``rough`` (a
+height field of random bumps up to 1.5 mm on a 3 mm grain).
 
 Actions (ACTIONS), after the object settles: ``tap`` (the wrist rises and falls at 1.5-3 Hz, 1-3 mm past contact
 at the top), ``press`` (it rises slowly 2-4 mm past contact, holds, lowers, twice), ``slide`` (1-2 mm past contact,
@@ -148,8 +148,10 @@ def _add_surface(spec: mujoco.MjSpec, kind: str, rng: np.random.Generator) -> li
     names = ["surface_plate"]
     if kind == "ridged":
         for i, x in enumerate(np.arange(-half + 0.004, half - 0.003, 0.008)):
-            body.add_geom(name=f"surface_ridge{i}", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.001, half, 0.001],
-                          pos=[float(x), 0, 0.001], **common)
+            # a rounded ridge (a capsule along y): a box's edge under a stiff contact spiked to hundreds of newtons
+            body.add_geom(name=f"surface_ridge{i}", type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[0.001, half, 0],
+                          pos=[float(x), 0, 0.001], quat=[math.cos(math.pi / 4), math.sin(math.pi / 4), 0, 0],
+                          **common)
             names.append(f"surface_ridge{i}")
     return names
 
