@@ -128,7 +128,10 @@ def run(cfg: Config) -> Path:
                                        zip(names, weights, cfg.split_dim_weights(), strict=True)),
                          touch_every=touch_every, gate=cfg.gate(),
                          card={"kind": KIND, "made_by": "rotate ensemble-adapters",
-                               "members": {n: str(r) for n, r in zip(names, cfg.members, strict=True)}})
+                               "members": {n: str(r) for n, r in zip(names, cfg.members, strict=True)},
+                               # the touch delay each member trained with (older members' cards lack it: none)
+                               "member_touch_delays": {n: read_adapter(d)[1].card.get("touch_delay", "none recorded")
+                                                       for n, d in zip(names, dirs, strict=True)}})
     cfg.out.mkdir(parents=True, exist_ok=True)
     try:
         if cfg.copy:

@@ -77,7 +77,10 @@ def test_per_dimension_weights_give_each_member_its_own_directions(ensemble_dir,
     out = tmp_path / "dims"
     assert main(["ensemble-adapters", "--members", *members, "--weights", "1", "0.5",
                  "--dim-weights", *map(str, first + second), "--out", str(out)]) == 0
-    assert [m["dim_weights"] for m in json.loads((out / "config.json").read_text())["members"]] == [first, second]
+    config = json.loads((out / "config.json").read_text())
+    assert [m["dim_weights"] for m in config["members"]] == [first, second]
+    # the card names the touch delay each member trained with (these fresh members trained with none)
+    assert set(config["card"]["member_touch_delays"].values()) == {"none recorded"}
     ens = load_bundle(out)
     groups = {k: obs[k] for k in ens.config.obs_groups}
     corr = ens.correction(ens.env_windows(obs), groups)
