@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
 import pytest
+
+# headless rendering (the wrist camera, videos) in-process, as `make test` sets it and `rotate` does for its jobs;
+# set before any test imports MuJoCo's renderer
+os.environ.setdefault("MUJOCO_GL", "egl")
 
 HOW_TO_RUN = {
     "hardware": "need a real hand or sensor attached; run them with `make test-hardware` with the device connected",
