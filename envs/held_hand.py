@@ -52,6 +52,24 @@ class Grip:
         return CUP_HEIGHT * self.scale
 
 
+def check_touch_hand(task: str, hand: str) -> None:
+    """ValueError unless ``hand`` has Digit 360 fingertips (the touch benchmarks' and insertion's sensors)."""
+    if hand not in ("digit360", "digit360_v4"):
+        raise ValueError(f"{task}: the hand must have Digit 360 fingertips ('digit360' or 'digit360_v4'), "
+                         f"got {hand!r}")
+
+
+def contact_force(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> float:
+    """Sum of the normal forces (N) of the contacts that involve ``body``'s geoms."""
+    total = 0.0
+    for i in range(d.ncon):
+        con = d.contact[i]
+        if m.geom_bodyid[con.geom1] == body or m.geom_bodyid[con.geom2] == body:
+            mujoco.mj_contactForce(m, d, i, wrench)
+            total += wrench[0]
+    return total
+
+
 def grip(grasps: GraspCache, bucket: int, u: float) -> Grip:
     """Row ``u`` (in [0, 1)) of grasp bucket ``bucket``."""
     scale = float(grasps.scales[bucket])

@@ -35,7 +35,17 @@ import mujoco
 import numpy as np
 
 from envs.grasp_cache import GraspCache, load_default_cache
-from envs.held_hand import OBJECT_CONTYPE, TouchHistory, WristRun, finish, grip, tilt_quat, wrist_spec
+from envs.held_hand import (
+    OBJECT_CONTYPE,
+    TouchHistory,
+    WristRun,
+    check_touch_hand,
+    contact_force,
+    finish,
+    grip,
+    tilt_quat,
+    wrist_spec,
+)
 from envs.rng import splitmix64
 
 TIMESTEP = 0.002
@@ -83,8 +93,7 @@ class InsertionConfig:
     """Wrist camera width, height (pixels)."""
 
     def __post_init__(self) -> None:
-        if self.hand not in ("digit360", "digit360_v4"):
-            raise ValueError(f"insertion: the hand must have Digit 360 fingertips, got {self.hand!r}")
+        check_touch_hand("insertion", self.hand)
         steps = self.control_dt / TIMESTEP
         if abs(steps - round(steps)) > 1e-9 or steps < 1:
             raise ValueError(f"insertion: control_dt must be a whole number of {TIMESTEP} s steps, got "
@@ -138,17 +147,6 @@ def _add_socket(spec: mujoco.MjSpec) -> list[str]:
                       rgba=[0.8, 0.8, 0.75, 1.0])
     body.add_site(name="socket_entry", pos=[0, 0, 0], size=[0.002, 0, 0], rgba=[1, 0, 0, 0])
     return list(boxes)
-
-
-def _contact_force(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> float:
-    """Sum of the normal forces (N) of the contacts that involve ``body``'s geoms."""
-    total = 0.0
-    for i in range(d.ncon):
-        con = d.contact[i]
-        if m.geom_bodyid[con.geom1] == body or m.geom_bodyid[con.geom2] == body:
-            mujoco.mj_contactForce(m, d, i, wrench)
-            total += wrench[0]
-    return total
 
 
 class InsertionSim:
@@ -253,7 +251,7 @@ class InsertionSim:
             self._quat = tilt_quat(self._quat, axis, float(angle))
         forces = []
         times, rows, _ = self._run.run(cfg.substeps, self._target, lambda d: forces.append(
-            _contact_force(self.model, d, self._socket, self._wrench)))
+            contact_force(self.model, d, self._socket, self._wrench)))
         self.contact = rows
         self.touch.extend(times, rows)
         self.steps += 1

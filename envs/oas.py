@@ -32,7 +32,16 @@ import mujoco
 import numpy as np
 
 from envs.grasp_cache import GraspCache, load_default_cache
-from envs.held_hand import OBJECT_CONTYPE, WristRun, finish, grip, tilt_quat, wrist_spec
+from envs.held_hand import (
+    OBJECT_CONTYPE,
+    WristRun,
+    check_touch_hand,
+    contact_force,
+    finish,
+    grip,
+    tilt_quat,
+    wrist_spec,
+)
 
 TIMESTEP = 0.002
 """Physics step (s)."""
@@ -72,9 +81,7 @@ class OasConfig:
     """Episode length (s), settling included."""
 
     def __post_init__(self) -> None:
-        if self.hand not in ("digit360", "digit360_v4"):
-            raise ValueError(f"oas: the hand must have Digit 360 fingertips ('digit360' or 'digit360_v4'), "
-                             f"got {self.hand!r}")
+        check_touch_hand("oas", self.hand)
         if not 1.2 <= self.duration_s <= 600:
             raise ValueError(f"oas: duration_s must be 1.2-600 s, got {self.duration_s}")
 
@@ -253,13 +260,7 @@ class OasSim:
                 mujoco.mju_quat2Mat(rot, d.xquat[obj])
                 top = d.xpos[obj] + rot.reshape(3, 3) @ np.array([0.0, 0.0, self._half_height])
                 d.mocap_pos[1] = [top[0], top[1], top[2] + GAP]
-            total = 0.0
-            for i in range(d.ncon):
-                con = d.contact[i]
-                if self.model.geom_bodyid[con.geom1] == self._surface or \
-                        self.model.geom_bodyid[con.geom2] == self._surface:
-                    mujoco.mj_contactForce(self.model, d, i, wrench)
-                    total += wrench[0]
+            total = contact_force(self.model, d, self._surface, wrench)
             force[k[0]] = total
             k[0] += 1
 

@@ -22,7 +22,7 @@ import mujoco
 import numpy as np
 
 from envs.grasp_cache import GraspCache, load_default_cache
-from envs.held_hand import OBJECT_CONTYPE, WristRun, finish, grip, tilt_quat, wrist_spec
+from envs.held_hand import OBJECT_CONTYPE, WristRun, check_touch_hand, finish, grip, tilt_quat, wrist_spec
 from envs.shake_contents import CONTENT_NAMES, CONTENTS, FILL_LEVELS, Grain, Liquid, slosh_model
 
 TIMESTEP = 0.002
@@ -65,9 +65,7 @@ class ShakeConfig:
     """Largest vertical part of the shake's direction (unit vector's z)."""
 
     def __post_init__(self) -> None:
-        if self.hand not in ("digit360", "digit360_v4"):
-            raise ValueError(f"shake: the hand must have Digit 360 fingertips ('digit360' or 'digit360_v4'), "
-                             f"got {self.hand!r}")
+        check_touch_hand("shake", self.hand)
         for name in ("amplitude", "frequency", "tilt"):
             lo, hi = getattr(self, name)
             if not (0 <= lo <= hi and math.isfinite(hi)):
