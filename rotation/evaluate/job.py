@@ -125,9 +125,8 @@ def run(cfg: Config) -> list[dict]:
     if cfg.task == "insertion":
         from rotation.il.rollout import evaluate_insertion
 
-        steps = None if cfg.episode_steps == Config.episode_steps else cfg.episode_steps  # unset: the task's 300
         rows = evaluate_insertion(cfg.policies, cfg.episodes, cfg.seed, Path(cfg.out), cfg.video, cfg.progress,
-                                  steps)
+                                  cfg.episode_steps)
         print(f"evaluate: {len(rows)} insertion rows -> {Path(cfg.out) / 'results.md'}")
         return rows
     bundles = load_policies(cfg)

@@ -15,6 +15,9 @@ from rotation.evaluate.suites import SUITES, Condition, get_suite, make_conditio
 from rotation.policy.bundle import shipped_bundles
 from rotation.sim_warp.host import BACKEND_HELP, BACKENDS
 
+ROTATION_EPISODE_STEPS = EnvConfig.episode_steps
+"""The rotation task's episode length (policy steps): 400 = 20 s at 20 Hz."""
+
 
 @dataclass
 class Config:
@@ -49,9 +52,9 @@ class Config:
     """Object to rotate (envs.objects); the shipped policies were trained on 'cup'."""
     grasp_cache: str = ""
     """Grasp cache file; empty = the one shipped for the object."""
-    episode_steps: int = 400
-    """Episode length in policy steps (400 = 20 s at 20 Hz); ttf is relative to it. With --task insertion: a
-    trial's action limit when given (unset: the task's own, 300 = 15 s)."""
+    episode_steps: int | None = None
+    """Episode length in policy steps; None = the task's own: rotation 400 (20 s at 20 Hz, ttf is relative to
+    it), insertion 300 actions (15 s)."""
     randomize: bool = True
     """Keep the training domain randomization (the perturbations apply on top); off = nominal physics, no pushes."""
     video: bool = False
@@ -86,6 +89,10 @@ class Config:
 
     def __post_init__(self) -> None:
         check_types(self, skip=("com_shift",))  # Perturbation checks com_shift with its own message
+        if self.episode_steps is None and self.task == "rotation":
+            self.episode_steps = ROTATION_EPISODE_STEPS
+        if self.episode_steps is not None:
+            check_int("episode_steps", self.episode_steps, 1, 10**6)
         self.out = Path(self.out)
         if self.suite is not None and self.suite not in SUITES:
             raise ValueError(f"suite: unknown suite {self.suite!r}; choose one of: {', '.join(SUITES)}")
@@ -114,7 +121,8 @@ class Config:
         except ValueError as err:
             raise ValueError(f"conditions: {err}" if "condition" in str(err) else str(err)) from None
         for cond in conditions:  # the object, the episode length and each perturbation's physical limits
-            EnvConfig(object=self.object, episode_steps=self.episode_steps, randomization=rand, perturb=cond.perturb)
+            EnvConfig(object=self.object, episode_steps=self.episode_steps or ROTATION_EPISODE_STEPS,
+                      randomization=rand, perturb=cond.perturb)
 
 
 def _policy_arg(text: str) -> tuple[str, str]:
@@ -151,8 +159,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         f"{d.num_envs}); keep it fixed when comparing runs")
     parser.add_argument("--object", default=d.object, help=f"object to rotate (default {d.object})")
     parser.add_argument("--grasp-cache", default=d.grasp_cache, help="grasp cache file (default: shipped)")
-    parser.add_argument("--episode-steps", type=int, default=d.episode_steps,
-                        help=f"episode length in policy steps (default {d.episode_steps})")
+    parser.add_argument("--episode-steps", type=int, default=None,
+                        help=f"episode length in policy steps (default: the task's own, rotation "
+                             f"{ROTATION_EPISODE_STEPS} = 20 s at 20 Hz, insertion 300 actions)")
     parser.add_argument("--randomize", action=argparse.BooleanOptionalAction, default=d.randomize,
                         help="keep the training domain randomization (default on)")
     parser.add_argument("--video", action="store_true", help="write one MP4 per condition (MUJOCO_GL=egl)")

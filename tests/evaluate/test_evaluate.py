@@ -164,6 +164,18 @@ def test_another_contact_model_runs_and_the_report_says_so(setup, tmp_path, monk
         ContactConfig(impratio=0.5)
 
 
+def test_episode_steps_default_is_the_tasks_own(tmp_path):
+    """Unset, --episode-steps is 400 for rotation and the task's own (None) for insertion; given, it is kept."""
+    from rotation.cli import build_parser
+
+    def cfg(*extra: str) -> job.Config:
+        return job.config_from_args(build_parser().parse_args(["evaluate", "--out", str(tmp_path / "e"), *extra]))
+
+    assert cfg().episode_steps == 400 and cfg("--episode-steps", "40").episode_steps == 40
+    assert cfg("--task", "insertion").episode_steps is None
+    assert cfg("--task", "insertion", "--episode-steps", "400").episode_steps == 400
+
+
 def test_contact_options_set_the_whole_model_and_replace_the_hands_contact_randomization(tmp_path):
     """--contact-timeconst / --contact-solimp / --physics-dt reach the env; on a hand whose training randomizes the
     contact (digit360_v4), an explicit contact model is run exactly: none of that randomization is left on."""
