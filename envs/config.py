@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from envs import constants as C
+from envs.constants import DEFAULT_HAND
 from envs.objects import OBJECTS
 from envs.physics import (  # noqa: F401 (re-exported: the configs' public names)
     MAX_FRICTION,
@@ -147,7 +148,7 @@ class EnvConfig:
     """Path to a grasp cache (.npz) from `rotate grasps`; empty = the cache shipped with the package."""
     tactile: bool = False
     """Simulate the Digit 360 fingertips and add the `tactile` observation group (slower); on a Digit 360 hand."""
-    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = "digit360"
+    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = DEFAULT_HAND
     """Hand variant: 'digit360' (Digit 360 fingertips) or 'xela' (stock-length fingertips, 18 Xela skin pads on
     fingertips, phalanges and palm; docs/skin.md), both on the physics the shipped policies trained on, or
     'digit360_v4' (the vendor's kinematics with Meta's Digit 360 mount) and 'xela_v4' (the vendor's kinematics with

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from envs import constants as C
+from envs.constants import DEFAULT_HAND
 from envs.objects import OBJECTS
 from envs.scene import HANDS, hand_variant
 from envs.task import pick_grasps
@@ -38,7 +39,7 @@ class GraspCache:
     seed: int = 0
     source: str = ""
     """Where the cache was read from (named in error messages); empty for a cache built in memory."""
-    hand: str = "digit360"
+    hand: str = DEFAULT_HAND
     """Hand variant the grasps were generated with (envs.scene.HANDS); caches of older versions are 'digit360'."""
     hold: tuple[float, ...] = ()
     """The HoldRule every grasp passed (seconds, friction, mass, max_tilt), or () for a cache generated without one."""
@@ -131,7 +132,7 @@ are generated: Hora's rule keeps every
 fingertip within 10 cm of it (the shipped caches: at most 5 cm)."""
 
 
-def _check_rows(grasps: np.ndarray, scales: np.ndarray, where: str, hand: str = "digit360") -> None:
+def _check_rows(grasps: np.ndarray, scales: np.ndarray, where: str, hand: str = DEFAULT_HAND) -> None:
     """Every row is finite, its joints within the limits, its quaternion a unit one, its object in the hand."""
 
     def fail(mask: np.ndarray, what: str) -> None:
@@ -162,7 +163,7 @@ def _check_rows(grasps: np.ndarray, scales: np.ndarray, where: str, hand: str = 
                                f"the hand's grasp point {start.tolist()} (at most {MAX_OBJECT_OFFSET} m)")
 
 
-def default_cache_path(object_name: str, hand: str = "digit360") -> Path:
+def default_cache_path(object_name: str, hand: str = DEFAULT_HAND) -> Path:
     """The shipped cache of an object: grasps_<object>.npz for the Digit 360 hand, grasps_<object>_<hand>.npz for
     another hand variant."""
     suffix = "" if hand == "digit360" else f"_{hand}"
@@ -178,7 +179,7 @@ def _shipped_objects(folder: Path, hand: str) -> list[str]:
     return sorted(n.removesuffix(f"_{hand}") for n in names if n.endswith(f"_{hand}"))
 
 
-def load_default_cache(object_name: str, path: str = "", hand: str = "digit360") -> GraspCache:
+def load_default_cache(object_name: str, path: str = "", hand: str = DEFAULT_HAND) -> GraspCache:
     """The cache at ``path``, or the one shipped for ``object_name`` and ``hand``; errors name the object and the
     fix."""
     if path:
@@ -202,7 +203,7 @@ def load_default_cache(object_name: str, path: str = "", hand: str = "digit360")
     return cache
 
 
-def cache_digest(path: str | Path, object_name: str, hand: str = "digit360") -> str:
+def cache_digest(path: str | Path, object_name: str, hand: str = DEFAULT_HAND) -> str:
     """First 16 hex digits of the SHA-256 of the grasp cache episodes start from: the file at ``path``, or the one
     shipped for the object and hand when ``path`` is empty (a regenerated cache changes every episode's start);
     ``"(none)"`` when there is no such file."""

@@ -18,6 +18,7 @@ import numpy as np
 from envs import constants as C
 from envs import task
 from envs.config import EnvConfig, RandomizationConfig, default_randomization
+from envs.constants import DEFAULT_HAND
 from envs.core import EpisodeStarts, set_contact, set_torque_limits, task_model
 from envs.errors import RequestRefused
 from envs.geometry import tilt_angle
@@ -124,7 +125,7 @@ class HoldRule:
 class HoldTest:
     """Runs HoldRule checks on batches of grasp rows of one object (the env's model, built once)."""
 
-    def __init__(self, object_name: str, hand: str = "digit360", batch_size: int = 128, nthread: int | None = None):
+    def __init__(self, object_name: str, hand: str = DEFAULT_HAND, batch_size: int = 128, nthread: int | None = None):
         self.cfg = EnvConfig(object=object_name, hand=hand)
         model, obj, max_scale = task_model(self.cfg)
         self.batch_size = batch_size
@@ -170,7 +171,7 @@ def hold_check(cache: GraspCache, rule: HoldRule = HoldRule(), batch_size: int =
 
 def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int, seed: int = 0,
                     batch_size: int = 128, max_rounds: int = 200, noise: float = 0.25, nthread: int | None = None,
-                    progress=None, max_tilt: float = DEFAULT_MAX_TILT, hand: str = "digit360",
+                    progress=None, max_tilt: float = DEFAULT_MAX_TILT, hand: str = DEFAULT_HAND,
                     hold: HoldRule | None = None) -> GraspCache:
     """Generate ``per_scale`` accepted grasps for each scale (see the module docstring for the rule); with ``hold``
     a grasp must also pass that HoldRule."""

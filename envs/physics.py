@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass, replace
 from typing import Literal
 
+from envs.constants import DEFAULT_HAND
 from envs.validation import check_types
 
 MAX_FRICTION = 3.0
@@ -234,7 +235,7 @@ def hand_physics(hand: str) -> HandPhysics:
     return HAND_PHYSICS[hand]
 
 
-def default_randomization(hand: str = "digit360", enabled: bool = True) -> RandomizationConfig:
+def default_randomization(hand: str = DEFAULT_HAND, enabled: bool = True) -> RandomizationConfig:
     """The randomization a hand's policies train with, or with ``enabled=False`` its nominal physics (the ranges'
     middles)."""
     rc = hand_physics(hand).randomization

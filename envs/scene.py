@@ -13,7 +13,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from envs.constants import FINGERS
+from envs.constants import DEFAULT_HAND, FINGERS
 from envs.objects import ObjectSpec
 from envs.sensors.digit360_model import Digit360Model
 
@@ -70,14 +70,14 @@ experiments/tools/canonical_pose.py --hand xela_v4 --scale 0.9 --centres-x 0.02 
 HANDS = tuple(VARIANTS)
 
 
-def hand_variant(hand: str = "digit360") -> HandVariant:
+def hand_variant(hand: str = DEFAULT_HAND) -> HandVariant:
     """A hand variant (VARIANTS) by name; a ValueError names the known ones."""
     if hand not in VARIANTS:
         raise ValueError(f"unknown hand {hand!r}; hands: {', '.join(HANDS)}")
     return VARIANTS[hand]
 
 
-def touch_model(hand: str = "digit360") -> Digit360Model:
+def touch_model(hand: str = DEFAULT_HAND) -> Digit360Model:
     """The simulated Digit 360 of a hand variant: its dome radius and model generation ('digit360' renders the
     shipped generation-1 streams bit for bit, the vendor-kinematics hands generation 2)."""
     v = hand_variant(hand)
@@ -88,7 +88,7 @@ def hand_xml_path() -> str:
     return str(Path(__file__).resolve().parent / "assets" / "allegro_right_digit360.xml")
 
 
-def hand_spec(hand: str = "digit360") -> mujoco.MjSpec:
+def hand_spec(hand: str = DEFAULT_HAND) -> mujoco.MjSpec:
     """The spec of a hand variant (one of HANDS), without an object."""
     if hand not in HANDS:
         raise ValueError(f"unknown hand {hand!r}; hands: {', '.join(HANDS)}")
@@ -110,7 +110,7 @@ def hand_spec(hand: str = "digit360") -> mujoco.MjSpec:
 
 
 def build_model(obj: ObjectSpec, scale: float = 1.0, timestep: float = 0.01,
-                edit: Callable[[mujoco.MjSpec], None] | None = None, hand: str = "digit360") -> mujoco.MjModel:
+                edit: Callable[[mujoco.MjSpec], None] | None = None, hand: str = DEFAULT_HAND) -> mujoco.MjModel:
     """Compile the hand + object model with the object at ``scale`` (the env's largest).
 
     ``edit`` may add elements to the finished spec before compiling (e.g. the Digit 360 sensors); ``hand`` picks

@@ -33,6 +33,7 @@ import numpy as np
 from stable_baselines3.common.vec_env import SubprocVecEnv
 
 from envs.config import EnvConfig
+from envs.constants import DEFAULT_HAND
 from envs.core import RotateCupVec
 from envs.rotate_cup import RotateCupEnv
 from envs.vector import RotateCupVectorEnv
@@ -65,7 +66,7 @@ class Config:
     """Grasp cache file; empty = the one shipped for the object."""
     seed: int = 0
     """Seed of the envs and of the actions."""
-    hand: str = "digit360"
+    hand: str = DEFAULT_HAND
     """Hand variant (envs.scene.HANDS) with its physics: 'digit360_v4' measures the hardware's physics (elliptic
     cones, noslip, the action delay's split steps)."""
 

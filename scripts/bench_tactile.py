@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from envs.config import EnvConfig
+from envs.constants import DEFAULT_HAND
 from envs.core import RotateCupVec, random_steps_per_s
 from envs.sensors.digit360 import FINGERS
 from rotation.configs import script_main
@@ -47,7 +48,7 @@ class Config:
     """Windows read from the collected sessions for the reader rate."""
     object: str = "cup"
     """Object (envs.objects)."""
-    hand: str = "digit360"
+    hand: str = DEFAULT_HAND
     """Digit 360 hand: 'digit360' (generation-1 touch) or 'digit360_v4' (the vendor's kinematics, generation 2)."""
     nthread: int = 0
     """MuJoCo threads (0 = one per CPU core, at most num_envs)."""

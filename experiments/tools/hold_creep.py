@@ -27,6 +27,7 @@ import numpy as np
 from envs import constants as C
 from envs import task
 from envs.config import ContactConfig, EnvConfig, RandomizationConfig
+from envs.constants import DEFAULT_HAND
 from envs.core import EpisodeStarts, task_model
 from envs.geometry import tilt_angle
 from envs.grasp_cache import load_default_cache
@@ -64,7 +65,7 @@ class Config:
     """How long each grasp is held still (s)."""
     object: str = "cup"
     """Object whose shipped grasp cache is replayed (its nominal-scale bucket)."""
-    hand: str = "digit360"
+    hand: str = DEFAULT_HAND
     """Hand variant (envs.scene.HANDS) whose model and grasp cache are used."""
     grasp_cache: str = ""
     """Grasp cache to replay (empty: the one shipped for the object and hand)."""
@@ -90,7 +91,7 @@ def _edit(setting: dict):
     return edit
 
 
-def hold(setting: dict, object_name: str, seconds: float, hand: str = "digit360", grasp_cache: str = "",
+def hold(setting: dict, object_name: str, seconds: float, hand: str = DEFAULT_HAND, grasp_cache: str = "",
          limit: int | None = None, settle: float = 0.0) -> dict[str, float]:
     """Replay the nominal bucket's grasps (the first ``limit`` of them) under ``setting``: the sink (mm) and tilt
     (deg) over ``seconds`` after the first ``settle`` seconds. An empty setting is the hand's own physics at its

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from envs.constants import DEFAULT_HAND
 from rotation.hardware.hand import Hand
 from rotation.hardware.safety import SafetyConfig
 
@@ -59,7 +60,7 @@ class HandSetup:
     """Emulation: grasp cache row to start from."""
     sim_transport: Literal["virtual", "slcan"] = "virtual"
     """Emulated Allegro: python-can virtual bus or SLCAN adapter on a pty."""
-    sim_hand: str = "digit360"
+    sim_hand: str = DEFAULT_HAND
     """Emulation: the simulated hand variant (envs.scene.HANDS) whose body the emulator drives: the policy's."""
     sim_object: tuple[tuple[str, float | tuple[float, ...]], ...] = ()
     """Emulation: (property, value) pairs of the emulated object (mass kg, friction, com m; HandPhysics.set_object);

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from adapters.touch_delay import delay_spec, parse_delay
+from envs.constants import DEFAULT_HAND
 from envs.errors import RequestRefused
 from envs.grasp_cache import cache_digest
 from envs.metrics import METRICS
@@ -40,7 +41,7 @@ LATER_FIELDS = {"touch_delay": "0", "contact": None, "physics_dt": None, "task":
 left out of the identity, so an interrupted evaluation recorded before it existed still continues."""
 
 
-def identity(cfg: Any, policies: dict[str, str], hand: str = "digit360", reads_touch: bool = True
+def identity(cfg: Any, policies: dict[str, str], hand: str = DEFAULT_HAND, reads_touch: bool = True
              ) -> dict[str, Any]:
     """What the rows of an evaluation depend on: its config (without RESUMABLE_CHANGES, and without the touch delay
     when no policy reads touch: ``reads_touch``), the policies' weights and the grasp cache (of ``hand``, the hand

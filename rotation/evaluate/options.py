@@ -10,6 +10,7 @@ from typing import Literal
 
 from adapters.touch_delay import MEASURED, parse_delay
 from envs.config import ContactConfig, EnvConfig, Perturbation, RandomizationConfig
+from envs.constants import DEFAULT_HAND
 from envs.validation import check_int, check_number, check_optional_file, check_output_dir, check_seed, check_types
 from rotation.evaluate.suites import SUITES, Condition, get_suite, make_condition
 from rotation.policy.bundle import shipped_bundles
@@ -233,7 +234,7 @@ def _contact_from_args(args: argparse.Namespace) -> ContactConfig | None:
     return ContactConfig(**given) if given else None
 
 
-def resolve_conditions(cfg: Config, hand: str = "digit360") -> list[Condition]:
+def resolve_conditions(cfg: Config, hand: str = DEFAULT_HAND) -> list[Condition]:
     """The conditions of a run on ``hand``: a suite, or one condition from the perturbation fields (nominal by
     default)."""
     custom = {k: v for k, v in (("friction_scale", cfg.friction_scale), ("added_mass", cfg.added_mass),

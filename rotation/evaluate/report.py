@@ -18,6 +18,7 @@ import numpy as np
 
 from adapters.touch_delay import parse_delay
 from envs.config import hand_physics
+from envs.constants import DEFAULT_HAND
 from envs.metrics import METRICS, EpisodeMetrics, summarize
 from rotation.configs import to_jsonable
 from rotation.evaluate.suites import NOMINAL, Condition, axis_level
@@ -51,7 +52,7 @@ def json_text(data: Any) -> str:
 
 
 def write_report(out: Path, rows: list[dict[str, Any]], config: Any, conditions: list[Condition],
-                 hand: str = "digit360", touch_policies: Sequence[str] = ()) -> None:
+                 hand: str = DEFAULT_HAND, touch_policies: Sequence[str] = ()) -> None:
     """results.json, results.md and plots/<metric>.png under ``out`` (the episodes ran on ``hand``; the policies
     ``touch_policies`` read touch, with the config's touch delay)."""
     out.mkdir(parents=True, exist_ok=True)

@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from envs.config import MAX_OBJECT_MASS, Perturbation, default_randomization
+from envs.constants import DEFAULT_HAND
 
 NOMINAL = "nominal"
 
@@ -60,7 +61,7 @@ def make_condition(p: Perturbation) -> Condition:
     return Condition(condition_name(p), p)
 
 
-def _perturbations_suite(hand: str = "digit360") -> list[Condition]:
+def _perturbations_suite(hand: str = DEFAULT_HAND) -> list[Condition]:
     # Sparsh-X reports robustness to reduced friction and added mass without levels (docs/reference/sparsh.md); ours
     # go from mild to a quarter of the friction, up to +0.2 kg (about the top of the shipped physics' mass range,
     # 0.25 kg, docs/reference/hora.md) where the hand's heaviest cup leaves room for it under MAX_OBJECT_MASS (the
@@ -82,7 +83,7 @@ SUITES: dict[str, Callable[[str], list[Condition]]] = {
 """Suite name -> factory of its conditions on a hand variant (its physics bound the added mass)."""
 
 
-def get_suite(name: str, only: Sequence[str] = (), hand: str = "digit360") -> list[Condition]:
+def get_suite(name: str, only: Sequence[str] = (), hand: str = DEFAULT_HAND) -> list[Condition]:
     """The conditions of suite ``name`` on ``hand``, optionally restricted to the names in ``only`` (in suite
     order)."""
     if name not in SUITES:

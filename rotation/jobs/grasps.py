@@ -27,6 +27,7 @@ from typing import Literal
 from tqdm import tqdm
 
 from envs.config import RandomizationConfig, default_randomization
+from envs.constants import DEFAULT_HAND
 from envs.grasp_cache import default_cache_path
 from envs.grasps import DEFAULT_MAX_TILT, HoldRule, generate_grasps
 from envs.objects import OBJECTS, get_object
@@ -61,7 +62,7 @@ class Config:
     """Hold check: object mass in kg; default: the middle of the hand's randomization range."""
     hold_tilt: float = HoldRule.max_tilt
     """Hold check: the largest tilt (rad) the object may reach during the hold."""
-    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = "digit360"
+    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = DEFAULT_HAND
     """Hand variant (envs.scene.HANDS): 'digit360' fingertips or the Xela skin hand; grasps are hand-specific."""
 
     def __post_init__(self) -> None:

@@ -20,6 +20,7 @@ import mujoco
 import numpy as np
 
 from envs.config import EnvConfig, default_randomization
+from envs.constants import DEFAULT_HAND
 from envs.core import RotateCupVec
 from envs.objects import OBJECTS
 from envs.render import render_frame
@@ -51,7 +52,7 @@ class Config:
     """Grasp cache file; empty = the one shipped for the object."""
     randomize: bool = True
     """Domain randomization on (as in training)."""
-    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = "digit360"
+    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = DEFAULT_HAND
     """Hand variant of a still or of a 'zero' / 'random' video (envs.scene.HANDS); a policy's video runs on the hand
     the policy was trained on."""
 

@@ -30,7 +30,7 @@ import mujoco
 import numpy as np
 
 from envs.config import default_randomization
-from envs.constants import HOME_POSE, JOINT_NAMES, NUM_JOINTS
+from envs.constants import DEFAULT_HAND, HOME_POSE, JOINT_NAMES, NUM_JOINTS
 from envs.core import set_contact
 from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
@@ -47,7 +47,7 @@ class HandPhysics:
     """MuJoCo hand + object; :meth:`advance` integrates with the last torque held constant (zero-order hold)."""
 
     def __init__(self, object_name: str = "cup", scale: float = 0.8, q0: np.ndarray | None = None,
-                 object_pose: np.ndarray | None = None, hold: bool = False, hand: str = "digit360") -> None:
+                 object_pose: np.ndarray | None = None, hold: bool = False, hand: str = DEFAULT_HAND) -> None:
         """``q0``: initial joint angles (16,) rad, bus order (default: the vendor home pose); ``object_pose``:
         initial object position (3, m) + quaternion (4, wxyz), world frame (default: above the fingers, upright);
         ``hold``: keep the scene frozen until :meth:`release` (see the module docstring); ``hand``: the simulated
@@ -90,7 +90,7 @@ class HandPhysics:
         mujoco.mj_sensorAcc(self.model, self.data)
 
     @classmethod
-    def at_grasp(cls, object_name: str = "cup", grasp: int = 0, hold: bool = True, hand: str = "digit360"
+    def at_grasp(cls, object_name: str = "cup", grasp: int = 0, hold: bool = True, hand: str = DEFAULT_HAND
                  ) -> HandPhysics:
         """The hand holding ``object_name`` as a RotateCup-v0 episode starts: row ``grasp`` of the shipped grasp
         cache (envs.grasps) in the bucket of the env's nominal scale (the middle randomization scale, as with

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from envs.config import EnvConfig, RewardConfig, default_randomization
+from envs.constants import DEFAULT_HAND
 from envs.objects import OBJECTS
 from envs.sim_identity import LEGACY_HAND, bundle_hand
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
@@ -24,7 +25,7 @@ class Config:
     """Output directory (checkpoints, TensorBoard logs, config, final bundle)."""
     object: str = "cup"
     """Training object (envs.objects): the upright cup with a handle, scaled per env."""
-    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = "digit360"
+    hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = DEFAULT_HAND
     """Hand variant (envs.config.EnvConfig.hand): Digit 360 fingertips, or stock fingertips with the Xela skin pads
     (a teacher for a skin adapter; the skin itself is not simulated while the teacher trains)."""
     num_envs: int = 256
