@@ -68,6 +68,13 @@ class Config:
     """Backward clip of the rotate reward term (rad/s; envs.config.RewardConfig.rotate_back_clip). 0.5 (Hora's,
     the shipped teacher's) lets a policy earn the term by turning forward and snapping back; 5 makes a snap back
     cost what it undoes."""
+    rotate_clip: float = 0.5
+    """Upper clip of the rotate reward term (rad/s; envs.config.RewardConfig.rotate_clip): turning faster earns no
+    more. 0.5 is Hora's and every shipped teacher's; a higher clip pays a faster gait for its speed."""
+    pose_diff_reward: float = -0.1
+    """Weight of the joints' squared distance from the episode's grasp (RewardConfig.pose_diff): a penalty or 0."""
+    work_reward: float = -2.0
+    """Weight of the mechanical power penalty (tau . qdot)^2 (RewardConfig.work): a penalty or 0."""
     fall_reward: float = -20.0
     """One-off reward when the cup falls or tips past the tilt limit (envs.config.RewardConfig.fall); a penalty or
     0, never a gain. The per-step reward is small, so at -20 (the default) losing the cup late costs little; the
@@ -193,6 +200,9 @@ class Config:
         check_number("log_std_init", self.log_std_init, -10.0, 2.0)  # std e^-10 .. e^2 for actions in [-1, 1]
         check_number("reward_scale", self.reward_scale, 0.0, 1000.0, low_open=True)
         check_number("fall_reward", self.fall_reward, -10000.0, 0.0)  # a penalty or off: falling must never pay
+        check_number("rotate_clip", self.rotate_clip, 0.0, 100.0, low_open=True)
+        check_number("pose_diff_reward", self.pose_diff_reward, -1000.0, 0.0)  # penalties: a reward would pay for
+        check_number("work_reward", self.work_reward, -1000.0, 0.0)  # leaving the grasp or for burning power
         check_int("checkpoint_every", self.checkpoint_every, 1, 10**12)
         check_int("torch_threads", self.torch_threads, 1, 1024)
         check_int("critic_warmup", self.critic_warmup, 0, 10**6)
@@ -216,8 +226,12 @@ class Config:
     def env_config(self) -> EnvConfig:
         rc = default_randomization(self.hand, self.randomize)  # the hand's physics (envs.physics.HAND_PHYSICS)
         return EnvConfig(object=self.object, hand=self.hand, episode_steps=self.episode_steps, randomization=rc,
-                         grasp_cache=self.grasp_cache, reward=RewardConfig(rotate_back_clip=self.rotate_back_clip,
-                                                               fall=self.fall_reward))
+                         grasp_cache=self.grasp_cache, reward=self.reward_config())
+
+    def reward_config(self) -> RewardConfig:
+        """The reward terms this run sets (the rest at RewardConfig's defaults)."""
+        return RewardConfig(rotate_clip=self.rotate_clip, rotate_back_clip=self.rotate_back_clip,
+                            pose_diff=self.pose_diff_reward, work=self.work_reward, fall=self.fall_reward)
 
 
 def _recorded_sim(bundle_dir: Path) -> dict:

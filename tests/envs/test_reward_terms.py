@@ -53,3 +53,14 @@ def test_teacher_fall_reward_reaches_the_env_and_must_not_pay():
     assert TeacherConfig(fall_reward=-60.0).env_config().reward.fall == -60.0
     with pytest.raises(ValueError, match="fall_reward"):
         TeacherConfig(fall_reward=5.0)
+
+
+def test_teacher_reward_weights_reach_the_env_and_stay_penalties():
+    """--rotate-clip, --pose-diff-reward and --work-reward set the env's terms (defaults: RewardConfig's, so a
+    run recorded before they existed resumes unchanged); a positive pose or work weight is refused."""
+    assert TeacherConfig().env_config().reward == RewardConfig(fall=-20.0)
+    rc = TeacherConfig(rotate_clip=1.0, pose_diff_reward=-0.05, work_reward=-1.0).env_config().reward
+    assert (rc.rotate_clip, rc.pose_diff, rc.work) == (1.0, -0.05, -1.0)
+    for bad in ({"pose_diff_reward": 0.1}, {"work_reward": 1.0}, {"rotate_clip": 0.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            TeacherConfig(**bad)
