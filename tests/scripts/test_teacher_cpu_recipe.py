@@ -8,7 +8,9 @@ import shutil
 
 import pytest
 
+from envs.config import EnvConfig
 from envs.grasp_cache import default_cache_path
+from envs.sim_identity import sim_record
 from rotation import cli
 from rotation.configs import save_config
 from rotation.evaluate import job as evaluate_job
@@ -21,9 +23,9 @@ def recipe(load_script):
     return load_script("teacher_cpu_recipe")
 
 
-def _fake_bundle(path, card):
+def _fake_bundle(path, card, sim=None):
     path.mkdir(parents=True)
-    (path / "config.json").write_text(json.dumps({"card": card}))
+    (path / "config.json").write_text(json.dumps({"card": card} | ({"sim": sim} if sim else {})))
 
 
 def _parsed(args):
@@ -91,6 +93,27 @@ def test_every_stage_is_a_valid_command_of_its_job(recipe, tmp_path):
     v4 = recipe.commands(recipe.Config(out=tmp_path / "v4", hand="digit360_v4"))[-1][1]
     assert v4[v4.index("--contact-cone") + 1:v4.index("--contact-noslip-iterations") + 2] == [
         "pyramidal", "--contact-impratio", "3", "--contact-noslip-iterations", "0"]
+
+
+def test_another_hand_gets_the_speed_stage_between_stages_4_and_5(recipe, tmp_path):
+    """On the vendor-kinematics hand the teacher trains a stage 4b (rotate cap 1.0 rad/s, half the pose penalty,
+    fall cost 35) from stage 4's bundle, and stage 5 continues from it."""
+    out = tmp_path / "v4"
+    names = [what.split(":")[0] for what, _ in recipe.commands(recipe.Config(out=out, hand="digit360_v4"))]
+    assert names[names.index("stage4"):names.index("stage5") + 1] == ["stage4", "stage4b", "stage5"]
+    sim = sim_record(EnvConfig(hand="digit360_v4"))
+    (out / "grasps_checked").mkdir(parents=True)  # the recipe's own hold-checked grasps, which stages 3 on read
+    shutil.copy(default_cache_path("cup", "digit360_v4"), out / "grasps_checked")
+    for name in ("stage1", "stage2", "stage3", "stage4"):
+        _fake_bundle(out / name / "bundle", {"steps": 1, "interrupted": "stopped"}, sim)
+    args = {what.split(":")[0]: a for what, a in recipe.commands(recipe.Config(out=out, hand="digit360_v4"))}
+    speed = _parsed(args["stage4b"])
+    assert (speed.rotate_clip, speed.pose_diff_reward, speed.fall_reward, speed.seed) == (1.0, -0.05, -35.0, 17)
+    assert speed.init_from == out / "stage4" / "bundle" and speed.hand == "digit360_v4"
+    assert speed.total_steps == 5_996_544
+    last = args["stage5"]  # from stage 4b's bundle, with the usual reward (its bundle is not there to parse)
+    assert last[last.index("--init-from") + 1] == str(out / "stage4b" / "bundle")
+    assert "--rotate-clip" not in last and "--pose-diff-reward" not in last
 
 
 def test_teacher_only_leaves_the_student_out_and_evaluates_the_teacher_alone(recipe, tmp_path, capsys):
