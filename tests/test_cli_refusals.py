@@ -20,12 +20,20 @@ import pytest
 from rotation import cli
 from rotation.policy import bundle as policy_bundle
 
-MEMBER = Path(policy_bundle.SHIPPED_DIR) / "adapter" / "members" / "all_modalities"
+
+def _member(root: Path) -> str:
+    """A fresh pressure-only adapter of the shipped student (built once per working directory)."""
+    from adapters.bundle import build_adapted
+
+    path = root / "member"
+    if not path.is_dir():
+        build_adapted("student", "sparshx-tinier-sim", ("pressure",)).save(path)
+    return str(path)
 
 
 def _adapter_with_a_missing_encoder(root: Path) -> str:
     out = root / "adapter_missing_encoder"
-    shutil.copytree(MEMBER, out)
+    shutil.copytree(_member(root), out)
     cfg = json.loads((out / "config.json").read_text())
     cfg["encoder"] = "no-such-encoder"
     (out / "config.json").write_text(json.dumps(cfg))
@@ -103,7 +111,7 @@ ROWS = {
     "train-il": (lambda r: ["train-il", "--demos", str(r), "--out", str(r / "il")], "no demonstration sessions"),
     "finetune-adapter": (lambda r: ["finetune-adapter", "--sessions", str(r), "--out", str(r / "adapter")],
                          "no .h5 session files"),
-    "ensemble-adapters": (lambda r: ["ensemble-adapters", "--members", str(MEMBER), str(MEMBER), "--out",
+    "ensemble-adapters": (lambda r: ["ensemble-adapters", "--members", _member(r), _member(r), "--out",
                                      _bundle_already_there(r)], "already holds a bundle"),
 }
 

@@ -32,6 +32,7 @@ from rotation.deploy.touch import adapter_inputs, touch_sensors, wait_for_touch
 from rotation.deploy.touch_worker import TouchWorker
 from rotation.hardware.digit360.reader import SensorStale
 from rotation.hardware.digit360.window import WindowNotReady
+from rotation.policy.bundle import shipped_bundles
 
 ENCODER = "sparshx-tinier-sim"
 FINGERS = ("index", "middle", "ring", "thumb")
@@ -157,6 +158,8 @@ def test_the_recorded_touch_age_follows_a_latency_injected_into_the_fingertips(c
     assert abs(np.median(after) - np.median(before) - lag_s) < period, (np.median(before), np.median(after))
 
 
+@pytest.mark.skipif("adapter" not in shipped_bundles(),
+                    reason="no adapter ships for the current hand model (withdrawn until it is retrained on it)")
 def test_the_shipped_adapter_turns_the_emulated_cup(capsys, caplog, hand_hook):
     """The shipped all-modality adapter on the emulated hand turns the cup the way the env's does (+). It turned it
     backwards (-0.4 rad in 6 s) when the loop held the start pose while the sensors' windows filled: the grasp
