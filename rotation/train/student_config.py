@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Literal
 
 from envs.config import EnvConfig
-from envs.constants import HISTORY_STEPS, PROPRIO_DIM
-from envs.sim_identity import LEGACY_HAND, bundle_hand
+from envs.constants import DEFAULT_HAND, HISTORY_STEPS, PROPRIO_DIM
+from envs.sim_identity import bundle_hand
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import check_device, config_resuming_in_out, from_jsonable
 from rotation.policy.networks import AdaptationConfig
@@ -95,7 +95,7 @@ class Config:
         hand = bundle_hand(sim)
         if hand == self.env.hand:
             return
-        if self.env.hand != LEGACY_HAND:
+        if self.env.hand != DEFAULT_HAND:  # left at the default: follow the bundle
             raise ValueError(f"env.hand: the teacher {self.teacher} was trained on the {hand} hand; its student "
                              f"trains on the same hand, not on {self.env.hand}")
         self.env = self.env.with_hand(hand)

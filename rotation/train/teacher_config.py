@@ -13,7 +13,7 @@ from typing import Any, Literal
 from envs.config import EnvConfig, RewardConfig, default_randomization
 from envs.constants import DEFAULT_HAND
 from envs.objects import OBJECTS
-from envs.sim_identity import LEGACY_HAND, bundle_hand
+from envs.sim_identity import bundle_hand
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import check_device
 from rotation.policy.bundle import load_policy_bundle
@@ -219,7 +219,7 @@ class Config:
         hand = bundle_hand(sim)
         if hand == self.hand:
             return
-        if self.hand != LEGACY_HAND:
+        if self.hand != DEFAULT_HAND:  # left at the default: follow the bundle
             raise ValueError(f"hand: the {what} was trained on the {hand} hand, not the {self.hand} hand")
         self.hand = hand  # type: ignore[assignment]
 
