@@ -8,10 +8,18 @@ batched env.
 
 from __future__ import annotations
 
-import gymnasium as gym
+import os
+import sys
 
-from envs.config import EnvConfig, Perturbation, RandomizationConfig, RewardConfig
-from envs.core import RotateCupVec
+# MuJoCo picks its OpenGL platform when it is imported: every rendering here is offscreen, so on Linux (most often
+# a headless workstation or server) use EGL unless the user chose one (MUJOCO_GL=osmesa, glfw, ...).
+if sys.platform.startswith("linux"):
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+import gymnasium as gym  # noqa: E402
+
+from envs.config import EnvConfig, Perturbation, RandomizationConfig, RewardConfig  # noqa: E402
+from envs.core import RotateCupVec  # noqa: E402
 
 ENV_ID = "RotateCup-v0"
 

@@ -46,6 +46,7 @@ from envs.held_hand import (
     tilt_quat,
     wrist_spec,
 )
+from envs.render import offscreen_renderer
 from envs.rng import splitmix64
 
 TIMESTEP = 0.002
@@ -182,7 +183,8 @@ class InsertionSim:
         self._run = WristRun(self.model, g, self._palm_quat0, "plug")
         self.data = self._run.data
         self._plug, self._socket = self.model.body("plug").id, self.model.body("socket").id
-        self._renderer = mujoco.Renderer(self.model, cfg.image_size[1], cfg.image_size[0]) if render else None
+        self._renderer = offscreen_renderer(self.model, cfg.image_size[1], cfg.image_size[0],
+                                            "the wrist camera") if render else None
         self._wrench = np.zeros(6)
         with np.errstate(over="ignore"):
             self.touch_key = int(splitmix64(np.asarray([episode.seed], dtype=np.uint64))[0])

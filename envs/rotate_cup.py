@@ -94,12 +94,10 @@ class RotateCupEnv(gym.Env):
     def render(self, camera: str = "front", width: int = 480, height: int = 480):
         if self.render_mode != "rgb_array":
             return None
-        from envs.render import render_frame
+        from envs.render import offscreen_renderer, render_frame
 
         if self._renderer is None:
-            import mujoco
-
-            self._renderer = mujoco.Renderer(self.core.model, height, width)
+            self._renderer = offscreen_renderer(self.core.model, height, width, "render()")
         return render_frame(self._renderer, self.core, 0, camera)
 
     def close(self):

@@ -106,8 +106,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("ROTATE_DEBUG", "") not in ("", "0")
     argv = [a for a in argv if a != "--debug"]
-    # headless rendering unless the user chose a backend (must be set before mujoco creates a GL context)
-    os.environ.setdefault("MUJOCO_GL", "egl")
     command = next((a for a in argv if not a.startswith("-")), None)
     if command in RENAMED:
         argv[argv.index(command)] = command = RENAMED[command]

@@ -9,22 +9,17 @@ from __future__ import annotations
 from pathlib import Path
 
 import imageio.v2 as imageio
-import mujoco
 import numpy as np
 
 from envs.core import RotateCupVec
-from envs.render import render_frame
+from envs.render import offscreen_renderer, render_frame
 
 
 class FrameRecorder:
     """Renders simulation 0 of ``env`` into one frame list per policy label."""
 
     def __init__(self, env: RotateCupVec, width: int = 320, height: int = 240, camera: str = "front") -> None:
-        try:
-            self.renderer = mujoco.Renderer(env.model, height=height, width=width)
-        except Exception as err:  # no GL context: say how to get one
-            raise ValueError(f"--video needs offscreen OpenGL rendering, which failed ({err}); on a headless "
-                             "machine set MUJOCO_GL=egl (or osmesa) in the environment") from err
+        self.renderer = offscreen_renderer(env.model, height, width, "--video")
         self.camera = camera
         self.frames: dict[str, list[np.ndarray]] = {}
 

@@ -16,14 +16,13 @@ from pathlib import Path
 from typing import Literal
 
 import imageio.v2 as imageio
-import mujoco
 import numpy as np
 
 from envs.config import EnvConfig, default_randomization
 from envs.constants import DEFAULT_HAND
 from envs.core import RotateCupVec
 from envs.objects import OBJECTS
-from envs.render import render_frame
+from envs.render import offscreen_renderer, render_frame
 from envs.validation import check_int, check_optional_file, check_output_file, check_seed, check_types
 
 MAX_WIDTH, MAX_HEIGHT = 640, 480
@@ -128,7 +127,7 @@ def run(cfg: Config) -> Path:
     if cfg.camera not in cameras:
         raise ValueError(f"unknown camera {cfg.camera!r}; cameras: {', '.join(cameras)}")
     obs = env.reset(seed=cfg.seed)
-    renderer = mujoco.Renderer(env.model, cfg.height, cfg.width)
+    renderer = offscreen_renderer(env.model, cfg.height, cfg.width, "rotate view")
     cfg.out.parent.mkdir(parents=True, exist_ok=True)
     try:
         if suffix == ".png":
