@@ -27,10 +27,12 @@ SHIPPED_IL = Path(__file__).resolve().parents[1] / "policies"
 class ILPolicy:
     """An imitation policy loaded from its bundle (see the module docstring)."""
 
-    def __init__(self, model: ChunkPolicy, meta: dict[str, Any]) -> None:
+    def __init__(self, model: ChunkPolicy, meta: dict[str, Any],
+                 touch_encoder: Mapping[str, torch.Tensor] | None = None) -> None:
         self.model, self.meta = model.eval(), meta
         self.touch_modalities: str = meta.get("touch", "none")
         self.encoder: str | None = meta.get("encoder")
+        self._touch_state = touch_encoder  # an end-to-end policy's trained encoder weights
         self._embedder = None
         self.reset()
 
@@ -47,7 +49,7 @@ class ILPolicy:
         if self._embedder is None:
             from rotation.il.touch import TouchEmbedder
 
-            self._embedder = TouchEmbedder(self.encoder, self.touch_modalities)
+            self._embedder = TouchEmbedder(self.encoder, self.touch_modalities, state=self._touch_state)
         return self._embedder.embed_raw(windows, FINGERS)
 
     @torch.no_grad()
@@ -66,10 +68,15 @@ class ILPolicy:
         return (w[:, None] * preds).sum(0) / w.sum()
 
 
-def save_il(path: Path, model: ChunkPolicy, meta: dict[str, Any]) -> Path:
+def save_il(path: Path, model: ChunkPolicy, meta: dict[str, Any],
+            touch_encoder: Mapping[str, torch.Tensor] | None = None) -> Path:
+    """Write the bundle; ``touch_encoder``: an end-to-end policy's trained encoder (touch_encoder.safetensors)."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(path / "model.safetensors"))
+    if touch_encoder is not None:
+        save_file({k: v.detach().contiguous() for k, v in touch_encoder.items()},
+                  str(path / "touch_encoder.safetensors"))
     (path / "config.json").write_text(json.dumps({"kind": "il", **meta, "policy": model.cfg.to_json()}, indent=2)
                                       + "\n")
     return path
@@ -89,4 +96,11 @@ def load_il(name_or_path: str | Path) -> ILPolicy:
     cfg = meta.pop("policy")
     model = ChunkPolicy(PolicyConfig(**{**cfg, "image_size": tuple(cfg["image_size"])}))
     model.load_state_dict(load_file(str(path / "model.safetensors")), strict=True)
-    return ILPolicy(model, meta)
+    touch_encoder = None
+    if meta.get("touch") == "e2e":
+        try:
+            touch_encoder = load_file(str(path / "touch_encoder.safetensors"))
+        except OSError as err:
+            raise ValueError(f"{name_or_path}: an end-to-end touch policy without its encoder's weights ({err})"
+                             ) from None
+    return ILPolicy(model, meta, touch_encoder)

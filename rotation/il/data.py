@@ -2,9 +2,10 @@
 frame, proprioception, the fingertips' touch embeddings and the chunk of actions that follows.
 
 Touch: the window of each fingertip ending at the newest 30 fps frame at or before the step's time (what the
-closed-loop policy reads then: envs.held_hand.TouchHistory), through the frozen encoder once; the embeddings are
-cached beside the run (OUT/touch_<encoder>_<modalities>.npz, named by the demonstrations' files and sizes, so a
-second policy on the same demonstrations and encoder reuses them).
+closed-loop policy reads then: envs.held_hand.TouchHistory). Through a frozen encoder it is embedded once and the
+embeddings are cached beside the run (OUT/touch_<encoder>_<modalities>.npz, named by the demonstrations' files and
+sizes, so a second policy on the same demonstrations and encoder reuses them); an end-to-end policy renders its
+batches' windows as it trains (:func:`touch_rows`, :func:`window_batch`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -68,10 +70,30 @@ class Demos(Dataset):
         return out
 
 
+def touch_rows(paths: list[Path]) -> tuple[Any, np.ndarray]:
+    """The demonstrations' fingertip windows (rotation.data.dataset.TouchWindows) and, for every action step in
+    :class:`Demos`' order, the indices (T_total, 4) of its four fingertips' windows (module docstring)."""
+    from rotation.data.dataset import TouchWindows
+
+    windows = TouchWindows(paths)
+    where = {(int(s), int(f), int(e)): k for k, (s, f, e) in enumerate(windows.index)}  # (session, finger, frame)
+    rows = []
+    for s, path in enumerate(paths):
+        with SessionReader(path) as r:
+            t = np.asarray(r.stream("actions/wrist").timestamps)
+        rows += [[where[(s, f, int(np.floor(ti * IMAGE_HZ + 1e-6)))] for f in range(len(FINGERS))] for ti in t]
+    return windows, np.asarray(rows, np.int64).reshape(-1, len(FINGERS))
+
+
+def window_batch(windows: Any, rows: np.ndarray) -> dict[str, torch.Tensor]:
+    """The loader-format tensors of the windows ``rows`` (any shape: flattened in order), stacked."""
+    samples = [windows[int(k)] for k in np.asarray(rows).reshape(-1)]
+    return {key: torch.stack([smp[key] for smp in samples]) for key in ("image", "audio", "imu", "pressure")}
+
+
 def touch_embeddings(paths: list[Path], encoder: str, modalities: str, cache_dir: Path, progress: bool = True
                      ) -> np.ndarray:
     """(T_total, 4, D) embeddings of every step's fingertip windows (module docstring), cached in ``cache_dir``."""
-    from rotation.data.dataset import TouchWindows
     from rotation.il.touch import TouchEmbedder
 
     ident = json.dumps([encoder, modalities, [(str(p), p.stat().st_size) for p in paths]])
@@ -79,19 +101,11 @@ def touch_embeddings(paths: list[Path], encoder: str, modalities: str, cache_dir
     if cache.is_file():
         return np.load(cache)["touch"]
     embedder = TouchEmbedder(encoder, modalities)
-    windows = TouchWindows(paths)
-    where = {(int(s), int(f), int(e)): k for k, (s, f, e) in enumerate(windows.index)}  # (session, finger, frame)
-    steps = []
-    for s, path in enumerate(paths):
-        with SessionReader(path) as r:
-            t = np.asarray(r.stream("actions/wrist").timestamps)
-        steps += [(s, int(np.floor(ti * IMAGE_HZ + 1e-6))) for ti in t]
-    out = np.zeros((len(steps), len(FINGERS), embedder.width), np.float32)
+    windows, rows = touch_rows(paths)
+    out = np.zeros((len(rows), len(FINGERS), embedder.width), np.float32)
     batch = 16
-    for a in tqdm(range(0, len(steps), batch), desc="touch embeddings", unit="batch", disable=not progress):
-        rows = [where[(s, f, frame)] for s, frame in steps[a:a + batch] for f in range(len(FINGERS))]
-        samples = [windows[k] for k in rows]
-        x = {key: torch.stack([smp[key] for smp in samples]) for key in ("image", "audio", "imu", "pressure")}
+    for a in tqdm(range(0, len(rows), batch), desc="touch embeddings", unit="batch", disable=not progress):
+        x = window_batch(windows, rows[a:a + batch])
         out[a:a + batch] = embedder.embed(x).reshape(-1, len(FINGERS), embedder.width).numpy()
     cache_dir.mkdir(parents=True, exist_ok=True)
     tmp = cache.with_suffix(".tmp.npz")

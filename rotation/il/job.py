@@ -3,11 +3,18 @@
     rotate train-il --demos data/demos --touch none --out runs/il_camera                 # camera only
     rotate train-il --demos data/demos --touch image --encoder sparshx-tinier-sim --out runs/il_touch_image
     rotate train-il --demos data/demos --touch all --encoder sparshx-tinier-sim --out runs/il_touch_all
+    rotate train-il --demos data/demos --touch e2e --encoder sparshx-tinier-sim --batch-size 8 --steps 1500 \
+        --out runs/il_touch_e2e                                                         # no pretraining
 
 ``--touch`` picks what the policy reads besides the wrist camera and proprioception: nothing (``none``), the frozen
 encoder's image tokens (``image``) or all of its modalities (``all``), one embedding per fingertip, computed once
-per step of the demonstrations and cached in OUT. Loss: L1 between the predicted and the demonstrated chunk of the
-next ``chunk`` actions (standardized; steps past an episode's end masked out), AdamW. A checkpoint is written every
+per step of the demonstrations and cached in OUT; or all four modalities through an encoder of the named one's
+structure trained from random weights with the policy (``e2e``, the benchmark's baseline without pretraining: its
+windows are rendered for every batch, so a step costs about as much as a pretraining step of that encoder on
+``4 x batch_size`` windows; on 2 CPU cores use a smaller --batch-size).
+
+Loss: L1 between the predicted and the demonstrated chunk of the next ``chunk`` actions (standardized; steps past an
+episode's end masked out), AdamW over the policy (and the e2e encoder). A checkpoint is written every
 ``checkpoint_every`` steps; the same command with ``--resume`` continues it exactly. OUT: bundle/ (rotation.il.bundle,
 with a card: the command's settings, the demonstrations, steps, wall time), curves.jsonl, checkpoint.pt.
 """
@@ -39,10 +46,11 @@ class Config:
     """Demonstration sessions (a folder of `rotate demos`)."""
     out: Path = Path("runs/il")
     """Run folder."""
-    touch: Literal["none", "image", "all"] = "none"
+    touch: Literal["none", "image", "all", "e2e"] = "none"
     """What touch the policy reads (see the module docstring)."""
     encoder: str = "sparshx-tinier-sim"
-    """The frozen touch encoder (a shipped name, a `rotate pretrain` run or an encoder file)."""
+    """The frozen touch encoder (a shipped name, a `rotate pretrain` run or an encoder file); with --touch e2e, the
+    encoder whose structure is trained from random weights."""
     chunk: int = 10
     """Actions predicted at once."""
     width: int = 128
@@ -70,6 +78,25 @@ class Config:
         check_seed("seed", self.seed)
 
 
+class EndToEndTouch:
+    """--touch e2e: a fresh trainable encoder of ``encoder``'s structure and the demonstrations' windows, rendered
+    per batch (rotation.il.data.touch_rows)."""
+
+    def __init__(self, paths: list[Path], encoder: str, seed: int) -> None:
+        from rotation.il.data import touch_rows
+        from rotation.il.touch import TouchEmbedder
+
+        self.embedder = TouchEmbedder(encoder, "e2e", seed=seed)
+        self.windows, self.rows = touch_rows(paths)
+
+    def embed(self, steps: np.ndarray) -> torch.Tensor:
+        """(B, 4, D) fingertip embeddings of demonstration steps ``steps``, with gradients to the encoder."""
+        from rotation.il.data import window_batch
+
+        x = window_batch(self.windows, self.rows[steps])
+        return self.embedder.tokens_mean(x).reshape(len(steps), self.rows.shape[1], self.embedder.width)
+
+
 def _paths(demos: Path) -> list[Path]:
     from rotation.data.dataset import find_sessions
 
@@ -90,19 +117,27 @@ def run(cfg: Config) -> dict:
         raise RequestRefused(f"out: {out} holds a run; continue it with --resume or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.json")
-    touch = None if cfg.touch == "none" else touch_embeddings(paths, cfg.encoder, cfg.touch, out, cfg.progress)
+    touch, touch_dim, e2e = None, 0, None
+    if cfg.touch == "e2e":
+        e2e = EndToEndTouch(paths, cfg.encoder, cfg.seed)
+        touch_dim = e2e.embedder.width
+    elif cfg.touch != "none":
+        touch = touch_embeddings(paths, cfg.encoder, cfg.touch, out, cfg.progress)
+        touch_dim = touch.shape[-1]
     data = Demos(paths, cfg.chunk, touch)
     h, w = data.images.shape[1:3]
     torch.manual_seed(cfg.seed)  # the initial weights
-    model = ChunkPolicy(PolicyConfig(image_size=(w, h), chunk=cfg.chunk, width=cfg.width,
-                                     touch_dim=0 if touch is None else touch.shape[-1]))
+    model = ChunkPolicy(PolicyConfig(image_size=(w, h), chunk=cfg.chunk, width=cfg.width, touch_dim=touch_dim))
     model.set_stats(torch.from_numpy(data.proprio), torch.from_numpy(data.actions),
                     None if touch is None else torch.from_numpy(touch))
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    params = [*model.parameters(), *([] if e2e is None else e2e.embedder.encoder.parameters())]
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     start, wall_before, history = 0, 0.0, []
     if cfg.resume:
         state = torch.load(ckpt, weights_only=False)
         model.load_state_dict(state["model"])
+        if e2e is not None:
+            e2e.embedder.encoder.load_state_dict(state["touch_encoder"])
         opt.load_state_dict(state["opt"])
         start, wall_before, history = state["step"], state["wall_s"], state["history"]
     t0 = time.perf_counter()
@@ -116,13 +151,14 @@ def run(cfg: Config) -> dict:
         batch = [data[int(i)] for i in idx]
         b = {k: torch.stack([s[k] for s in batch]) for k in batch[0]}
         torch.manual_seed(cfg.seed * 1_000_003 + step)  # dropout
-        pred = model(b["image"], b["proprio"], b.get("touch"))
+        touch_in = b.get("touch") if e2e is None else e2e.embed(idx.numpy())
+        pred = model(b["image"], b["proprio"], touch_in)
         target = (b["actions"] - model.action_mean) / model.action_std
         err = (pred - target).abs().mean(-1)
         loss = (err * b["mask"]).sum() / b["mask"].sum().clamp_min(1)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+        torch.nn.utils.clip_grad_norm_(params, 10.0)
         opt.step()
         loss_sum, n_sum = loss_sum + loss.item(), n_sum + 1
         bar.update(1)
@@ -134,7 +170,8 @@ def run(cfg: Config) -> dict:
             wall = wall_before + time.perf_counter() - t0
             tmp = ckpt.with_suffix(".tmp")
             torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "step": step + 1, "wall_s": wall,
-                        "history": history}, tmp)
+                        "history": history, **({} if e2e is None else
+                                               {"touch_encoder": e2e.embedder.encoder.state_dict()})}, tmp)
             tmp.replace(ckpt)
     bar.close()
     wall = wall_before + time.perf_counter() - t0
@@ -144,7 +181,8 @@ def run(cfg: Config) -> dict:
             "samples": len(data), "steps": cfg.steps, "wall_time_s": round(wall, 1),
             "final_loss": history[-1]["loss"] if history else math.nan}
     bundle = save_il(out / "bundle", model, {"task": "insertion", "touch": cfg.touch,
-                                             "encoder": None if cfg.touch == "none" else cfg.encoder, "card": card})
+                                             "encoder": None if cfg.touch == "none" else cfg.encoder, "card": card},
+                     touch_encoder=None if e2e is None else e2e.embedder.encoder.state_dict())
     print(f"train-il: {cfg.steps} steps on {len(paths)} demonstrations ({len(data)} samples) in {wall:.0f} s, "
           f"final loss {card['final_loss']:.3f}; bundle at {bundle}")
     return {"bundle": str(bundle), "history": history, "final_loss": float(np.nan_to_num(card["final_loss"]))}

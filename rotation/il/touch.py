@@ -17,8 +17,9 @@ from torch import Tensor
 from envs.sensors.digit360_image import pack_image
 from rotation.data.audio import fbank
 
-MODALITY_SETS = {"all": ("img", "mic", "imu", "pressure"), "image": ("img",)}
-"""Token groups a policy's frozen touch reads, by the names of the benchmark's rows."""
+MODALITY_SETS = {"all": ("img", "mic", "imu", "pressure"), "image": ("img",), "e2e": ("img", "mic", "imu", "pressure")}
+"""Token groups a policy's touch reads, by the names of the benchmark's rows: 'e2e' reads all four through an encoder
+of the named one's structure trained from random weights with the policy (no pretraining)."""
 
 
 def window_inputs(raw: Mapping[str, np.ndarray]) -> dict[str, Tensor]:
@@ -30,22 +31,38 @@ def window_inputs(raw: Mapping[str, np.ndarray]) -> dict[str, Tensor]:
 
 
 class TouchEmbedder:
-    """A frozen touch encoder reading ``modalities``; :meth:`embed` maps a batch of windows to their mean token."""
+    """A touch encoder reading ``modalities``; :meth:`embed` maps a batch of windows to their mean token.
 
-    def __init__(self, encoder: str, modalities: str) -> None:
-        from rotation.tactile.models.encoders import ENCODERS, kind_of, load_encoder
+    Frozen (the pretrained weights of ``encoder``) unless ``modalities`` is 'e2e': then an encoder of the same
+    structure and input statistics with fresh random weights (seeded by ``seed``), trainable, or with ``state``
+    (its trained weights, from a policy bundle)."""
+
+    def __init__(self, encoder: str, modalities: str, seed: int = 0, state: Mapping[str, Tensor] | None = None
+                 ) -> None:
+        from rotation.tactile.models.encoders import ENCODERS, fresh_like, kind_of, load_encoder
 
         if modalities not in MODALITY_SETS:
             raise ValueError(f"touch modalities must be one of {', '.join(MODALITY_SETS)}, got {modalities!r}")
         enc = load_encoder(encoder)
-        self.encoder = ENCODERS[kind_of(enc)].restrict(enc, MODALITY_SETS[modalities]).eval().requires_grad_(False)
+        self.trainable = modalities == "e2e"
+        if self.trainable:
+            torch.manual_seed(seed)
+            enc = fresh_like(enc)
+        enc = ENCODERS[kind_of(enc)].restrict(enc, MODALITY_SETS[modalities])
+        if state is not None:
+            enc.load_state_dict(dict(state), strict=True)
+        self.encoder = enc.train() if self.trainable and state is None else enc.eval().requires_grad_(False)
         self.width = int(self.encoder.token_interface.width)
+
+    def tokens_mean(self, batch: Mapping[str, Tensor]) -> Tensor:
+        """(N, D) with gradients to a trainable encoder: the mean of its tokens for each of N windows."""
+        tokens = self.encoder.token_interface.concat(self.encoder(self.encoder.preprocess(dict(batch))))
+        return tokens.mean(dim=1)
 
     @torch.no_grad()
     def embed(self, batch: Mapping[str, Tensor]) -> Tensor:
         """(N, D): the mean of the encoder's tokens for each of N windows (loader-format tensors, batched)."""
-        tokens = self.encoder.token_interface.concat(self.encoder(self.encoder.preprocess(dict(batch))))
-        return tokens.mean(dim=1)
+        return self.tokens_mean(batch)
 
     def embed_raw(self, windows: Mapping[str, Mapping[str, np.ndarray]], fingers: Sequence[str]) -> Tensor:
         """(F, D): one embedding per fingertip of raw windows ({finger: raw window})."""

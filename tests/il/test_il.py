@@ -84,6 +84,34 @@ def test_a_touch_policy_runs_in_closed_loop_and_is_reported(demo_dir, tmp_path):
     assert any((out / "videos").glob("touch_*.mp4")) and (out / "success.png").is_file()
 
 
+def test_an_end_to_end_touch_policy_trains_its_own_encoder_resumes_and_reloads_it(demo_dir, tmp_path):
+    """--touch e2e: an encoder of the named one's structure, from random weights, trained with the policy on windows
+    rendered per batch; the checkpoint and the bundle keep its weights, a resumed run matches an uninterrupted one."""
+    from safetensors.torch import load_file
+
+    from rotation.il.touch import TouchEmbedder
+
+    kw = dict(touch="e2e", batch_size=2, checkpoint_every=2)
+    full = _train(demo_dir, tmp_path / "full", steps=3, **kw)
+    _train(demo_dir, tmp_path / "part", steps=2, **kw)
+    resumed = _train(demo_dir, tmp_path / "part", steps=3, resume=True, **kw)
+    trained = load_file(str(tmp_path / "full" / "bundle" / "touch_encoder.safetensors"))
+    again = load_file(str(tmp_path / "part" / "bundle" / "touch_encoder.safetensors"))
+    assert trained.keys() == again.keys() and all(torch.equal(trained[k], again[k]) for k in trained)
+    fresh = TouchEmbedder("sparshx-tinier-sim", "e2e", seed=0).encoder.state_dict()  # the run's initial weights
+    assert fresh.keys() == trained.keys()
+    moved = [k for k in trained if not torch.equal(trained[k], fresh[k])]
+    assert len(moved) > len(trained) // 2, "training left most of the encoder at its random initial weights"
+    pretrained = dict(TouchEmbedder("sparshx-tinier-sim", "all").encoder.named_parameters())  # weights, not buffers
+    weights = [k for k in pretrained if pretrained[k].ndim > 1]
+    assert weights and not any(torch.allclose(trained[k], pretrained[k].to(trained[k].dtype)) for k in weights)
+    policy = load_il(full["bundle"])
+    assert policy.reads_touch and policy.touch_modalities == "e2e"
+    assert all(torch.equal(policy._touch_state[k], trained[k]) for k in trained)
+    assert json.loads((tmp_path / "full" / "bundle" / "config.json").read_text())["touch"] == "e2e"
+    assert resumed["history"][-1]["step"] == full["history"][-1]["step"] == 3
+
+
 def test_wilson_interval():
     lo, hi = wilson(9, 10)
     assert lo == pytest.approx(0.5958, abs=1e-3) and hi == pytest.approx(0.9821, abs=1e-3)
