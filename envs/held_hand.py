@@ -1,13 +1,13 @@
 """A hand on a moving wrist holding an object at one of its cup grasps: the scene the touch benchmarks share (bottle
 shaking, envs.shake; object-action-surface, envs.oas).
 
-The hand variant's model (envs.scene) gets its palm on a free joint welded to a mocap body, ``wrist_target``: a
-stiff spring (WELD_TIMECONST, WELD_SOLIMP) that follows a scripted motion as a robot arm's wrist would. The held
-object stands where the grasp puts the cup (the hand's cup grasp cache: the grasp's joints and the cup's pose at
-its scale); it collides with the hand as the rotation env's objects do. :func:`finish` compiles the scene with the
-four Digit 360 sensors, the hand's contact model and vendor torque limits, and the middle of the hand's friction
-ranges (tips, links; the object at the smaller of the two, so that each contact takes the hand's side), as the
-rotation env's nominal physics (envs.physics).
+The hand variant's model (envs.scene) gets its palm on a free joint welded to a mocap body, ``wrist_target``: a stiff
+spring (WELD_TIMECONST, WELD_SOLIMP) that follows a scripted motion as a robot arm's wrist would. The held object stands
+where the grasp puts the cup (the hand's cup grasp cache: the grasp's joints and the cup's pose at its scale); it
+collides with the hand as the rotation env's objects do. :func:`finish` compiles the scene with the four Digit 360
+sensors (or, on a Xela hand, the skin's pad sensors: envs.held_skin), the hand's contact model and vendor torque limits,
+and the middle of the hand's friction ranges (tips, links; the object at the smaller of the two, so that each contact
+takes the hand's side), as the rotation env's nominal physics (envs.physics).
 """
 
 from __future__ import annotations
@@ -19,10 +19,13 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from envs.constants import FINGERS
 from envs.grasp_cache import GraspCache
 from envs.physics import hand_physics
 from envs.scene import hand_spec, link_geoms, skin_geoms
-from envs.sensors.digit360 import NUM_FIELDS, Digit360Readout, add_digit360_sensors
+from envs.sensors.digit360 import NUM_FIELDS, Digit360Readout, add_digit360_sensors, sensor_name
+from envs.sensors.xela_hand import add_xela_sensors
+from envs.sensors.xela_layout import XELA_HANDS
 
 WELD_TIMECONST = 0.005
 """Time constant (s) of the weld that makes the palm follow the wrist's mocap body (at least two 2 ms steps)."""
@@ -52,11 +55,13 @@ class Grip:
         return CUP_HEIGHT * self.scale
 
 
-def check_touch_hand(task: str, hand: str) -> None:
-    """ValueError unless ``hand`` has Digit 360 fingertips (the touch benchmarks' and insertion's sensors)."""
-    if hand not in ("digit360", "digit360_v4"):
-        raise ValueError(f"{task}: the hand must have Digit 360 fingertips ('digit360' or 'digit360_v4'), "
-                         f"got {hand!r}")
+def check_touch_hand(task: str, hand: str, skin: bool = False) -> None:
+    """ValueError unless ``hand`` has Digit 360 fingertips (the touch benchmarks' and insertion's sensors), or,
+    where the task allows the skin (``skin``), is the vendor-kinematics Xela hand."""
+    if hand in ("digit360", "digit360_v4") or (skin and hand == "xela_v4"):
+        return
+    allowed = "'digit360' or 'digit360_v4'" + (", or the Xela skin on 'xela_v4'" if skin else "")
+    raise ValueError(f"{task}: the hand must have Digit 360 fingertips ({allowed}), got {hand!r}")
 
 
 def contact_force(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> float:
@@ -102,7 +107,10 @@ def finish(spec: mujoco.MjSpec, hand: str, object_prefix: str, noslip: bool = Tr
     from envs.config import EnvConfig
     from envs.core import set_contact, set_torque_limits
 
-    add_digit360_sensors(spec, history=1)
+    if hand in XELA_HANDS:
+        add_xela_sensors(spec, history=1)
+    else:
+        add_digit360_sensors(spec, history=1)
     m = spec.compile()
     contact = hand_physics(hand).contact
     set_contact(m, contact if noslip else dataclasses.replace(contact, noslip_iterations=0))
@@ -123,7 +131,9 @@ class WristRun:
     def __init__(self, model: mujoco.MjModel, grip_: Grip, palm_quat: np.ndarray, held_body: str) -> None:
         self.model, self.grip, self.palm_quat = model, grip_, palm_quat
         self.data = mujoco.MjData(model)
-        self.readout = Digit360Readout(model)
+        digit360 = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, sensor_name(FINGERS[0], "contact")) >= 0
+        self.readout = Digit360Readout(model) if digit360 else None
+        """The fingertips' contact fields; None on a Xela hand (its skin: envs.held_skin.SkinHistory)."""
         from envs import constants as C
 
         self._joints = np.array([model.jnt_qposadr[model.joint(name).id] for name in C.JOINT_NAMES])
@@ -140,18 +150,19 @@ class WristRun:
 
     def run(self, steps: int, wrist, on_step=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``steps`` physics steps, the wrist at ``wrist(t) -> (pos, quat)`` before each; ``on_step(data)`` after
-        each. Returns the times (T,), contact fields (4, T, NUM_FIELDS) and the held object's centre relative to
-        the palm in the palm's frame (T, 3)."""
+        each. Returns the times (T,), contact fields (4, T, NUM_FIELDS; (4, T, 0) on a Xela hand) and the held
+        object's centre relative to the palm in the palm's frame (T, 3)."""
         m, d = self.model, self.data
         times = np.empty(steps)
-        rows = np.empty((4, steps, NUM_FIELDS), np.float32)
+        rows = np.empty((4, steps, NUM_FIELDS if self.readout is not None else 0), np.float32)
         offset = np.empty((steps, 3))
         rot = np.zeros(9)
         for k in range(steps):
             d.mocap_pos[0], d.mocap_quat[0] = wrist(d.time)
             times[k] = d.time
             mujoco.mj_step(m, d)
-            rows[:, k] = self.readout.read_current(d.sensordata[None])[0, :, 0]
+            if self.readout is not None:
+                rows[:, k] = self.readout.read_current(d.sensordata[None])[0, :, 0]
             mujoco.mju_quat2Mat(rot, d.xquat[self._palm])
             offset[k] = rot.reshape(3, 3).T @ (d.xpos[self._held] - d.xpos[self._palm])
             if on_step is not None:

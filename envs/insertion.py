@@ -15,11 +15,12 @@ dyaw in rad, world axes) clipped to ``max_step`` and ``max_turn``. Success: the 
 
 Observation (a dict of numpy arrays): ``wrist`` (7,) the wrist target's offset from its start (position, m;
 quaternion wxyz), ``joints`` (16,) the measured joint angles (rad), ``image`` (H, W, 3) uint8 from the wrist camera
-when rendering is on; and, privileged (for the scripted expert and the labels): ``socket`` (7,) the hole's entry
-centre and orientation, ``prong`` (7,) the prong tip's pose, ``depth`` (m, > 0 once inside the hole), ``force`` (N,
-the socket's contact force). The fingertips' contact fields of the physics steps since the last call (the settling
-after :meth:`reset`, the action's steps after :meth:`step`) are in ``contact`` (4, S, F); the simulation's time in
-``data.time``.
+when rendering is on, ``skin`` (10, 368, 6) the Sparsh-skin window on the Xela hand ('xela_v4': raw counts and
+taxel positions, envs.held_skin); and, privileged (for the scripted expert and the labels): ``socket`` (7,) the
+hole's entry centre and orientation, ``prong`` (7,) the prong tip's pose, ``depth`` (m, > 0 once inside the
+hole), ``force`` (N, the socket's contact force). The fingertips' contact fields of the physics steps since the last
+call (the settling after :meth:`reset`, the action's steps after :meth:`step`) are in ``contact`` (4, S, F; F = 0 on
+the Xela hand); the simulation's time in ``data.time``.
 
 The wrist camera (``wrist_cam``) sits on the palm's side and looks up at the prong at a grazing angle: near the
 socket the prong hides the hole's edge from it, so its picture of the final alignment is ambiguous, as in the
@@ -46,8 +47,10 @@ from envs.held_hand import (
     tilt_quat,
     wrist_spec,
 )
+from envs.held_skin import SkinHistory
 from envs.render import offscreen_renderer
 from envs.rng import splitmix64
+from envs.sensors.xela_layout import XELA_HANDS
 
 TIMESTEP = 0.002
 PRONG = (0.012, 0.006, 0.024)
@@ -67,6 +70,7 @@ SOCKET_BIT = 8
 @dataclass(frozen=True)
 class InsertionConfig:
     hand: str = "digit360_v4"
+    """'digit360_v4' (Digit 360 fingertips) or 'xela_v4' (the Xela skin)."""
     control_dt: float = 0.05
     """Seconds between actions (20 Hz)."""
     episode_steps: int = 300
@@ -94,7 +98,7 @@ class InsertionConfig:
     """Wrist camera width, height (pixels)."""
 
     def __post_init__(self) -> None:
-        check_touch_hand("insertion", self.hand)
+        check_touch_hand("insertion", self.hand, skin=True)
         steps = self.control_dt / TIMESTEP
         if abs(steps - round(steps)) > 1e-9 or steps < 1:
             raise ValueError(f"insertion: control_dt must be a whole number of {TIMESTEP} s steps, got "
@@ -189,8 +193,11 @@ class InsertionSim:
         with np.errstate(over="ignore"):
             self.touch_key = int(splitmix64(np.asarray([episode.seed], dtype=np.uint64))[0])
         """The episode's touch noise key: a recorded demonstration stores it as its session's (rotation.jobs.demos)."""
-        self.touch = TouchHistory(self.touch_key, TIMESTEP, cfg.hand)
-        """The fingertips' recent contact fields; ``touch.windows()`` renders what the Digit 360s show now."""
+        self.skin = SkinHistory(self.model, self.touch_key, TIMESTEP) if cfg.hand in XELA_HANDS else None
+        """On the Xela hand: its skin (``skin.window``: the Sparsh-skin window now; envs.held_skin)."""
+        self.touch = TouchHistory(self.touch_key, TIMESTEP, cfg.hand) if self.skin is None else None
+        """On a Digit 360 hand: the fingertips' recent contact fields; ``touch.windows()`` renders what the Digit 360s
+        show now."""
         self.steps = 0
         self.max_force = 0.0
         self.contact = np.zeros((4, 0, 0), np.float32)
@@ -223,9 +230,13 @@ class InsertionSim:
         self._pos, self._quat = np.zeros(3), self._palm_quat0.copy()
         self._run.reset(self._pos, self._quat)
         d.mocap_pos[1] = [0.0, 0.0, 1.0]
-        times, self.contact, _ = self._run.run(int(round(cfg.settle_s / TIMESTEP)), self._target)
-        self.touch = TouchHistory(self.touch_key, TIMESTEP, cfg.hand)
-        self.touch.extend(times, self.contact)
+        if self.skin is not None:
+            self.skin.reset(d)
+        times, self.contact, _ = self._run.run(int(round(cfg.settle_s / TIMESTEP)), self._target,
+                                               None if self.skin is None else self.skin.on_step)
+        if self.touch is not None:
+            self.touch = TouchHistory(self.touch_key, TIMESTEP, cfg.hand)
+            self.touch.extend(times, self.contact)
         tip = self._pose_of(self._tip_local)[:3]
         d.mocap_pos[1] = tip + np.array([0.0, 0.0, ENTRY_GAP]) + np.asarray(ep.offset)
         quat = tilt_quat(np.array([1.0, 0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), ep.yaw)
@@ -252,10 +263,16 @@ class InsertionSim:
         for axis, angle in zip(np.eye(3), turn, strict=True):
             self._quat = tilt_quat(self._quat, axis, float(angle))
         forces = []
-        times, rows, _ = self._run.run(cfg.substeps, self._target, lambda d: forces.append(
-            contact_force(self.model, d, self._socket, self._wrench)))
+
+        def on_step(d: mujoco.MjData) -> None:
+            forces.append(contact_force(self.model, d, self._socket, self._wrench))
+            if self.skin is not None:
+                self.skin.on_step(d)
+
+        times, rows, _ = self._run.run(cfg.substeps, self._target, on_step)
         self.contact = rows
-        self.touch.extend(times, rows)
+        if self.touch is not None:
+            self.touch.extend(times, rows)
         self.steps += 1
         force = float(max(forces)) if forces else 0.0
         self.max_force = max(self.max_force, force)
@@ -281,6 +298,8 @@ class InsertionSim:
             for flag in _NO_EFFECTS:  # shadows and reflections: 146 ms a frame on a CPU renderer, 6 ms without
                 self._renderer.scene.flags[flag] = 0
             obs["image"] = self._renderer.render().copy()
+        if self.skin is not None:
+            obs["skin"] = self.skin.window.copy()
         return obs
 
     def close(self) -> None:

@@ -70,9 +70,13 @@ class Demos(Dataset):
         return out
 
 
-def touch_rows(paths: list[Path]) -> tuple[Any, np.ndarray]:
+def touch_rows(paths: list[Path], skin: bool = False) -> tuple[Any, np.ndarray]:
     """The demonstrations' fingertip windows (rotation.data.dataset.TouchWindows) and, for every action step in
-    :class:`Demos`' order, the indices (T_total, 4) of its four fingertips' windows (module docstring)."""
+    :class:`Demos`' order, the indices (T_total, 4) of its four fingertips' windows (module docstring); with
+    ``skin``, the skin's windows (rotation.data.skin.SkinWindows) and the index (T_total, 1) of the window ending
+    at the newest skin sample at or before each step."""
+    if skin:
+        return _skin_rows(paths)
     from rotation.data.dataset import TouchWindows
 
     windows = TouchWindows(paths)
@@ -85,15 +89,36 @@ def touch_rows(paths: list[Path]) -> tuple[Any, np.ndarray]:
     return windows, np.asarray(rows, np.int64).reshape(-1, len(FINGERS))
 
 
+def _skin_rows(paths: list[Path]) -> tuple[Any, np.ndarray]:
+    from rotation.data.skin import SkinWindows
+
+    windows = SkinWindows(paths, labels=(), stride=1)
+    rows = []
+    for s, path in enumerate(paths):
+        mine = np.flatnonzero(windows.index[:, 0] == s)
+        with SessionReader(path) as r:
+            t = np.asarray(r.stream("actions/wrist").timestamps)
+        k = np.searchsorted(windows.end_times[mine], t + 1e-6, side="right") - 1
+        if len(t) and k.min() < 0:
+            raise ValueError(f"{path}: a step at {t[np.argmin(k)]:.3f} s comes before the skin's first full window")
+        rows += list(mine[k])
+    return windows, np.asarray(rows, np.int64).reshape(-1, 1)
+
+
+TOUCH_KEYS = ("image", "audio", "imu", "pressure", "skin", "xela_baseline")
+"""The encoders' input tensors a window may carry (Sparsh-X's four, or the skin's window and baseline)."""
+
+
 def window_batch(windows: Any, rows: np.ndarray) -> dict[str, torch.Tensor]:
     """The loader-format tensors of the windows ``rows`` (any shape: flattened in order), stacked."""
     samples = [windows[int(k)] for k in np.asarray(rows).reshape(-1)]
-    return {key: torch.stack([smp[key] for smp in samples]) for key in ("image", "audio", "imu", "pressure")}
+    return {key: torch.stack([smp[key] for smp in samples]) for key in TOUCH_KEYS if key in samples[0]}
 
 
 def touch_embeddings(paths: list[Path], encoder: str, modalities: str, cache_dir: Path, progress: bool = True
                      ) -> np.ndarray:
-    """(T_total, 4, D) embeddings of every step's fingertip windows (module docstring), cached in ``cache_dir``."""
+    """(T_total, F, D) embeddings of every step's windows (module docstring; F = 4 fingertips, or 1 for the skin),
+    cached in ``cache_dir``."""
     from rotation.il.touch import TouchEmbedder
 
     ident = json.dumps([encoder, modalities, [(str(p), p.stat().st_size) for p in paths]])
@@ -101,12 +126,12 @@ def touch_embeddings(paths: list[Path], encoder: str, modalities: str, cache_dir
     if cache.is_file():
         return np.load(cache)["touch"]
     embedder = TouchEmbedder(encoder, modalities)
-    windows, rows = touch_rows(paths)
-    out = np.zeros((len(rows), len(FINGERS), embedder.width), np.float32)
+    windows, rows = touch_rows(paths, skin=embedder.skin)
+    out = np.zeros((len(rows), rows.shape[1], embedder.width), np.float32)
     batch = 16
     for a in tqdm(range(0, len(rows), batch), desc="touch embeddings", unit="batch", disable=not progress):
         x = window_batch(windows, rows[a:a + batch])
-        out[a:a + batch] = embedder.embed(x).reshape(-1, len(FINGERS), embedder.width).numpy()
+        out[a:a + batch] = embedder.embed(x).reshape(-1, rows.shape[1], embedder.width).numpy()
     cache_dir.mkdir(parents=True, exist_ok=True)
     tmp = cache.with_suffix(".tmp.npz")
     np.savez(tmp, touch=out)

@@ -5,13 +5,16 @@
     rotate train-il --demos data/demos --touch all --encoder sparshx-tinier-sim --out runs/il_touch_all
     rotate train-il --demos data/demos --touch e2e --encoder sparshx-tinier-sim --batch-size 8 --steps 1500 \
         --out runs/il_touch_e2e                                                         # no pretraining
+    rotate train-il --demos data/demos_xela --touch skin --encoder SKIN_ENCODER --out runs/il_skin  # Xela hand
 
 ``--touch`` picks what the policy reads besides the wrist camera and proprioception: nothing (``none``), the frozen
 encoder's image tokens (``image``) or all of its modalities (``all``), one embedding per fingertip, computed once
 per step of the demonstrations and cached in OUT; or all four modalities through an encoder of the named one's
 structure trained from random weights with the policy (``e2e``, the benchmark's baseline without pretraining: its
 windows are rendered for every batch, so a step costs about as much as a pretraining step of that encoder on
-``4 x batch_size`` windows; on 2 CPU cores use a smaller --batch-size).
+``4 x batch_size`` windows; on 2 CPU cores use a smaller --batch-size); or, on demonstrations of the Xela hand
+(`rotate demos --hand xela_v4`), a frozen Sparsh-skin encoder's mean token of the whole hand's skin window
+(``skin``). The bundle records the demonstrations' hand, which its evaluation runs on.
 
 Loss: L1 between the predicted and the demonstrated chunk of the next ``chunk`` actions (standardized; steps past an
 episode's end masked out), AdamW over the policy (and the e2e encoder). A checkpoint is written every
@@ -46,7 +49,7 @@ class Config:
     """Demonstration sessions (a folder of `rotate demos`)."""
     out: Path = Path("runs/il")
     """Run folder."""
-    touch: Literal["none", "image", "all", "e2e"] = "none"
+    touch: Literal["none", "image", "all", "e2e", "skin"] = "none"
     """What touch the policy reads (see the module docstring)."""
     encoder: str = "sparshx-tinier-sim"
     """The frozen touch encoder (a shipped name, a `rotate pretrain` run or an encoder file); with --touch e2e, the
@@ -97,6 +100,24 @@ class EndToEndTouch:
         return self.embedder.tokens_mean(x).reshape(len(steps), self.rows.shape[1], self.embedder.width)
 
 
+def _hand(paths: list[Path], touch: str) -> str:
+    """The demonstrations' hand (one for all of them), checked against the touch the policy reads."""
+    from rotation.data.session_reader import SessionReader
+
+    hands = set()
+    for path in paths:
+        with SessionReader(path) as r:
+            hands.add(str(r.meta.extra.get("sim_hand", "digit360_v4")))
+    if len(hands) > 1:
+        raise RequestRefused(f"demos: the demonstrations come from different hands ({', '.join(sorted(hands))}); "
+                             "train on one hand's")
+    hand = hands.pop()
+    if (touch == "skin") != (hand == "xela_v4") and touch != "none":
+        need = "the Xela hand's (`rotate demos --hand xela_v4`)" if touch == "skin" else "a Digit 360 hand's"
+        raise RequestRefused(f"touch: --touch {touch} needs {need} demonstrations; these are the {hand} hand's")
+    return hand
+
+
 def _paths(demos: Path) -> list[Path]:
     from rotation.data.dataset import find_sessions
 
@@ -117,17 +138,19 @@ def run(cfg: Config) -> dict:
         raise RequestRefused(f"out: {out} holds a run; continue it with --resume or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.json")
-    touch, touch_dim, e2e = None, 0, None
+    hand = _hand(paths, cfg.touch)
+    touch, touch_dim, fingers, e2e = None, 0, 4, None
     if cfg.touch == "e2e":
         e2e = EndToEndTouch(paths, cfg.encoder, cfg.seed)
         touch_dim = e2e.embedder.width
     elif cfg.touch != "none":
         touch = touch_embeddings(paths, cfg.encoder, cfg.touch, out, cfg.progress)
-        touch_dim = touch.shape[-1]
+        touch_dim, fingers = touch.shape[-1], touch.shape[1]
     data = Demos(paths, cfg.chunk, touch)
     h, w = data.images.shape[1:3]
     torch.manual_seed(cfg.seed)  # the initial weights
-    model = ChunkPolicy(PolicyConfig(image_size=(w, h), chunk=cfg.chunk, width=cfg.width, touch_dim=touch_dim))
+    model = ChunkPolicy(PolicyConfig(image_size=(w, h), chunk=cfg.chunk, width=cfg.width, touch_dim=touch_dim,
+                                     fingers=fingers))
     model.set_stats(torch.from_numpy(data.proprio), torch.from_numpy(data.actions),
                     None if touch is None else torch.from_numpy(touch))
     params = [*model.parameters(), *([] if e2e is None else e2e.embedder.encoder.parameters())]
@@ -180,7 +203,7 @@ def run(cfg: Config) -> dict:
     card = {"trained_by": "rotate train-il", "config": to_jsonable(cfg), "demonstrations": len(paths),
             "samples": len(data), "steps": cfg.steps, "wall_time_s": round(wall, 1),
             "final_loss": history[-1]["loss"] if history else math.nan}
-    bundle = save_il(out / "bundle", model, {"task": "insertion", "touch": cfg.touch,
+    bundle = save_il(out / "bundle", model, {"task": "insertion", "hand": hand, "touch": cfg.touch,
                                              "encoder": None if cfg.touch == "none" else cfg.encoder, "card": card},
                      touch_encoder=None if e2e is None else e2e.embedder.encoder.state_dict())
     print(f"train-il: {cfg.steps} steps on {len(paths)} demonstrations ({len(data)} samples) in {wall:.0f} s, "

@@ -3,10 +3,10 @@
 Trial j runs the episode seeded ``seed + j`` (socket pose, grasp), the same for every policy; use seeds no
 demonstration used (`rotate demos` seeds its episodes ``seed x 1,000,000 + e``). A policy acts at 20 Hz on the wrist
 camera's frame, its proprioception and, if it reads touch, the fingertips' windows rendered from the live contact
-history. Per policy: the success rate with its 95% Wilson interval, the time to insert (successes), the peak
-socket force; OUT/results.json (``{"rows": [{"policy", "episodes", "success_rate", ...}]}``), results.md,
-success.png, and per policy a video of the wrist camera in one success and one failure (videos/<policy>_success.mp4,
-_failure.mp4) where there is one.
+history (or, on the Xela hand its bundle names, the skin's window). Per policy: the success rate with its 95% Wilson
+interval, the time to insert (successes), the peak socket force; OUT/results.json (``{"rows": [{"policy",
+"episodes", "success_rate", ...}]}``), results.md, success.png, and per policy a video of the wrist camera in one
+success and one failure (videos/<policy>_success.mp4, _failure.mp4) where there is one.
 """
 
 from __future__ import annotations
@@ -40,7 +40,8 @@ def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool, episode_st
     from envs.insertion import InsertionConfig, InsertionSim, draw_episode
 
     w, h = policy.model.cfg.image_size
-    cfg = InsertionConfig(image_size=(w, h), **({} if episode_steps is None else {"episode_steps": episode_steps}))
+    cfg = InsertionConfig(hand=policy.meta.get("hand", "digit360_v4"), image_size=(w, h),
+                          **({} if episode_steps is None else {"episode_steps": episode_steps}))
     sim = InsertionSim(cfg, draw_episode(cfg, seed, grasps), grasps, render=True)
     policy.reset()
     frames: list[np.ndarray] = []
@@ -49,7 +50,10 @@ def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool, episode_st
         while not done:
             if keep_frames:
                 frames.append(obs["image"])
-            windows = sim.touch.windows() if policy.reads_touch else None
+            windows = None
+            if policy.reads_touch:
+                windows = ({"skin": obs["skin"], "xela_baseline": sim.skin.baseline} if sim.skin is not None
+                           else sim.touch.windows())
             obs, done, info = sim.step(policy.act(obs, windows))
     finally:
         sim.close()
@@ -68,7 +72,8 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
     if not policies:
         raise ValueError("give the policies to evaluate: --policy NAME=PATH (imitation policy bundles)")
     loaded = {name: load_il(path) for name, path in policies.items()}
-    grasps = load_default_cache("cup", "", "digit360_v4")
+    hands = {name: p.meta.get("hand", "digit360_v4") for name, p in loaded.items()}
+    caches = {hand: load_default_cache("cup", "", hand) for hand in set(hands.values())}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -77,7 +82,7 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
         trials, kept = [], {}
         for j in range(episodes):
             want = video and len(kept) < 2
-            result, frames = run_trial(policy, seed + j, grasps, want, episode_steps)
+            result, frames = run_trial(policy, seed + j, caches[hands[name]], want, episode_steps)
             trials.append(result)
             kind = "success" if result["success"] else "failure"
             if want and kind not in kept:
@@ -89,7 +94,7 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
         wins = int(sum(t["success"] for t in trials))
         lo, hi = wilson(wins, episodes)
         times = [t["time_s"] for t in trials if t["success"]]
-        rows.append({"policy": name, "bundle": policies[name], "touch": policy.touch_modalities,
+        rows.append({"policy": name, "bundle": policies[name], "hand": hands[name], "touch": policy.touch_modalities,
                      "episodes": episodes, "seed": seed, "success_rate": wins / episodes, "ci95": [lo, hi],
                      "time_to_insert_s": float(np.mean(times)) if times else None,
                      "peak_force_N": float(np.mean([t["max_force"] for t in trials])),

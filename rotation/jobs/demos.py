@@ -10,7 +10,9 @@ OUT/shard_<e // 100>/episode_<e>.h5 (rotation.data.session), at the 20 Hz contro
 - ``actions/wrist`` (6,): the expert's action (dx, dy, dz m; droll, dpitch, dyaw rad) on that frame;
 - ``digit360/<finger>/contact`` (500 Hz): the fingertips' contact fields from the start of the plug's settling
   (t = 0; the first action at 1.2 s, so that its touch window has its 1.12 s of history), which the loader renders
-  into the four Digit 360 streams;
+  into the four Digit 360 streams; or, with ``--hand xela_v4``, the Xela skin from t = 0 at 100 Hz: ``skin/xela``
+  (368, 3) raw counts and ``skin/taxel_pos`` (368, 3) taxel positions (m, hand frame), as `rotate collect --skin`
+  records them (``extra["skin_key"]`` keys the simulated skin: its baseline);
 - ``labels/socket`` (7,), ``labels/prong`` (7,), ``labels/depth`` (1,) m, ``labels/socket_force`` (1,) N:
   privileged state, for analysis and probes, never a policy's input.
 
@@ -42,6 +44,8 @@ SHARD_SIZE = 100
 class Config:
     task: Literal["insertion"] = "insertion"
     """The task to demonstrate."""
+    hand: Literal["digit360_v4", "xela_v4"] = "digit360_v4"
+    """The hand: Digit 360 fingertips, or the Xela skin (the benchmark's Sparsh-skin row)."""
     episodes: int = 100
     """Episodes (session files) to have in OUT when done."""
     out: Path = Path("data/demos")
@@ -72,17 +76,22 @@ def episode_path(out: Path, episode: int) -> Path:
     return Path(out) / f"shard_{episode // SHARD_SIZE:03d}" / f"episode_{episode:06d}.h5"
 
 
-def demo_streams(image_size: tuple[int, int], control_hz: float) -> list[StreamSetup]:
+def demo_streams(image_size: tuple[int, int], control_hz: float, skin: bool = False) -> list[StreamSetup]:
+    from envs.sensors.xela import SAMPLE_HZ
+
     w, h = image_size
+    touch = ([StreamSetup(n, rate_hz=SAMPLE_HZ) for n in ("skin/xela", "skin/taxel_pos")] if skin else
+             [StreamSetup(f"digit360/{f}/contact", rate_hz=500.0) for f in FINGERS])
     return [StreamSetup("camera/wrist", shape=(h, w, 3), rate_hz=control_hz),
             *(StreamSetup(n, rate_hz=control_hz) for n in ("joints/position", "wrist/pose", "actions/wrist",
                                                            "labels/socket", "labels/prong", "labels/depth",
                                                            "labels/socket_force")),
-            *(StreamSetup(f"digit360/{f}/contact", rate_hz=500.0) for f in FINGERS)]
+            *touch]
 
 
-SAME_RUN = ("task", "seed", "image_size", "episode_steps")
-"""Settings an episode's file must share with this run to be kept (complete) or recorded again (incomplete)."""
+SAME_RUN = {"task": None, "seed": None, "image_size": None, "episode_steps": None, "hand": "digit360_v4"}
+"""Settings an episode's file must share with this run to be kept (complete) or recorded again (incomplete), with
+the value a file recorded before the setting existed had."""
 
 
 def _kept(cfg: Config, episode: int) -> bool:
@@ -104,9 +113,9 @@ def _kept(cfg: Config, episode: int) -> bool:
             from None
     mine = to_jsonable(cfg)
     theirs = extra.get("demos") or {}
-    if extra.get("episode") != episode or any(theirs.get(k) != mine[k] for k in SAME_RUN):
+    if extra.get("episode") != episode or any(theirs.get(k, old) != mine[k] for k, old in SAME_RUN.items()):
         raise RequestRefused(f"{path} holds another run's demonstration (episode {extra.get('episode')}, settings "
-                             f"{ {k: theirs.get(k) for k in SAME_RUN} }); use another --out")
+                             f"{ {k: theirs.get(k, old) for k, old in SAME_RUN.items()} }); use another --out")
     return is_complete(path)
 
 
@@ -116,21 +125,27 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
     from envs.insertion_expert import InsertionExpert
     from envs.scene import touch_model
 
-    icfg = InsertionConfig(image_size=cfg.image_size, episode_steps=cfg.episode_steps)
+    icfg = InsertionConfig(hand=cfg.hand, image_size=cfg.image_size, episode_steps=cfg.episode_steps)
     seed = cfg.seed * 1_000_000 + episode
     ep = draw_episode(icfg, seed, grasps)
     sim = InsertionSim(icfg, ep, grasps, render=True)
     expert = InsertionExpert(icfg, seed)
     key = sim.touch_key
     meta_base = dict(source="sim", object="plug", control_hz=1.0 / icfg.control_dt, seed=seed)
-    extra = {"episode": episode, "task": "insertion", "touch_key": key, "sim_hand": icfg.hand,
-             "touch_generation": touch_model(icfg.hand).generation, "physics_dt": TIMESTEP,
+    extra = {"episode": episode, "task": "insertion", "sim_hand": icfg.hand, "physics_dt": TIMESTEP,
              "insertion": to_jsonable(ep), "demos": to_jsonable(cfg)}
+    if sim.skin is None:
+        extra |= {"touch_key": key, "touch_generation": touch_model(icfg.hand).generation}
+    else:
+        from envs.sensors.xela import skin_metadata
+
+        extra |= {"skin_key": key, "skin": skin_metadata()}
     path = episode_path(cfg.out, episode)
     frames: list[tuple] = []
     try:
         obs, info = sim.reset(), {"force": 0.0}
         settle = sim.contact.copy()  # the settling's contact fields, from t = 0: the first windows' history
+        skin = [sim.skin.drain()] if sim.skin is not None else []  # its skin samples, from t = 0
         done = False
         while not done:
             action = expert.act(obs, info)
@@ -138,14 +153,20 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
             frames.append((t, obs, action, info.get("force", 0.0)))
             obs, done, info = sim.step(action)
             frames[-1] = (*frames[-1], sim.contact.copy(), t + np.arange(icfg.substeps) * TIMESTEP)
+            if sim.skin is not None:
+                skin.append(sim.skin.drain())
     finally:
         sim.close()
     outcome = {"success": bool(info["success"]), "steps": sim.steps, "max_force": float(info["max_force"])}
     meta = SessionMeta(**meta_base, properties=outcome, extra=extra)
-    with SessionWriter(path, meta, demo_streams(cfg.image_size, 1.0 / icfg.control_dt),
+    with SessionWriter(path, meta, demo_streams(cfg.image_size, 1.0 / icfg.control_dt, bool(skin)),
                        flush_interval_s=cfg.flush_interval_s, overwrite=True) as w:
+        for t_skin, counts, pos in skin:
+            if len(t_skin):
+                w.append("skin/xela", counts, t_skin)
+                w.append("skin/taxel_pos", pos, t_skin)
         t_settle = np.arange(settle.shape[1]) * TIMESTEP
-        for f, finger in enumerate(FINGERS):
+        for f, finger in enumerate(FINGERS if not skin else ()):
             w.append(f"digit360/{finger}/contact", settle[f], t_settle)
         for t, o, action, force, rows, t_rows in frames:
             ts = np.array([t])
@@ -157,7 +178,7 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
             w.append("labels/prong", o["prong"][None].astype(np.float64), ts)
             w.append("labels/depth", np.array([[float(o["depth"])]]), ts)
             w.append("labels/socket_force", np.array([[float(force)]]), ts)
-            for f, finger in enumerate(FINGERS):
+            for f, finger in enumerate(FINGERS if not skin else ()):
                 w.append(f"digit360/{finger}/contact", rows[f], t_rows)
     return outcome
 
@@ -166,7 +187,7 @@ def run(cfg: Config) -> dict[str, Any]:
     """Record every episode OUT does not hold complete yet; returns the counts."""
     from envs.grasp_cache import load_default_cache
 
-    grasps = load_default_cache("cup", "", "digit360_v4")
+    grasps = load_default_cache("cup", "", cfg.hand)
     todo = [e for e in range(cfg.episodes) if not _kept(cfg, e)]
     if not todo:
         print(f"demos: {cfg.out} already holds {cfg.episodes} complete demonstrations")

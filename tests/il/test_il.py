@@ -112,6 +112,33 @@ def test_an_end_to_end_touch_policy_trains_its_own_encoder_resumes_and_reloads_i
     assert resumed["history"][-1]["step"] == full["history"][-1]["step"] == 3
 
 
+def test_a_skin_policy_learns_from_the_xela_hands_demonstrations_and_runs_on_that_hand(tmp_path):
+    """The Sparsh-skin row: `rotate demos --hand xela_v4` records the skin (no Digit 360 streams), `train-il --touch
+    skin` reads one embedding of the whole hand per step and records the hand, closed-loop evaluation runs it on
+    that hand with the live skin window; touch and demonstrations of different hands are refused in one line."""
+    from rotation.cli import main
+    from rotation.data.session_reader import SessionReader
+    from rotation.tactile.models.sparsh_skin import SparshSkin, SparshSkinConfig, save_skin
+
+    out = tmp_path / "demos"
+    demos.run(demos.Config(hand="xela_v4", episodes=1, out=out, seed=3, image_size=(48, 36), progress=False))
+    [path] = find_sessions(out)
+    with SessionReader(path) as r:
+        assert r.has("skin/xela") and not any(n.startswith("digit360/") for n in r.names)
+        assert r.meta.extra["sim_hand"] == "xela_v4" and "skin_key" in r.meta.extra
+    torch.manual_seed(0)
+    encoder = str(save_skin(SparshSkin(SparshSkinConfig(size="tinier")), tmp_path / "skin.safetensors"))
+    result = _train(out, tmp_path / "il", touch="skin", encoder=encoder, steps=2)
+    policy = load_il(result["bundle"])
+    assert policy.meta["hand"] == "xela_v4" and policy.model.cfg.fingers == 1
+    assert main(["evaluate", "--task", "insertion", "--policy", f"skin={result['bundle']}", "--episodes", "1",
+                 "--seed", "900", "--episode-steps", "4", "--out", str(tmp_path / "eval"), "--no-progress"]) == 0
+    [row] = json.loads((tmp_path / "eval" / "results.json").read_text())["rows"]
+    assert row["hand"] == "xela_v4" and row["touch"] == "skin" and row["trials"][0]["steps"] == 4
+    with pytest.raises(ValueError, match="needs a Digit 360 hand's demonstrations"):
+        _train(out, tmp_path / "bad", touch="all")
+
+
 def test_wilson_interval():
     lo, hi = wilson(9, 10)
     assert lo == pytest.approx(0.5958, abs=1e-3) and hi == pytest.approx(0.9821, abs=1e-3)
