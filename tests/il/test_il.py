@@ -26,6 +26,18 @@ def demo_dir(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def small_encoder(tmp_path_factory) -> str:
+    """A Sparsh-X of the tinier size with one unimodal and one fusion layer, random weights: the touch path's
+    plumbing at a fraction of the shipped encoder's cost (what the encoder's weights do is the benchmark's job)."""
+    from rotation.tactile.models.encoders import ENCODERS
+
+    torch.manual_seed(0)
+    kind = ENCODERS["sparshx"]
+    encoder = kind.build("tinier", ("img", "mic", "imu", "pressure"), "bottleneck", 0.0, (1, 1))
+    return str(kind.save(encoder, tmp_path_factory.mktemp("encoder") / "encoder.safetensors"))
+
+
 def _train(demo_dir, out, **kw):
     base = dict(demos=demo_dir, out=out, steps=160, batch_size=16, chunk=5, width=32, checkpoint_every=80,
                 lr=1e-3, progress=False, torch_threads=1)
@@ -71,10 +83,10 @@ def test_temporal_ensembling_averages_the_chunks_that_cover_a_step():
     assert policy.act(obs)[0] == pytest.approx((w[0] * 2.0 + w[1] * 10.0) / w.sum())
 
 
-def test_a_touch_policy_runs_in_closed_loop_and_is_reported(demo_dir, tmp_path):
+def test_a_touch_policy_runs_in_closed_loop_and_is_reported(demo_dir, small_encoder, tmp_path):
     from rotation.cli import main
 
-    bundle = _train(demo_dir, tmp_path / "touch", touch="all", steps=2)["bundle"]
+    bundle = _train(demo_dir, tmp_path / "touch", touch="all", encoder=small_encoder, steps=2)["bundle"]
     out = tmp_path / "eval"
     assert main(["evaluate", "--task", "insertion", "--policy", f"touch={bundle}", "--episodes", "1", "--seed",
                  "900", "--episode-steps", "12", "--out", str(out), "--video", "--no-progress"]) == 0
@@ -84,25 +96,25 @@ def test_a_touch_policy_runs_in_closed_loop_and_is_reported(demo_dir, tmp_path):
     assert any((out / "videos").glob("touch_*.mp4")) and (out / "success.png").is_file()
 
 
-def test_an_end_to_end_touch_policy_trains_its_own_encoder_resumes_and_reloads_it(demo_dir, tmp_path):
+def test_an_end_to_end_touch_policy_trains_its_own_encoder_resumes_and_reloads_it(demo_dir, small_encoder, tmp_path):
     """--touch e2e: an encoder of the named one's structure, from random weights, trained with the policy on windows
     rendered per batch; the checkpoint and the bundle keep its weights, a resumed run matches an uninterrupted one."""
     from safetensors.torch import load_file
 
     from rotation.il.touch import TouchEmbedder
 
-    kw = dict(touch="e2e", batch_size=2, checkpoint_every=2)
+    kw = dict(touch="e2e", encoder=small_encoder, batch_size=2, checkpoint_every=2)
     full = _train(demo_dir, tmp_path / "full", steps=3, **kw)
     _train(demo_dir, tmp_path / "part", steps=2, **kw)
     resumed = _train(demo_dir, tmp_path / "part", steps=3, resume=True, **kw)
     trained = load_file(str(tmp_path / "full" / "bundle" / "touch_encoder.safetensors"))
     again = load_file(str(tmp_path / "part" / "bundle" / "touch_encoder.safetensors"))
     assert trained.keys() == again.keys() and all(torch.equal(trained[k], again[k]) for k in trained)
-    fresh = TouchEmbedder("sparshx-tinier-sim", "e2e", seed=0).encoder.state_dict()  # the run's initial weights
+    fresh = TouchEmbedder(small_encoder, "e2e", seed=0).encoder.state_dict()  # the run's initial weights
     assert fresh.keys() == trained.keys()
     moved = [k for k in trained if not torch.equal(trained[k], fresh[k])]
     assert len(moved) > len(trained) // 2, "training left most of the encoder at its random initial weights"
-    pretrained = dict(TouchEmbedder("sparshx-tinier-sim", "all").encoder.named_parameters())  # weights, not buffers
+    pretrained = dict(TouchEmbedder(small_encoder, "all").encoder.named_parameters())  # weights, not buffers
     weights = [k for k in pretrained if pretrained[k].ndim > 1]
     assert weights and not any(torch.allclose(trained[k], pretrained[k].to(trained[k].dtype)) for k in weights)
     policy = load_il(full["bundle"])
