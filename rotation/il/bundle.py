@@ -27,12 +27,12 @@ SHIPPED_IL = Path(__file__).resolve().parents[1] / "policies"
 class ILPolicy:
     """An imitation policy loaded from its bundle (see the module docstring)."""
 
-    def __init__(self, model: ChunkPolicy, meta: dict[str, Any],
-                 touch_encoder: Mapping[str, torch.Tensor] | None = None) -> None:
+    def __init__(self, model: ChunkPolicy, meta: dict[str, Any], touch_encoder: str | None = None) -> None:
         self.model, self.meta = model.eval(), meta
         self.touch_modalities: str = meta.get("touch", "none")
         self.encoder: str | None = meta.get("encoder")
-        self._touch_state = touch_encoder  # an end-to-end policy's trained encoder weights
+        self.touch_encoder = touch_encoder
+        """An end-to-end policy's own trained encoder (its bundle's touch_encoder.safetensors), read frozen."""
         self._embedder = None
         self.reset()
 
@@ -49,7 +49,8 @@ class ILPolicy:
         if self._embedder is None:
             from rotation.il.touch import TouchEmbedder
 
-            self._embedder = TouchEmbedder(self.encoder, self.touch_modalities, state=self._touch_state)
+            self._embedder = (TouchEmbedder(self.encoder, self.touch_modalities) if self.touch_encoder is None
+                              else TouchEmbedder(self.touch_encoder, "all"))
         return self._embedder.embed_raw(windows, FINGERS)
 
     @torch.no_grad()
@@ -68,15 +69,17 @@ class ILPolicy:
         return (w[:, None] * preds).sum(0) / w.sum()
 
 
-def save_il(path: Path, model: ChunkPolicy, meta: dict[str, Any],
-            touch_encoder: Mapping[str, torch.Tensor] | None = None) -> Path:
-    """Write the bundle; ``touch_encoder``: an end-to-end policy's trained encoder (touch_encoder.safetensors)."""
+def save_il(path: Path, model: ChunkPolicy, meta: dict[str, Any], touch_encoder: torch.nn.Module | None = None
+            ) -> Path:
+    """Write the bundle; ``touch_encoder``: an end-to-end policy's trained encoder, saved whole (weights and
+    structure, touch_encoder.safetensors) so that the bundle does not depend on the encoder it was shaped after."""
+    from rotation.tactile.models.encoders import ENCODERS, kind_of
+
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(path / "model.safetensors"))
     if touch_encoder is not None:
-        save_file({k: v.detach().contiguous() for k, v in touch_encoder.items()},
-                  str(path / "touch_encoder.safetensors"))
+        ENCODERS[kind_of(touch_encoder)].save(touch_encoder, path / "touch_encoder.safetensors")
     (path / "config.json").write_text(json.dumps({"kind": "il", **meta, "policy": model.cfg.to_json()}, indent=2)
                                       + "\n")
     return path
@@ -98,9 +101,7 @@ def load_il(name_or_path: str | Path) -> ILPolicy:
     model.load_state_dict(load_file(str(path / "model.safetensors")), strict=True)
     touch_encoder = None
     if meta.get("touch") == "e2e":
-        try:
-            touch_encoder = load_file(str(path / "touch_encoder.safetensors"))
-        except OSError as err:
-            raise ValueError(f"{name_or_path}: an end-to-end touch policy without its encoder's weights ({err})"
-                             ) from None
+        touch_encoder = str(path / "touch_encoder.safetensors")
+        if not Path(touch_encoder).is_file():
+            raise ValueError(f"{name_or_path}: an end-to-end touch policy without its encoder (no {touch_encoder})")
     return ILPolicy(model, meta, touch_encoder)

@@ -205,7 +205,7 @@ def run(cfg: Config) -> dict:
             "final_loss": history[-1]["loss"] if history else math.nan}
     bundle = save_il(out / "bundle", model, {"task": "insertion", "hand": hand, "touch": cfg.touch,
                                              "encoder": None if cfg.touch == "none" else cfg.encoder, "card": card},
-                     touch_encoder=None if e2e is None else e2e.embedder.encoder.state_dict())
+                     touch_encoder=None if e2e is None else e2e.embedder.encoder)
     print(f"train-il: {cfg.steps} steps on {len(paths)} demonstrations ({len(data)} samples) in {wall:.0f} s, "
           f"final loss {card['final_loss']:.3f}; bundle at {bundle}")
     return {"bundle": str(bundle), "history": history, "final_loss": float(np.nan_to_num(card["final_loss"]))}

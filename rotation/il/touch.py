@@ -40,11 +40,9 @@ class TouchEmbedder:
     """A touch encoder reading ``modalities``; :meth:`embed` maps a batch of windows to their mean token.
 
     Frozen (the pretrained weights of ``encoder``) unless ``modalities`` is 'e2e': then an encoder of the same
-    structure and input statistics with fresh random weights (seeded by ``seed``), trainable, or with ``state``
-    (its trained weights, from a policy bundle)."""
+    structure and input statistics with fresh random weights (seeded by ``seed``), trainable."""
 
-    def __init__(self, encoder: str, modalities: str, seed: int = 0, state: Mapping[str, Tensor] | None = None
-                 ) -> None:
+    def __init__(self, encoder: str, modalities: str, seed: int = 0) -> None:
         from rotation.tactile.models.encoders import ENCODERS, fresh_like, kind_of, load_encoder
 
         if modalities not in MODALITY_SETS:
@@ -59,9 +57,7 @@ class TouchEmbedder:
             torch.manual_seed(seed)
             enc = fresh_like(enc)
         enc = ENCODERS[kind_of(enc)].restrict(enc, MODALITY_SETS[modalities])
-        if state is not None:
-            enc.load_state_dict(dict(state), strict=True)
-        self.encoder = enc.train() if self.trainable and state is None else enc.eval().requires_grad_(False)
+        self.encoder = enc.train() if self.trainable else enc.eval().requires_grad_(False)
         self.width = int(self.encoder.token_interface.width)
 
     def tokens_mean(self, batch: Mapping[str, Tensor]) -> Tensor:

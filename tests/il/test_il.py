@@ -99,16 +99,15 @@ def test_a_touch_policy_runs_in_closed_loop_and_is_reported(demo_dir, small_enco
 def test_an_end_to_end_touch_policy_trains_its_own_encoder_resumes_and_reloads_it(demo_dir, small_encoder, tmp_path):
     """--touch e2e: an encoder of the named one's structure, from random weights, trained with the policy on windows
     rendered per batch; the checkpoint and the bundle keep its weights, a resumed run matches an uninterrupted one."""
-    from safetensors.torch import load_file
-
     from rotation.il.touch import TouchEmbedder
+    from rotation.tactile.models.encoders import load_encoder
 
     kw = dict(touch="e2e", encoder=small_encoder, batch_size=2, checkpoint_every=2)
     full = _train(demo_dir, tmp_path / "full", steps=3, **kw)
     _train(demo_dir, tmp_path / "part", steps=2, **kw)
     resumed = _train(demo_dir, tmp_path / "part", steps=3, resume=True, **kw)
-    trained = load_file(str(tmp_path / "full" / "bundle" / "touch_encoder.safetensors"))
-    again = load_file(str(tmp_path / "part" / "bundle" / "touch_encoder.safetensors"))
+    trained = load_encoder(tmp_path / "full" / "bundle" / "touch_encoder.safetensors").state_dict()
+    again = load_encoder(tmp_path / "part" / "bundle" / "touch_encoder.safetensors").state_dict()
     assert trained.keys() == again.keys() and all(torch.equal(trained[k], again[k]) for k in trained)
     fresh = TouchEmbedder(small_encoder, "e2e", seed=0).encoder.state_dict()  # the run's initial weights
     assert fresh.keys() == trained.keys()
@@ -119,7 +118,9 @@ def test_an_end_to_end_touch_policy_trains_its_own_encoder_resumes_and_reloads_i
     assert weights and not any(torch.allclose(trained[k], pretrained[k].to(trained[k].dtype)) for k in weights)
     policy = load_il(full["bundle"])
     assert policy.reads_touch and policy.touch_modalities == "e2e"
-    assert all(torch.equal(policy._touch_state[k], trained[k]) for k in trained)
+    assert policy.touch_encoder == str(tmp_path / "full" / "bundle" / "touch_encoder.safetensors")
+    own = TouchEmbedder(policy.touch_encoder, "all").encoder  # what the closed loop reads: the bundle's own, frozen
+    assert all(torch.equal(v, trained[k]) for k, v in own.state_dict().items()) and not own.training
     assert json.loads((tmp_path / "full" / "bundle" / "config.json").read_text())["touch"] == "e2e"
     assert resumed["history"][-1]["step"] == full["history"][-1]["step"] == 3
 
