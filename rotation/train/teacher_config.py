@@ -87,6 +87,13 @@ class Config:
     randomize: bool = True
     """Domain randomization on (the hand's ranges, envs.physics.HAND_PHYSICS); off trains on nominal physics (an
     easy setting for tests)."""
+    friction: tuple[float, float] | None = None
+    """Range of the sliding friction the randomization draws: the gel tips' on a hand whose links have their own
+    (digit360_v4), every geom's on the first hand; None = the hand's. A range reaching below the hand's trains on
+    the slippery cups the perturbation suite tries (friction x0.25 of the hand's range)."""
+    mass: tuple[float, float] | None = None
+    """Range of the cup's mass (kg) the randomization draws; None = the hand's. The heaviest cup, with the
+    evaluation's added mass, must stay within what the actuators hold (envs.config.MAX_OBJECT_MASS)."""
     episode_steps: int = 400
     """Episode length in policy steps (20 s at 20 Hz)."""
     grasp_cache: str = ""
@@ -225,6 +232,11 @@ class Config:
 
     def env_config(self) -> EnvConfig:
         rc = default_randomization(self.hand, self.randomize)  # the hand's physics (envs.physics.HAND_PHYSICS)
+        ranges = {k: tuple(v) for k, v in (("friction", self.friction), ("mass", self.mass)) if v is not None}
+        if ranges:
+            if not self.randomize:
+                raise ValueError("friction / mass: ranges of the randomization, which --no-randomize turns off")
+            rc = dataclasses.replace(rc, **ranges)
         return EnvConfig(object=self.object, hand=self.hand, episode_steps=self.episode_steps, randomization=rc,
                          grasp_cache=self.grasp_cache, reward=self.reward_config())
 

@@ -64,3 +64,16 @@ def test_teacher_reward_weights_reach_the_env_and_stay_penalties():
     for bad in ({"pose_diff_reward": 0.1}, {"work_reward": 1.0}, {"rotate_clip": 0.0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             TeacherConfig(**bad)
+
+
+def test_teacher_friction_and_mass_ranges_reach_the_randomization_and_keep_the_rest_of_the_hands():
+    """--friction / --mass widen what the teacher trains on (65's lever: slippery and heavy cups) and leave the
+    hand's other physics alone; they need the randomization on, and the heaviest cup stays within the actuators."""
+    base = TeacherConfig(hand="digit360_v4").env_config().randomization
+    rc = TeacherConfig(hand="digit360_v4", friction=(0.1, 1.2), mass=(0.02, 0.3)).env_config().randomization
+    assert (rc.friction, rc.mass) == ((0.1, 1.2), (0.02, 0.3))
+    assert (rc.link_friction, rc.friction_log, rc.impratio) == (base.link_friction, base.friction_log, base.impratio)
+    with pytest.raises(ValueError, match="--no-randomize"):
+        TeacherConfig(friction=(0.1, 1.2), randomize=False)
+    with pytest.raises(ValueError, match="mass"):
+        TeacherConfig(hand="digit360_v4", mass=(0.02, 0.9))
