@@ -95,12 +95,21 @@ def test_every_stage_is_a_valid_command_of_its_job(recipe, tmp_path):
         "pyramidal", "--contact-impratio", "3", "--contact-noslip-iterations", "0"]
 
 
-def test_another_hand_gets_the_speed_stage_between_stages_4_and_5(recipe, tmp_path):
+def test_another_hand_gets_the_speed_stage_between_stages_4_and_5_and_the_hold_stage_after(recipe, tmp_path):
     """On the vendor-kinematics hand the teacher trains a stage 4b (rotate cap 1.0 rad/s, half the pose penalty,
-    fall cost 35) from stage 4's bundle, and stage 5 continues from it."""
+    fall cost 35) from stage 4's bundle, stage 5 continues from it, and stage 6 (fall cost 60 with 4b's reward)
+    from stage 5; the student distills stage 6 and the evaluation takes it as the teacher."""
     out = tmp_path / "v4"
-    names = [what.split(":")[0] for what, _ in recipe.commands(recipe.Config(out=out, hand="digit360_v4"))]
-    assert names[names.index("stage4"):names.index("stage5") + 1] == ["stage4", "stage4b", "stage5"]
+    todo = recipe.commands(recipe.Config(out=out, hand="digit360_v4"))
+    names = [what.split(":")[0] for what, _ in todo]
+    assert names[names.index("stage4"):names.index("student")] == ["stage4", "stage4b", "stage5", "stage6"]
+    hold, distill, evaluation = (dict((w.split(":")[0], a) for w, a in todo)[n] for n in ("stage6", "student",
+                                                                                          "evaluation"))
+    assert hold[hold.index("--init-from") + 1] == str(out / "stage5" / "bundle")
+    assert [hold[hold.index(o) + 1] for o in ("--fall-reward", "--rotate-clip", "--pose-diff-reward")] == [
+        "-60", "1.0", "-0.05"]
+    assert distill[distill.index("--teacher") + 1] == str(out / "stage6" / "bundle")
+    assert f"teacher_cpu={out / 'stage6' / 'bundle'}" in evaluation
     sim = sim_record(EnvConfig(hand="digit360_v4"))
     (out / "grasps_checked").mkdir(parents=True)  # the recipe's own hold-checked grasps, which stages 3 on read
     shutil.copy(default_cache_path("cup", "digit360_v4"), out / "grasps_checked")
