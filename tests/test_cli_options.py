@@ -44,6 +44,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "*:fall_reward": {"negative": "a fall penalty (the default is -20)", "zero": "no penalty; a fall still ends it"},
     "*:pose_diff_reward": {"negative": "a penalty (the default is -0.1)", "zero": "no pose penalty"},
     "*:work_reward": {"negative": "a penalty (the default is -2)", "zero": "no power penalty"},
+    "*:noslip_dropout": {"zero": "every episode with the noslip solver"},
     "*:gae_lambda": {"zero": "lambda 0 is one-step TD, a valid estimator"},
     "*:added_mass": {"zero": "no added mass: the nominal object"},
     "*:latent_mix": {"zero": "0 = off: the actor trains on phi alone (the default)"},

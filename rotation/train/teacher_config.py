@@ -94,6 +94,10 @@ class Config:
     mass: tuple[float, float] | None = None
     """Range of the cup's mass (kg) the randomization draws; None = the hand's. The heaviest cup, with the
     evaluation's added mass, must stay within what the actuators hold (envs.config.MAX_OBJECT_MASS)."""
+    noslip_dropout: float | None = None
+    """Share of episodes run without MuJoCo's noslip solver, on a hand whose contact model uses it (digit360_v4:
+    0.25); None = the hand's. Those episodes are where a held cup creeps, and where the v4 teacher drops it most
+    (experiments/teacher_v4)."""
     episode_steps: int = 400
     """Episode length in policy steps (20 s at 20 Hz)."""
     grasp_cache: str = ""
@@ -232,10 +236,14 @@ class Config:
 
     def env_config(self) -> EnvConfig:
         rc = default_randomization(self.hand, self.randomize)  # the hand's physics (envs.physics.HAND_PHYSICS)
-        ranges = {k: tuple(v) for k, v in (("friction", self.friction), ("mass", self.mass)) if v is not None}
+        ranges: dict[str, Any] = {k: tuple(v) for k, v in (("friction", self.friction), ("mass", self.mass))
+                                  if v is not None}
+        if self.noslip_dropout is not None:
+            ranges["noslip_dropout"] = self.noslip_dropout
         if ranges:
             if not self.randomize:
-                raise ValueError("friction / mass: ranges of the randomization, which --no-randomize turns off")
+                raise ValueError(f"{' / '.join(ranges)}: settings of the randomization, which --no-randomize turns "
+                                 "off")
             rc = dataclasses.replace(rc, **ranges)
         return EnvConfig(object=self.object, hand=self.hand, episode_steps=self.episode_steps, randomization=rc,
                          grasp_cache=self.grasp_cache, reward=self.reward_config())

@@ -75,5 +75,9 @@ def test_teacher_friction_and_mass_ranges_reach_the_randomization_and_keep_the_r
     assert (rc.link_friction, rc.friction_log, rc.impratio) == (base.link_friction, base.friction_log, base.impratio)
     with pytest.raises(ValueError, match="--no-randomize"):
         TeacherConfig(friction=(0.1, 1.2), randomize=False)
+    assert base.noslip_dropout == 0.25
+    assert TeacherConfig(hand="digit360_v4", noslip_dropout=0.1).env_config().randomization.noslip_dropout == 0.1
+    with pytest.raises(ValueError, match="noslip_dropout"):
+        TeacherConfig(hand="digit360_v4", noslip_dropout=1.5)
     with pytest.raises(ValueError, match="mass"):
         TeacherConfig(hand="digit360_v4", mass=(0.02, 0.9))
