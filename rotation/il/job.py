@@ -136,9 +136,9 @@ def run(cfg: Config) -> dict:
         raise RequestRefused(f"resume: no checkpoint in {out}")
     if not cfg.resume and ckpt.is_file():
         raise RequestRefused(f"out: {out} holds a run; continue it with --resume or choose another --out")
+    hand = _hand(paths, cfg.touch)  # before anything is written: a refused request leaves OUT as it was
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.json")
-    hand = _hand(paths, cfg.touch)
     touch, touch_dim, fingers, e2e = None, 0, 4, None
     if cfg.touch == "e2e":
         e2e = EndToEndTouch(paths, cfg.encoder, cfg.seed)

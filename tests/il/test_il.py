@@ -150,6 +150,7 @@ def test_a_skin_policy_learns_from_the_xela_hands_demonstrations_and_runs_on_tha
     assert row["hand"] == "xela_v4" and row["touch"] == "skin" and row["trials"][0]["steps"] == 4
     with pytest.raises(ValueError, match="needs a Digit 360 hand's demonstrations"):
         _train(out, tmp_path / "bad", touch="all")
+    assert not (tmp_path / "bad").exists()  # refused before anything was written
 
 
 def test_wilson_interval():
