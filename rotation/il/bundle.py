@@ -37,6 +37,14 @@ class ILPolicy:
         self.reset()
 
     @property
+    def hand(self) -> str:
+        """The hand its demonstrations came from, which it runs on (a bundle from before bundles recorded it: the
+        insertion task's default hand)."""
+        from envs.insertion import InsertionConfig
+
+        return str(self.meta.get("hand", InsertionConfig.hand))
+
+    @property
     def reads_touch(self) -> bool:
         return self.touch_modalities != "none"
 

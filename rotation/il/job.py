@@ -102,12 +102,13 @@ class EndToEndTouch:
 
 def _hand(paths: list[Path], touch: str) -> str:
     """The demonstrations' hand (one for all of them), checked against the touch the policy reads."""
+    from envs.insertion import InsertionConfig
     from rotation.data.session_reader import SessionReader
 
     hands = set()
     for path in paths:
         with SessionReader(path) as r:
-            hands.add(str(r.meta.extra.get("sim_hand", "digit360_v4")))
+            hands.add(str(r.meta.extra.get("sim_hand", InsertionConfig.hand)))
     if len(hands) > 1:
         raise RequestRefused(f"demos: the demonstrations come from different hands ({', '.join(sorted(hands))}); "
                              "train on one hand's")

@@ -40,7 +40,7 @@ def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool, episode_st
     from envs.insertion import InsertionConfig, InsertionSim, draw_episode
 
     w, h = policy.model.cfg.image_size
-    cfg = InsertionConfig(hand=policy.meta.get("hand", "digit360_v4"), image_size=(w, h),
+    cfg = InsertionConfig(hand=policy.hand, image_size=(w, h),
                           **({} if episode_steps is None else {"episode_steps": episode_steps}))
     sim = InsertionSim(cfg, draw_episode(cfg, seed, grasps), grasps, render=True)
     policy.reset()
@@ -72,8 +72,7 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
     if not policies:
         raise ValueError("give the policies to evaluate: --policy NAME=PATH (imitation policy bundles)")
     loaded = {name: load_il(path) for name, path in policies.items()}
-    hands = {name: p.meta.get("hand", "digit360_v4") for name, p in loaded.items()}
-    caches = {hand: load_default_cache("cup", "", hand) for hand in set(hands.values())}
+    caches = {hand: load_default_cache("cup", "", hand) for hand in {p.hand for p in loaded.values()}}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -82,7 +81,7 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
         trials, kept = [], {}
         for j in range(episodes):
             want = video and len(kept) < 2
-            result, frames = run_trial(policy, seed + j, caches[hands[name]], want, episode_steps)
+            result, frames = run_trial(policy, seed + j, caches[policy.hand], want, episode_steps)
             trials.append(result)
             kind = "success" if result["success"] else "failure"
             if want and kind not in kept:
@@ -94,7 +93,7 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
         wins = int(sum(t["success"] for t in trials))
         lo, hi = wilson(wins, episodes)
         times = [t["time_s"] for t in trials if t["success"]]
-        rows.append({"policy": name, "bundle": policies[name], "hand": hands[name], "touch": policy.touch_modalities,
+        rows.append({"policy": name, "bundle": policies[name], "hand": policy.hand, "touch": policy.touch_modalities,
                      "episodes": episodes, "seed": seed, "success_rate": wins / episodes, "ci95": [lo, hi],
                      "time_to_insert_s": float(np.mean(times)) if times else None,
                      "peak_force_N": float(np.mean([t["max_force"] for t in trials])),
