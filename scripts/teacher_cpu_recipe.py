@@ -28,9 +28,10 @@ The shipped teacher's first stage ran on a GPU machine. This recipe needs none: 
 Then the teacher and the final student are evaluated side by side at nominal randomization on fresh seeds (the same
 episodes for both, in evaluation_student/). The whole recipe took about 3.5 h on 2 cores: the teacher 2.83 h, the
 distillation 15.7 min, the RL fine-tune 23.2 min. --teacher-only stops after stage 5 and evaluates the teacher
-alone (in evaluation/). Each stage writes its own run folder under --out (checkpoints, curves, TensorBoard logs,
-bundle). Running the script again continues: a finished stage is skipped, a stopped one resumes from its last
-checkpoint. Ctrl-C stops the running stage with a checkpoint.
+alone (in evaluation/); --student-from STAGE distills a teacher stage other than the last (on the
+vendor-kinematics hand, the one experiments/teacher_v4's rule picks). Each stage writes its own run folder under
+--out (checkpoints, curves, TensorBoard logs, bundle). Running the script again continues: a finished stage is
+skipped, a stopped one resumes from its last checkpoint. Ctrl-C stops the running stage with a checkpoint.
 
     python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu                  # about 3.5 h on 2 cores
     python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu --teacher-only   # the teacher alone, about 2.8 h
@@ -112,6 +113,10 @@ class Config:
     elliptic, impratio 10, noslip 10; issue 72's target is >= 80% of the nominal rotation rate there."""
     teacher_only: bool = False
     """Stop after the teacher's stages (no student) and evaluate the teacher alone, in evaluation/."""
+    student_from: str = ""
+    """The teacher stage (a run folder's name: stage4, stage4b, stage5, ...) the student distills from and the final
+    evaluation takes as the teacher; empty: the last stage. A student folder distilled from another teacher is
+    refused rather than resumed."""
     progress: bool = True
     """Progress bars."""
     dry_run: bool = False
@@ -129,6 +134,10 @@ class Config:
         self.out = Path(self.out)
         if self.eval_episodes < 0:
             raise ValueError(f"eval_episodes must be >= 0, got {self.eval_episodes}")
+        names = [name for name, _, _ in _teacher_stages(self.hand)]
+        if self.student_from and self.student_from not in names:
+            raise ValueError(f"student_from: one of the {self.hand} recipe's stages ({', '.join(names)}), got "
+                             f"{self.student_from!r}")
 
 
 def _card(run_dir: Path) -> dict | None:
@@ -189,7 +198,7 @@ def _stage(name: str, job: str, steps: int, options: list[str], run_dir: Path, p
 
 def _evaluation(cfg: Config) -> tuple[Path, dict[str, Path]]:
     """The final evaluation's folder and its policies (label -> bundle)."""
-    policies = {"teacher_cpu": cfg.out / _teacher_stages(cfg.hand)[-1][0] / "bundle"}
+    policies = {"teacher_cpu": _teacher_run(cfg) / "bundle"}
     if cfg.teacher_only:
         return cfg.out / "evaluation", policies
     return cfg.out / "evaluation_student", policies | {"student_cpu": cfg.out / STUDENT_STAGES[-1][0] / "bundle"}
@@ -217,6 +226,9 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
               for name, steps, options in _teacher_stages(cfg.hand)]
     for name, job, steps, options in stages + ([] if cfg.teacher_only else list(STUDENT_STAGES)):
         run_dir = out / name
+        if job == "train-student":
+            prev = _teacher_run(cfg) / "bundle"
+            _check_student_teacher(run_dir, prev)
         if checked and "{grasps}" not in options:
             options = [*options, *on_checked[job]]
             if not checked.is_file() and not any(what.startswith("grasps checked") for what, _ in todo):
@@ -248,6 +260,21 @@ def _teacher_stages(hand: str) -> list[tuple[str, int, list[str]]]:
     if hand == "digit360":
         return list(STAGES)
     return [*STAGES[:4], SPEED_STAGE, STAGES[4], HOLD_STAGE]
+
+
+def _teacher_run(cfg: Config) -> Path:
+    """The run folder of the teacher the student distills from: --student-from, else the last stage."""
+    return cfg.out / (cfg.student_from or _teacher_stages(cfg.hand)[-1][0])
+
+
+def _check_student_teacher(run_dir: Path, teacher: Path) -> None:
+    """Refuse to resume or accept a distillation in ``run_dir`` started from a teacher other than ``teacher``."""
+    try:
+        started = json.loads((run_dir / "config.json").read_text()).get("teacher")
+    except (OSError, ValueError, AttributeError):
+        return  # nothing started there yet
+    if started is not None and Path(started).resolve() != teacher.resolve():
+        raise ValueError(f"{run_dir} distills {started}, not {teacher}; move that folder aside to distill {teacher}")
 
 
 def _unseen_contact(hand: str) -> list[str]:

@@ -143,6 +143,27 @@ def test_teacher_only_leaves_the_student_out_and_evaluates_the_teacher_alone(rec
     assert recipe.commands(recipe.Config(out=out, contact_check=False))[-1][1][-1] == str(out / "evaluation_student")
 
 
+def test_student_from_picks_the_teacher_stage_and_refuses_a_student_of_another(recipe, tmp_path, capsys):
+    """--student-from names the stage the student distills and the evaluation takes as the teacher; a student folder
+    started from another teacher is refused in one line, not resumed; an unknown stage is refused too."""
+    out = tmp_path / "recipe"
+    _finished_teacher(recipe, out)
+    todo = dict((w.split(":")[0], a) for w, a in recipe.commands(recipe.Config(out=out, student_from="stage3")))
+    assert _parsed(todo["student"]).teacher == str(out / "stage3" / "bundle")
+    assert f"teacher_cpu={out / 'stage3' / 'bundle'}" in todo["evaluation"]
+    distill = out / "student"
+    save_config(student.Config(teacher=str(out / "stage5" / "bundle"), out=distill, total_steps=6_000_000),
+                distill / "config.json")
+    (distill / "ckpt_000003125.pt").write_bytes(b"")
+    with pytest.raises(ValueError, match="move that folder aside"):
+        recipe.commands(recipe.Config(out=out, student_from="stage3"))
+    assert recipe.main(["--out", str(out), "--student-from", "stage3", "--dry-run"]) != 0
+    assert "move that folder aside" in capsys.readouterr().err
+    assert [w.split(":")[0] for w, _ in recipe.commands(recipe.Config(out=out, eval_episodes=0))][0] == "student"
+    with pytest.raises(ValueError, match="student_from: one of"):
+        recipe.Config(out=out, student_from="stage4b")  # the first hand's recipe has no speed stage
+
+
 def test_finished_stages_are_skipped_and_a_stopped_one_resumes(recipe, tmp_path):
     out = tmp_path / "recipe"
     (out / "grasps_unchecked").mkdir(parents=True)
