@@ -27,7 +27,7 @@ JOINT_LOWER = np.array(_FINGER_LOWER * 3 + _THUMB_LOWER, dtype=np.float64)
 JOINT_UPPER = np.array(_FINGER_UPPER * 3 + _THUMB_UPPER, dtype=np.float64)
 
 # The hand model every job uses unless told another (envs.scene.HANDS): the one the shipped policies trained on.
-DEFAULT_HAND = "digit360"
+DEFAULT_HAND = "digit360_v4"
 
 # Vendor home pose (deg -> rad), docs/reference/hora.md.
 HOME_POSE = np.deg2rad([0, -10, 45, 45, 0, -10, 45, 45, 5, -5, 50, 45, 60, 25, 15, 45]).astype(np.float64)

@@ -160,10 +160,11 @@ class HoldTest:
         return worst
 
 
-def hold_check(cache: GraspCache, rule: HoldRule = HoldRule(), batch_size: int = 128,
+def hold_check(cache: GraspCache, rule: HoldRule | None = None, batch_size: int = 128,
                nthread: int | None = None) -> np.ndarray:
-    """Worst tilt (rad, (S, G)) of every cached grasp under ``rule`` (HoldRule); a grasp passes where it is below
-    ``rule.max_tilt``."""
+    """Worst tilt (rad, (S, G)) of every cached grasp under ``rule`` (HoldRule; default: the rule at the cache's
+    hand's nominal physics, HoldRule.for_hand); a grasp passes where it is below ``rule.max_tilt``."""
+    rule = HoldRule.for_hand(cache.hand) if rule is None else rule
     s, g = cache.grasps.shape[:2]
     test = HoldTest(cache.object, cache.hand, batch_size, nthread)
     return test.worst_tilt(cache.grasps.reshape(s * g, GRASP_DIM), np.repeat(cache.scales, g), rule).reshape(s, g)

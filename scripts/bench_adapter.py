@@ -17,9 +17,9 @@ Figures (medians over ``iters`` timed calls after 2 untimed ones, ``threads`` to
   touch_every.
 
 With ``--deploy S`` it then measures the touch path's latency where it happens: an S-second ``rotate deploy
---hand sim-allegro`` of the adapter (the given one, else the shipped ``adapter``) with emulated fingertips, in its
-own process at 20 Hz (the emulated hand and sensors share the cores, as a lab's machine shares them with its
-drivers). From its summary:
+--hand sim-allegro`` of the adapter (the given one, else the shipped ``adapter`` where one ships, else the fresh
+every-modality adapter of ``step_ms``) with emulated fingertips, in its own process at 20 Hz (the emulated hand and
+sensors share the cores, as a lab's machine shares them with its drivers). From its summary:
 
 - ``latency_ms_p50`` / ``latency_ms_p95``: each correction's touch age at its first action, from the newest sensor
   sample of the oldest fingertip window it read to that step's command to the hand;
@@ -48,8 +48,10 @@ import os
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -101,6 +103,7 @@ def _median_ms(fn, iters: int) -> float:
 def run(cfg: Config) -> dict:
     from adapters.bundle import build_adapted
     from rotation.bundles import load_bundle
+    from rotation.policy.bundle import shipped_bundles
 
     if cfg.threads < 1 or cfg.iters < 1 or cfg.touch_every < 1:
         raise ValueError(f"threads, iters and touch_every must be >= 1, got {cfg}")
@@ -139,7 +142,12 @@ def run(cfg: Config) -> dict:
     result["threads"] = cfg.threads
     result["loadavg_1min_before"] = round(load_before, 2)
     if cfg.deploy > 0:
-        result.update(deploy_latency(cfg.adapter or "adapter", cfg.deploy))
+        with tempfile.TemporaryDirectory() as tmp:
+            if cfg.adapter or "adapter" in shipped_bundles():
+                adapter = cfg.adapter or "adapter"
+            else:  # no adapter ships (withdrawn until retrained on the current hand model): the fresh one timed above
+                adapter = str(first.save(Path(tmp) / "adapter"))
+            result.update(deploy_latency(adapter, cfg.deploy))
     print(json.dumps(result))
     return result
 

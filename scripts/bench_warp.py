@@ -59,6 +59,9 @@ class Config:
     """MuJoCo threads of the CPU backend (0 = every core of this process)."""
     seed: int = 0
     """Seed of the envs and actions."""
+    hand: str = "digit360"
+    """Hand variant of every measurement, the same on both backends: one whose physics the warp backend simulates
+    (rotation.sim_warp.core.simulated_hands; not yet the digit360_v4 hand's)."""
 
     def __post_init__(self) -> None:
         check_types(self)
@@ -68,6 +71,11 @@ class Config:
                           ("n_epochs", 1), ("cpu_envs", 0), ("cpu_steps", 1), ("nthread", 0)):
             check_int(name, getattr(self, name), low, 10**9)
         check_seed("seed", self.seed)
+        from rotation.sim_warp.core import simulated_hands
+
+        if self.hand not in simulated_hands():
+            raise ValueError(f"hand: the warp backend simulates the {' and '.join(simulated_hands())} hands, not "
+                             f"{self.hand!r}")
 
 
 def _sync(device: torch.device) -> None:
@@ -79,7 +87,8 @@ def warp_env_rate(cfg: Config, worlds: int) -> float:
     """Control steps/s (x worlds) of RotateCupWarp under uniform random actions, finished worlds reset."""
     from rotation.sim_warp.core import RotateCupWarp, WarpConfig
 
-    env = RotateCupWarp(EnvConfig(), num_envs=worlds, seed=cfg.seed, warp_cfg=WarpConfig(device=cfg.device))
+    env = RotateCupWarp(EnvConfig(hand=cfg.hand), num_envs=worlds, seed=cfg.seed,
+                        warp_cfg=WarpConfig(device=cfg.device))
     dev = env.torch_device
     gen = torch.Generator(device=dev).manual_seed(cfg.seed)
     env.reset(seed=cfg.seed)
@@ -108,8 +117,9 @@ def warp_train_rate(cfg: Config) -> float:
     from rotation.train.teacher_warp import WarpPPO
 
     n = cfg.train_worlds
-    tcfg = TeacherConfig(backend="warp", device=cfg.device, num_envs=n, n_steps=cfg.n_steps, n_epochs=cfg.n_epochs,
-                         batch_size=max(2, n * cfg.n_steps // 4), learning_rate=5e-3, progress=False)
+    tcfg = TeacherConfig(backend="warp", hand=cfg.hand, device=cfg.device, num_envs=n, n_steps=cfg.n_steps,
+                         n_epochs=cfg.n_epochs, batch_size=max(2, n * cfg.n_steps // 4), learning_rate=5e-3,
+                         progress=False)
     env_cfg = tcfg.env_config()
     env = RotateCupWarp(env_cfg, num_envs=n, seed=cfg.seed, warp_cfg=WarpConfig(device=cfg.device))
     learner = WarpPPO(tcfg, env, env_cfg)
@@ -127,7 +137,7 @@ def warp_train_rate(cfg: Config) -> float:
 def cpu_env_rate(cfg: Config) -> tuple[float, int]:
     """Control steps/s (x envs) of the CPU core under uniform random actions; returns (rate, threads)."""
     nthread = cfg.nthread or num_cores()
-    env = RotateCupVec(EnvConfig(), num_envs=cfg.cpu_envs, seed=cfg.seed, nthread=nthread)
+    env = RotateCupVec(EnvConfig(hand=cfg.hand), num_envs=cfg.cpu_envs, seed=cfg.seed, nthread=nthread)
     random_steps_per_s(env, cfg.cpu_envs * max(1, cfg.warmup), seed=cfg.seed)  # warm-up
     rate = random_steps_per_s(env, cfg.cpu_envs * cfg.cpu_steps, seed=cfg.seed)
     env.close()

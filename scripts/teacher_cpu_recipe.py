@@ -1,10 +1,14 @@
-"""The teacher from random weights on a CPU alone, then its student: five `rotate train-teacher` stages, then
-`rotate train-student` and `rotate finetune-student` (experiments/teacher_cpu_recipe).
+"""The teacher from random weights on a CPU alone, then its student: five `rotate train-teacher` stages (seven on a
+hand other than the first), then `rotate train-student` and `rotate finetune-student`
+(experiments/teacher_cpu_recipe).
 
-The shipped teacher's first stage ran on a GPU machine. This recipe needs none: on 2 CPU cores it took about 2.8 h
-(37.1 M environment steps) to a teacher that meets issue 8's targets on fresh seeds (net rate >= 0.30 rad/s, ttf
->= 0.90, upright >= 0.90 at nominal randomization), and 39 min more to a student from it that meets the student's
-(net rate >= 80% of the teacher's on the same episodes, ttf >= 0.85, upright >= 0.85). The stages:
+It trains on the default hand (envs.constants.DEFAULT_HAND) unless --hand names another. The figures below are the
+first hand's ('digit360', `--hand digit360`), whose shipped teacher's first stage ran on a GPU machine. This recipe
+needs none: on 2 CPU cores it took about 2.8 h (37.1 M environment steps) to a teacher that meets issue 8's targets
+on fresh seeds (net rate >= 0.30 rad/s, ttf >= 0.90, upright >= 0.90 at nominal randomization), and 39 min more to a
+student from it that meets the student's (net rate >= 80% of the teacher's on the same episodes, ttf >= 0.85,
+upright >= 0.85). Any other hand (the vendor-kinematics 'digit360_v4') adds stages 4b and 6 and its own hold-checked
+grasps. The stages:
 
 0. the grasp cache from before the hold check (`rotate grasps --hold-seconds 0`), a third of whose grasps cannot
    hold the cup by themselves: from grasps that slip, keeping the cup needs the fingers to move it, and stage 1
@@ -33,9 +37,9 @@ vendor-kinematics hand, the one experiments/teacher_v4's rule picks). Each stage
 --out (checkpoints, curves, TensorBoard logs, bundle). Running the script again continues: a finished stage is
 skipped, a stopped one resumes from its last checkpoint. Ctrl-C stops the running stage with a checkpoint.
 
-    python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu                  # about 3.5 h on 2 cores
-    python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu --teacher-only   # the teacher alone, about 2.8 h
-    python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu --dry-run        # the commands, run nothing
+    python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu --hand digit360                 # about 3.5 h
+    python scripts/teacher_cpu_recipe.py --out runs/teacher_cpu --hand digit360 --teacher-only  # about 2.8 h
+    python scripts/teacher_cpu_recipe.py --out runs/teacher_v4 --dry-run   # the default hand's commands, run nothing
     tensorboard --logdir runs/teacher_cpu
 
 Stage lengths are whole rollouts; a reproduction is not bit for bit the documented one (MuJoCo and torch differ
@@ -50,6 +54,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from envs.constants import DEFAULT_HAND
 from envs.grasp_cache import default_cache_path
 from rotation.configs import script_main
 from rotation.jobs.recipe import run_steps
@@ -122,10 +127,12 @@ class Config:
     """Progress bars."""
     dry_run: bool = False
     """Print the commands (what is left to run, and how) without running them."""
-    hand: str = "digit360"
-    """Hand variant (envs.scene.HANDS) the recipe trains on: its grasps, its physics (envs.physics.HAND_PHYSICS)
-    and its shipped hold-checked grasps for stages 3-5. 'digit360_v4' is the vendor's kinematics on the hardware's
-    physics; the student stages and the evaluation take the hand from the teacher's bundle."""
+    hand: str = DEFAULT_HAND
+    """Hand variant (envs.scene.HANDS) the recipe trains on, the default hand unless told: its grasps and its
+    physics (envs.physics.HAND_PHYSICS). The first hand, 'digit360', trains stages 1-5 with its shipped hold-checked
+    grasps for stages 3 on; any other ('digit360_v4': the vendor's kinematics on the hardware's physics) adds stages
+    4b and 6 and generates its own hold-checked grasps. Every teacher stage and grasp cache is given --hand; the
+    student stages and the evaluation take the hand from the teacher's bundle."""
 
     def __post_init__(self) -> None:
         from envs.scene import HANDS
@@ -210,7 +217,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     out = cfg.out
     grasps_dir = out / "grasps_unchecked"
     grasps = grasps_dir / default_cache_path("cup", cfg.hand).name
-    hand = ["--hand", cfg.hand] if cfg.hand != "digit360" else []
+    hand = ["--hand", cfg.hand]  # always: the jobs' default hand need not be the recipe's
     checked = _checked_cache(cfg)
     todo: list[tuple[str, list[str]]] = []
     if not grasps.is_file():
@@ -218,7 +225,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
                      ["grasps", "--objects", "cup", "--hold-seconds", "0", "--out", str(grasps_dir), *hand]))
     progress = [] if cfg.progress else ["--no-progress"]
     prev = None
-    # stages 3 on train (and the evaluation runs) on the hold-checked grasps: the shipped ones of the shipped hand,
+    # stages 3 on train (and the evaluation runs) on the hold-checked grasps: the shipped ones of the first hand,
     # the recipe's own for another hand (generated before stage 3 needs them)
     on_checked = {"train-teacher": ["--grasp-cache", str(checked)], "train-student": ["--env.grasp-cache",
                   str(checked)], "finetune-student": ["--grasp-cache", str(checked)]} if checked else {}
@@ -288,7 +295,8 @@ def _unseen_contact(hand: str) -> list[str]:
 
 
 def _checked_cache(cfg: Config) -> Path | None:
-    """The recipe's own hold-checked grasp cache (a hand other than the shipped policies'), None for that hand."""
+    """The recipe's own hold-checked grasp cache on a hand other than the first ('digit360', whose shipped cup
+    cache is the hold-checked one), None on that hand."""
     if cfg.hand == "digit360":
         return None
     return cfg.out / "grasps_checked" / default_cache_path("cup", cfg.hand).name

@@ -5,12 +5,14 @@ follows the hand of the bundle it starts from."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import pytest
 
 from envs.config import EnvConfig
+from envs.constants import DEFAULT_HAND
 from envs.grasp_cache import default_cache_path
 from envs.sim_identity import bundle_hand, hand_fingerprint, hand_problem, sim_record
 from rotation import cli
@@ -18,6 +20,8 @@ from rotation.policy.bundle import PolicyBundle, load_policy_bundle
 from rotation.policy.bundle_config import BundleConfig
 
 V4 = "digit360_v4"
+OTHER = V4 if DEFAULT_HAND != V4 else "digit360"
+"""A hand other than the default one."""
 
 
 def _bundle(root: Path, name: str, source: str = "privileged", hand: str = V4, sha: str | None = None) -> str:
@@ -55,7 +59,8 @@ def test_a_teacher_records_its_sim_and_a_student_inherits_it(tmp_path):
 ROWS = {
     # (argv builder (root -> argv), words of the one-line refusal)
     "evaluate a mix of hands": (lambda r: ["evaluate", "--policy", f"v4={_bundle(r, 't')}", "--policy",
-                                           "old=teacher", "--episodes", "1", "--out", str(r / "ev")],
+                                           f"old={_bundle(r, 'o', hand='digit360')}", "--episodes", "1", "--out",
+                                           str(r / "ev")],
                                 "in separate runs"),
     "evaluate a changed model": (lambda r: ["evaluate", "--policy", f"v4={_bundle(r, 't', sha='0' * 64)}",
                                             "--episodes", "1", "--out", str(r / "ev")], "model changed"),
@@ -63,7 +68,8 @@ ROWS = {
                                         str(r / "v.mp4")], "model changed"),
     "collect without touch": (lambda r: ["collect", "--policy", _bundle(r, "t", hand="xela_v4"), "--episodes", "1",
                                          "--out", str(r / "c")], "does not simulate yet"),
-    "deploy on a real Allegro": (lambda r: ["deploy", "--hand", "allegro", "--policy", "student", "--duration", "1"],
+    "deploy on a real Allegro": (lambda r: ["deploy", "--hand", "allegro", "--policy",
+                                                     _bundle(r, "s", "adaptation", hand="digit360"), "--duration", "1"],
                                  "not the real Allegro's"),
     "deploy on a real LEAP": (lambda r: ["deploy", "--hand", "leap", "--policy", _bundle(r, "s", "adaptation"),
                                          "--duration", "1"], "LEAP model"),
@@ -95,22 +101,34 @@ def test_training_follows_the_hand_of_the_bundle_it_starts_from(tmp_path):
     teacher = _bundle(tmp_path, "teacher")
     cfg = student_config.Config(teacher=teacher, out=tmp_path / "student")
     assert cfg.env.hand == V4 and cfg.env.contact.cone == "elliptic" and cfg.env.randomization.mass[1] == 0.40
-    with pytest.raises(ValueError, match="init_from: .* trained on the digit360_v4 hand, not the digit360 hand"):
-        teacher_config.Config(init_from=Path(teacher), out=tmp_path / "t2")
-    assert teacher_config.Config(init_from=Path(teacher), hand=V4, out=tmp_path / "t3").env_config().hand == V4
-    with pytest.raises(ValueError, match="env.hand: the teacher .* trained on the digit360 hand"):
-        student_config.Config(teacher="teacher", env=EnvConfig(hand=V4), out=tmp_path / "s2")
+    # a teacher run starting from another hand's bundle is refused unless it names that hand
+    other = Path(_bundle(tmp_path, "other", hand=OTHER))
+    with pytest.raises(ValueError, match=f"init_from: .* trained on the {OTHER} hand, not the {DEFAULT_HAND} hand "
+                                         f"\\(pass --hand {OTHER},"):
+        teacher_config.Config(init_from=other, out=tmp_path / "t2")
+    assert teacher_config.Config(init_from=other, hand=OTHER, out=tmp_path / "t3").env_config().hand == OTHER
+    # a student trains on its teacher's hand (the shipped teacher's: the default one), not on another
+    with pytest.raises(ValueError, match=f"env.hand: the teacher .* trained on the {DEFAULT_HAND} hand; .* not on "
+                                         f"{OTHER}"):
+        student_config.Config(teacher="teacher", env=EnvConfig(hand=OTHER), out=tmp_path / "s2")
 
 
 def test_an_old_hands_grasp_cache_is_refused_in_one_line(tmp_path):
     from envs.grasp_cache import load_default_cache
 
-    with pytest.raises(ValueError, match="generated for the digit360 hand, not for the digit360_v4 hand"):
-        load_default_cache("cup", str(default_cache_path("cup")), hand=V4)
+    with pytest.raises(ValueError, match="generated for the digit360 hand, not for the digit360_v4 hand; generate "
+                                         "one with `rotate grasps --hand digit360_v4`"):
+        load_default_cache("cup", str(default_cache_path("cup", "digit360")), hand=V4)
+    with pytest.raises(ValueError, match="generated for the digit360_v4 hand, not for the digit360 hand"):
+        load_default_cache("cup", str(default_cache_path("cup", V4)), hand="digit360")
 
 
-def test_the_shipped_policies_record_no_sim_and_act_on_the_older_model():
+def test_the_shipped_policies_record_the_default_hand_and_its_contact_model():
+    default = EnvConfig(hand=DEFAULT_HAND)
     for name in ("teacher", "student"):
         raw = json.loads((Path(__file__).resolve().parents[1] / "rotation" / "policies" / name / "config.json")
                          .read_text())
-        assert "sim" not in raw and bundle_hand(load_policy_bundle(name).config.sim) == "digit360"
+        assert raw["sim"] == sim_record(default), name  # the hand, its fingerprint, contact and torque limits
+        assert raw["sim"]["contact"] == dataclasses.asdict(default.contact)
+        sim = load_policy_bundle(name).config.sim
+        assert bundle_hand(sim) == DEFAULT_HAND and hand_problem(sim, DEFAULT_HAND) is None

@@ -149,12 +149,14 @@ def _imu_vibration(track: ContactTrack, samples: np.ndarray, key: int, model: Di
     rise = np.diff(fn, prepend=fn[:1]) - model.impact_threshold
     ring = _imu_ring(float(freq), float(decay))
     first = int(samples[0])
-    for i in np.flatnonzero(rise > 0):
-        onset = int(math.ceil(track.times[i] * IMU_HZ - 1e-6))
-        lo, hi = max(onset, first), min(onset + len(ring), first + len(samples))
-        if lo < hi:
-            out[lo - first : hi - first] += ((rise[i] / model.imu_effective_mass) * ring[lo - onset : hi - onset, None]
-                                             * -direction[i])  # the dome is pushed inward
+    rising = np.flatnonzero(rise > 0)
+    if len(rising):  # every rise rings from its onset sample on, all rows at once (the dome is pushed inward)
+        onsets = np.ceil(track.times[rising] * IMU_HZ - 1e-6).astype(np.int64)
+        lag = (first + np.arange(len(samples)))[None, :] - onsets[:, None]  # (rows, n) samples since each onset
+        inside = (lag >= 0) & (lag < len(ring))
+        amplitude = rise[rising] / model.imu_effective_mass
+        rings = np.where(inside, ring[np.clip(lag, 0, len(ring) - 1)], 0.0) * amplitude[:, None]
+        out += rings.T @ -direction[rising]
     tangential = contact_frame_force(rows)[:, 1].astype(np.float64)
     power = tangential * mean_slip(rows)  # friction_power, with the tangential force kept for the axis below
     if np.any(power > 0):

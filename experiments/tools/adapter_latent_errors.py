@@ -79,7 +79,7 @@ class Samples:
 def collect(cfg: Config) -> Samples:
     """Run the adapter (deterministic actions, the correction held between refreshes as in evaluation)."""
     from envs.constants import PRIV_FIELDS
-    from rotation.bundles import load_bundle
+    from rotation.bundles import load_bundle, policy_hand
     from rotation.evaluate import job
     from rotation.evaluate.rollout import touch_correction
     from rotation.evaluate.suites import get_suite
@@ -92,7 +92,7 @@ def collect(cfg: Config) -> Samples:
     if teacher.config.latent_dim != policy.config.latent_dim:
         raise ValueError(f"--teacher {cfg.teacher!r} has a {teacher.config.latent_dim}-dim latent, the adapter's "
                          f"student a {policy.config.latent_dim}-dim one")
-    cond = get_suite("perturbations", [cfg.condition])[0]
+    cond = get_suite("perturbations", [cfg.condition], hand=policy_hand(policy))[0]  # on the hand the env runs
     ecfg = job.Config(policies={"adapter": cfg.adapter}, seed=cfg.seed, num_envs=cfg.num_envs)
     env_cfg = job.env_config(ecfg, policy, cond.perturb, policy.env_needs)
     env = make_vec("cpu", env_cfg, num_envs=cfg.num_envs, seed=cfg.seed, nthread=None, device="cpu")

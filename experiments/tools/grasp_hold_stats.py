@@ -37,10 +37,11 @@ class Config:
     """Grasp caches: an object name (its shipped cache), a path to a .npz, or NAME=PATH."""
     seconds: float = HoldRule.seconds
     """Seconds of the hold."""
-    friction: float = HoldRule.friction
-    """Friction of hand and object during the hold."""
-    mass: float = HoldRule.mass
-    """Object mass (kg) during the hold."""
+    friction: float | None = None
+    """Friction of hand and object during the hold; default: the middle of the cache's hand's range
+    (HoldRule.for_hand, as `rotate grasps` checks)."""
+    mass: float | None = None
+    """Object mass (kg) during the hold; default: the middle of the cache's hand's range."""
     max_tilt: float = HoldRule.max_tilt
     """A grasp passes where the object's worst tilt (rad) stays under this."""
     out: Path = Path("runs/grasp_hold")
@@ -50,8 +51,10 @@ class Config:
         if not self.caches:
             raise ValueError("caches: name at least one cache")
         check_number("seconds", self.seconds, 0.0, 60.0, low_open=True, unit="s")
-        check_number("friction", self.friction, 0.01, 10.0)
-        check_number("mass", self.mass, 0.001, 5.0, unit="kg")
+        if self.friction is not None:
+            check_number("friction", self.friction, 0.01, 10.0)
+        if self.mass is not None:
+            check_number("mass", self.mass, 0.001, 5.0, unit="kg")
         check_number("max_tilt", self.max_tilt, 0.0, np.pi, low_open=True, unit="rad")
         self.out = Path(self.out)
         check_output_dir("out", self.out)
@@ -67,16 +70,20 @@ def _load(spec: str) -> tuple[str, GraspCache]:
 
 
 def run(cfg: Config) -> dict:
-    rule = HoldRule(cfg.seconds, cfg.friction, cfg.mass, cfg.max_tilt)
     caches = [_load(spec) for spec in cfg.caches]  # every name checked before any work
+    given = {k: v for k, v in (("friction", cfg.friction), ("mass", cfg.mass)) if v is not None}
+    rules = {name: HoldRule.for_hand(cache.hand, seconds=cfg.seconds, max_tilt=cfg.max_tilt, **given)
+             for name, cache in caches}
     stats, tilts = {}, {}
     for name, cache in caches:
+        rule = rules[name]
         worst = hold_check(cache, rule)
         tilts[name] = worst
         passed = worst < rule.max_tilt
         stats[name] = {"object": cache.object, "grasps": int(worst.size), "pass": round(float(passed.mean()), 4),
                        "pass_per_scale": [round(float(x), 3) for x in passed.mean(1)],
-                       "sank": round(float(np.isinf(worst).mean()), 4), "cache_hold_rule": list(cache.hold)}
+                       "sank": round(float(np.isinf(worst).mean()), 4), "cache_hold_rule": list(cache.hold),
+                       "rule": list(rule.as_array())}
         print(f"{name}: {passed.mean():.1%} of {worst.size} grasps pass (sank: {np.isinf(worst).mean():.1%})")
     cfg.out.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -88,12 +95,14 @@ def run(cfg: Config) -> dict:
     ax.axvline(rule.max_tilt, color="k", ls="--", lw=1, label=f"limit {np.degrees(rule.max_tilt):.0f} deg")
     ax.set_xlabel(f"worst tilt during a {rule.seconds:g} s hold (rad; sunk or past {top:.2f} piled at the right)")
     ax.set_ylabel("grasps")
-    ax.set_title(f"hand holding still, friction {rule.friction:g}, mass {rule.mass:g} kg")
+    physics = {(r.friction, r.mass) for r in rules.values()}
+    ax.set_title("hand holding still, " + (f"friction {rule.friction:g}, mass {rule.mass:g} kg" if len(physics) == 1
+                                           else "each cache at its hand's nominal friction and mass"))
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(cfg.out / "hold_tilt.png", dpi=110)
     plt.close(fig)
-    result = {"rule": list(rule.as_array()), "caches": stats}
+    result = {"rule": list(rule.as_array()) if len(physics) == 1 else None, "caches": stats}
     (cfg.out / "hold_stats.json").write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result))
     return result

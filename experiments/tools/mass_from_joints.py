@@ -35,7 +35,7 @@ from envs.config import Perturbation
 from envs.constants import PRIV_FIELDS
 from envs.core import RotateCupVec
 from envs.rotate_cup import config_from_kwargs
-from rotation.bundles import load_bundle
+from rotation.bundles import load_bundle, policy_hand
 from rotation.configs import script_main
 
 FEATURES = ("phi", "tracking", "phi+tracking")
@@ -112,7 +112,8 @@ def collect(cfg: Config) -> dict[str, np.ndarray]:
         raise ValueError(f"--dims must name latent dimensions 0..{teacher.config.latent_dim - 1}, got {list(cfg.dims)}")
     rows: dict[str, list] = {k: [] for k in ("phi", "tracking", "mass", "z", "episode", "heavy")}
     for heavy, perturb in ((False, Perturbation()), (True, Perturbation(added_mass=cfg.added_mass))):
-        env = RotateCupVec(config_from_kwargs(perturb=perturb), num_envs=cfg.envs, seed=cfg.seed)
+        env = RotateCupVec(config_from_kwargs(perturb=perturb, hand=policy_hand(student)), num_envs=cfg.envs,
+                           seed=cfg.seed)  # the student's own hand (and that hand's physics)
         try:
             obs = env.reset(seed=cfg.seed)
             alive = np.ones(cfg.envs, bool)

@@ -82,8 +82,10 @@ class PolicyState:
         self.action_scale = float(action_scale)
         self.history = ProprioHistory(1)
         self.history.reset(np.array([0]), q0[None])  # as the env at reset: (q0, q0) in every frame
-        # the env starts from a grasp inside the limits; a measured pose may sit a hair outside them
-        self.targets = np.clip(q0, self.lower, self.upper)
+        # as the env at reset: the targets start at the start pose, also where it sits a hair outside the limits (a
+        # cached grasp is a settled pose, up to ~9 mrad past a joint's soft limit; a measured pose likewise); the
+        # first action clips them as the env's does, and the driver's safety layer clamps whatever it sends
+        self.targets = q0.copy()
 
     def observation(self) -> dict[str, np.ndarray]:
         """The groups the env returns: ``proprio`` (3, 32) and ``proprio_hist`` (30, 32), float32, newest last."""

@@ -43,6 +43,13 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+EMULATED_STALE_S = 0.25
+"""Stale limit (s) of the readers of emulated fingertips (`--digit360 sim`), where a real sensor's reader keeps 0.1 s
+(rotation.hardware.digit360.reader.Digit360Config). An emulated fingertip renders its streams on this host, beside
+the hand, the loop and the encoder: with the generation-2 sensor model four of them take about 40% of a core, and on
+a loaded 2-core machine the newest sample of one read 0.11-0.18 s old now and then without any fault. A stall or a
+lag fault longer than this limit still makes touch stale."""
+
 STALL_S = 0.5
 """A sensor whose newest sample is older than this (s) is reported as stalled (a gap in its recording)."""
 STREAMS = ("imu", "pressure")
@@ -199,7 +206,7 @@ def open_digit360(specs: dict[str, str], stack: contextlib.ExitStack, physics: H
                     physics=physics, finger=finger, epoch=epoch, linacc=linacc)
                 # an emulated sensor runs on this host's clock: the reader times its samples exactly
                 cfg = Digit360Config(port=stack.enter_context(emulator).path, imu_channel=imu_channel,
-                                     host_epoch_s=epoch)
+                                     host_epoch_s=epoch, stale_timeout_s=EMULATED_STALE_S)
                 rendered = emulator.media
                 if emulators is not None:
                     emulators[finger] = emulator

@@ -11,8 +11,8 @@ A schedule is a comma-separated list; times are seconds after the control loop s
 ``stall=FINGER@T+D``          the fingertip stops streaming for D s (samples lost): its windows go stale
 ``lag=FINGER@T+L``            from T on the fingertip delivers each sample L s after its device time (a slower
                               link): its windows end L further in the past and the summary's touch ages grow by L
-                              (the emulated fingertips run on the host's clock; past the reader's stale limit,
-                              0.1 s with the newest sample's own age, touch is stale)
+                              (the emulated fingertips run on the host's clock; past the emulated readers'
+                              stale limit, 0.25 s with the newest sample's own age, touch is stale)
 ``late=T+D``                  the hand's joint feedback stops for D s at T (Allegro: its position stream pauses;
                               LEAP: its status replies are dropped for D s): late control steps; longer than the
                               driver's feedback timeout, the motors go off and the run ends with a fault

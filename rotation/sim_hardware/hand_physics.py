@@ -35,7 +35,7 @@ from envs.core import set_contact
 from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
 from envs.physics import hand_physics as physics_of
-from envs.scene import OBJECT_JOINT, build_model, hand_variant, link_geoms
+from envs.scene import OBJECT_JOINT, build_model, hand_variant, link_geoms, skin_geoms
 from envs.sensors.digit360 import Digit360Readout, add_digit360_sensors, sensor_name
 from envs.task import object_inertia
 
@@ -51,7 +51,8 @@ class HandPhysics:
         """``q0``: initial joint angles (16,) rad, bus order (default: the vendor home pose); ``object_pose``:
         initial object position (3, m) + quaternion (4, wxyz), world frame (default: above the fingers, upright);
         ``hold``: keep the scene frozen until :meth:`release` (see the module docstring); ``hand``: the simulated
-        hand variant (envs.scene.HANDS) with its contact model (envs.physics.HAND_PHYSICS)."""
+        hand variant (envs.scene.HANDS) with its contact model (envs.physics.HAND_PHYSICS) and, on a hand whose links
+        have their own friction, the links' nominal coefficient; the other geoms keep the model's."""
         self.object_name = object_name
         self.hand = hand
         self.scale = float(scale)
@@ -60,6 +61,13 @@ class HandPhysics:
         self.model = build_model(get_object(object_name), scale=scale, timestep=TIMESTEP,
                                  edit=partial(add_digit360_sensors, history=1), hand=hand)
         set_contact(self.model, physics_of(hand).contact)  # the hand's contact model
+        link_friction = physics_of(hand).randomization.link_friction
+        if link_friction is not None:  # links and palm with their own friction: the env's nominal (the range's
+            # middle, envs.task.nominal_hardware_params), the object the smaller of its own and theirs (envs.core)
+            obj = np.flatnonzero(self.model.geom_bodyid == self.model.body("object").id)
+            nominal = float(np.mean(link_friction))
+            self.model.geom_friction[link_geoms(self.model, obj), 0] = nominal
+            self.model.geom_friction[obj, 0] = np.minimum(self.model.geom_friction[obj, 0], nominal)
         self.model.actuator_gainprm[:, 0] = 0.0  # position actuators off: torque comes from qfrc_applied
         self.model.actuator_biasprm[:, :3] = 0.0
         self.data = mujoco.MjData(self.model)
@@ -150,10 +158,12 @@ class HandPhysics:
 
     def object_properties(self) -> dict[str, float | list[float]]:
         """The emulated object's scale, mass (kg), sliding friction coefficient (of its contact with the
-        fingertips) and center-of-mass offset (m, object frame): what a lab would measure (rotation.data.properties)."""
+        fingertips: the larger of the object's and the skin's coefficients, as MuJoCo combines them; on a hand whose
+        links have their own friction the object's geom holds the smaller of the two) and center-of-mass offset (m,
+        object frame): what a lab would measure (rotation.data.properties)."""
         m, body = self.model, self.model.body("object").id
-        return {"scale": self.scale, "mass": float(m.body_mass[body]),
-                "friction": float(m.geom_friction[m.body_geomadr[body], 0]),
+        friction = max(m.geom_friction[m.body_geomadr[body], 0], m.geom_friction[skin_geoms(m), 0].max())
+        return {"scale": self.scale, "mass": float(m.body_mass[body]), "friction": float(friction),
                 "com": [float(x) for x in m.body_ipos[body]]}
 
     @property

@@ -27,7 +27,7 @@ from envs import task
 from envs.config import EnvConfig
 from envs.core import action_space, observation_space, task_model
 from envs.grasp_cache import GraspCache, load_default_cache
-from envs.scene import OBJECT_BODY
+from envs.scene import HANDS, OBJECT_BODY
 from envs.validation import check_int, check_seed, check_types
 from rotation.sim_warp.rng import TorchCounterRNG, env_keys
 
@@ -63,6 +63,20 @@ class WarpConfig:
             raise ValueError(f"warp.device must be 'cuda', 'cuda:<index>' or 'cpu', got {self.device!r}")
         check_int("warp.nconmax", self.nconmax, 1, 4096)
         check_int("warp.njmax", self.njmax, 1, 65_536)
+
+
+def physics_problem(cfg: EnvConfig) -> str | None:
+    """Why this backend cannot simulate ``cfg``, or None when it can: the hardware physics of envs.physics (what the
+    digit360_v4 and xela_v4 hands randomize) and MuJoCo's noslip solver run on the cpu backend only for now."""
+    if task.uses_hardware_physics(cfg) or cfg.contact.noslip_iterations:
+        return (f"the {cfg.hand} hand's physics (separate tip and link friction, joint friction, torque scale, action "
+                "delay, randomized contact, the noslip solver: envs.physics) runs on the cpu backend only for now")
+    return None
+
+
+def simulated_hands() -> tuple[str, ...]:
+    """The hand variants (envs.scene.HANDS) whose physics this backend simulates, with their default settings."""
+    return tuple(hand for hand in HANDS if physics_problem(EnvConfig(hand=hand)) is None)
 
 
 def import_warp():
@@ -108,10 +122,9 @@ class RotateCupWarp:
                              "touch (the warp backend simulates proprioception and privileged info)")
         if getattr(cfg, "skin", False):
             raise ValueError("skin: the simulated Xela skin runs on the cpu backend only; use --backend cpu for it")
-        if task.uses_hardware_physics(cfg) or cfg.contact.noslip_iterations:
-            raise ValueError(f"hand: the {cfg.hand} hand's physics (separate tip and link friction, joint friction, "
-                             "torque scale, action delay, randomized contact, the noslip solver: envs.physics) runs "
-                             "on the cpu backend only for now; use --backend cpu")
+        problem = physics_problem(cfg)
+        if problem is not None:
+            raise ValueError(f"hand: {problem}; use --backend cpu")
         self.warp_cfg = wcfg = warp_cfg if warp_cfg is not None else WarpConfig()
         if not isinstance(wcfg, WarpConfig):
             raise ValueError(f"warp_cfg must be a WarpConfig, got {type(wcfg).__name__}")

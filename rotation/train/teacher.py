@@ -10,7 +10,7 @@ normalizer (SB3 has none; Hora scaled by 0.01 and normalized values); initial ac
 the env a lighter pose penalty and a fall penalty (envs.config.RewardConfig says why).
 
     rotate train-teacher --out runs/teacher --total-steps 30000000
-    rotate train-teacher --backend warp --out runs/teacher_gpu   # MuJoCo Warp + rsl_rl PPO on a GPU (docs/warp.md)
+    rotate train-teacher --backend warp --hand digit360 --out runs/teacher_gpu   # MuJoCo Warp + rsl_rl PPO on a GPU
     rotate train-teacher --resume runs/teacher/checkpoints/last.zip --total-steps 40000000   # the run's options
     tensorboard --logdir runs/teacher/tb
 

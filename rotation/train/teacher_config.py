@@ -17,6 +17,7 @@ from envs.sim_identity import bundle_hand
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import check_device
 from rotation.policy.bundle import load_policy_bundle
+from rotation.sim_warp.core import physics_problem, simulated_hands
 
 
 @dataclass
@@ -128,7 +129,8 @@ class Config:
     """Physics backend: 'cpu' (MuJoCo on mujoco.batch threads, stable-baselines3 PPO) or 'warp' (MuJoCo Warp worlds
     and rsl_rl PPO resident on --device, the [warp] extra; on the command line it starts from the GPU recipe
     rotation.train.teacher_config.GPU_RECIPE: 8192 worlds, horizon 8, 5 epochs, lr 5e-3, device cuda, which the
-    options given win over). The simulated Digit 360 touch runs on the cpu backend only."""
+    options given win over). The simulated Digit 360 touch runs on the cpu backend only, and so does the physics of
+    the vendor-kinematics hands (digit360_v4, xela_v4): a warp run takes --hand digit360 or xela."""
     student: str = ""
     """A distilled student bundle (directory or shipped name) to fine-tune with PPO instead of training a teacher
     (what `rotate finetune-student` sets): its actor learns on its own latent estimate, phi stays frozen, the critic
@@ -219,11 +221,25 @@ class Config:
         check_int("critic_warmup", self.critic_warmup, 0, 10**6)
         if self.grasp_cache and not Path(self.grasp_cache).is_file():
             raise ValueError(f"grasp_cache: no such file: {self.grasp_cache!r} (generate one with `rotate grasps`)")
+        if self.backend == "warp":
+            self._check_warp_physics()
         check_device("device", self.device)
         if self.resume is not None and self.overwrite and self.resume.resolve().is_relative_to(self.out.resolve()):
             raise ValueError(f"--overwrite would delete the checkpoint --resume {self.resume} continues from; "
                              "resume into another --out, or drop --overwrite")
         self.env_config()  # episode_steps and the rest of the env, checked by EnvConfig
+
+    def _check_warp_physics(self) -> None:
+        """The warp backend simulates the first hand model's physics only (rotation.sim_warp.core.physics_problem):
+        a run it cannot simulate is refused here, in one line that names the hand to pass."""
+        problem = physics_problem(self.env_config())
+        if problem is None:
+            return
+        hands = simulated_hands()
+        if self.hand in hands:  # an option of this run turned on physics the backend lacks
+            raise ValueError(f"backend: {problem}; use --backend cpu for these settings")
+        raise ValueError(f"backend: {problem}; pass --hand {hands[0]} to train on the warp backend (it simulates the "
+                         f"{' and '.join(hands)} hands), or use --backend cpu")
 
     def _follow_bundle_hand(self, sim: dict, what: str) -> None:
         """A fine-tune trains on its bundle's hand: the default hand follows it, another one is refused."""

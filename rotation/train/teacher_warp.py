@@ -9,10 +9,14 @@ MLP with a value head. So the run ends in the same policy bundle (`bundle/`), wh
 load exactly like one trained by stable-baselines3, with the same TensorBoard tags (`episode/*`, `train/*`) and
 `curves.jsonl` rows. docs/warp.md says why rsl_rl and what differs from the CPU learner.
 
-    rotate train-teacher --backend warp --out runs/teacher_gpu          # teacher_config.GPU_RECIPE by default
-    rotate train-teacher --backend warp --device cpu --num-envs 8 ...   # Warp's CPU device (tests, slow)
+    rotate train-teacher --backend warp --hand digit360 --out runs/teacher_gpu   # teacher_config.GPU_RECIPE by default
+    rotate train-teacher --backend warp --hand digit360 --device cpu --num-envs 8 ...   # Warp's CPU device (tests)
     rotate train-teacher --backend warp --out runs/teacher_gpu --resume runs/teacher_gpu/checkpoints/last.pt
-    rotate train-teacher --backend warp --out runs/teacher_gpu2 --init-from runs/teacher/bundle   # warm start
+    rotate train-teacher --backend warp --hand digit360 --out runs/teacher_gpu2 --init-from runs/teacher/bundle
+
+The warp backend does not simulate the physics of the vendor-kinematics hands yet (the default digit360_v4, and
+xela_v4: rotation.sim_warp.core.physics_problem), so a warp run names the first hand model (`--hand digit360` or
+`xela`) and warm-starts from a bundle trained on it; the config refuses any other in one line.
 
 `--resume` continues a run from `checkpoints/last.pt` (actor, critic, optimizer, learning rate, step count) with the
 same options but its length and speed; the worlds restart from fresh resets seeded with seed + steps, as on the cpu

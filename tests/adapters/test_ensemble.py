@@ -305,9 +305,10 @@ def test_evaluate_with_an_ensemble(ensemble_dir, tmp_path):
 
 def test_latent_errors_of_an_ensemble(ensemble_dir, load_script, tmp_path):
     """experiments/tools/adapter_latent_errors.py reads an ensemble as it reads one adapter: its latent is the shared
-    student's plus the weighted correction."""
+    student's plus the weighted correction. (+0.1 kg: a condition of every hand's suite; the hardware physics' cups
+    reach 0.4 kg, which leaves no room for +0.2 kg under MAX_OBJECT_MASS.)"""
     out = tmp_path / "errors"
-    args = ["--adapter", str(ensemble_dir), "--condition", "mass_+0.2kg", "--num-envs", "2", "--steps", "6",
+    args = ["--adapter", str(ensemble_dir), "--condition", "mass_+0.1kg", "--num-envs", "2", "--steps", "6",
             "--seed", "5", "--out", str(out)]
     assert load_script("adapter_latent_errors").main(args) == 0
     total = json.loads((out / "errors.json").read_text())["total"]

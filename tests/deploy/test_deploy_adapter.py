@@ -27,7 +27,7 @@ from rotation.cli import main
 from rotation.deploy.config import Config
 from rotation.deploy.job import run
 from rotation.deploy.loop import ControlLoop
-from rotation.deploy.sensors import SIM_WINDOWS
+from rotation.deploy.sensors import EMULATED_STALE_S, SIM_WINDOWS
 from rotation.deploy.touch import adapter_inputs, touch_sensors, wait_for_touch
 from rotation.deploy.touch_worker import TouchWorker
 from rotation.hardware.digit360.reader import SensorStale
@@ -96,15 +96,15 @@ def test_adapter_policy_on_the_emulated_hand_starts_its_sensors_and_acts(adapter
 
 
 def test_the_recorded_touch_age_follows_a_latency_injected_into_the_fingertips(caplog, hand_hook, tmp_path,
-                                                                                monkeypatch, policy):
+                                                                                monkeypatch, first_hand_policy):
     """Each step records the age of the touch it acted on (touch/age); when the emulated fingertips start delivering
     their samples 60 ms late (sim fault `lag`), the ages grow by that latency, within one control step: the touch
     path's latency that training and evaluation apply in simulation (adapters.touch_delay) is what deploy sees.
-    (The emulated fingertips run on the host's clock; 60 ms stays below the readers' 0.1 s stale limit.)"""
+    (The emulated fingertips run on the host's clock; 60 ms stays below the emulated readers' 0.25 s stale limit.)"""
     caplog.set_level(logging.INFO, logger="rotation")
     lag_s, at_s = 0.06, 2.0
     adapter_dir = str(tmp_path / "every_step")  # refreshed every step: many refreshes on both sides of the fault
-    build_adapted(policy, ENCODER, ("pressure",), touch_every=1).save(adapter_dir)
+    build_adapted(first_hand_policy, ENCODER, ("pressure",), touch_every=1).save(adapter_dir)
     faults = ",".join(f"lag={f}@{at_s}+{lag_s}" for f in FINGERS)
     workers, loops = [], []
     real_worker, real_loop = TouchWorker.__init__, ControlLoop.__init__
@@ -199,11 +199,12 @@ def test_the_shipped_adapter_turns_the_emulated_cup(capsys, caplog, hand_hook):
 def test_a_stalled_fingertip_falls_back_to_the_student_and_comes_back(adapter_dir, caplog, hand_hook,
                                                                       digit360_emulators, monkeypatch):
     caplog.set_level(logging.INFO, logger="rotation")
+    stale_s = EMULATED_STALE_S  # the emulated fingertips' readers' limit (a real sensor's is 0.1 s)
     real_correction = TouchWorker.correction
 
-    def correction(self, step, now):  # at step 10 the thumb's stream stops for 0.6 s
+    def correction(self, step, now):  # at step 10 the thumb's stream stops, 0.6 s longer than the stale limit
         if step == 10:
-            digit360_emulators["thumb"].faults.pause_s = 0.6
+            digit360_emulators["thumb"].faults.pause_s = stale_s + 0.6
         return real_correction(self, step, now)
 
     monkeypatch.setattr(TouchWorker, "correction", correction)
@@ -214,6 +215,7 @@ def test_a_stalled_fingertip_falls_back_to_the_student_and_comes_back(adapter_di
     warnings = touch_warnings(caplog)
     stale = [r for r in warnings if "SensorStale: digit360-thumb" in r.getMessage()]
     assert len(stale) == 1, [r.getMessage() for r in warnings]  # ONE warning for the stall, naming the finger
+    assert f"(> {stale_s} s)" in stale[0].getMessage()  # the emulated fingertips' readers took the limit
     assert "touch is back; the adapter acts again" in caplog.text
     assert touch["adapter_steps"] > 10  # before and after the stall
     assert summary["held_steps"] <= summary["steps"] // 2  # the loop went on through the stall

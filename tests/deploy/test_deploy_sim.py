@@ -17,11 +17,13 @@ import numpy as np
 import pytest
 from deploy_checks import again_if_loaded, assert_done_or_load_fault
 
+from envs.physics import default_randomization
 from rotation import bundles
 from rotation.cli import main
 from rotation.data.session_reader import SessionReader
 from rotation.deploy.config import Config
 from rotation.deploy.job import run
+from rotation.deploy.policy import REAL_ALLEGRO_MODEL
 from rotation.policy.bundle import shipped_bundles
 
 STUDENT_SHIPPED = "student" in shipped_bundles()
@@ -70,7 +72,9 @@ def test_sim_allegro_cli_run_records_and_switches_motors_off(tmp_path, capsys, p
     with read_session(summary["record"], recorded) as r:  # the session of the run checked
         assert r.complete is not faulted and r.meta.source == "sim" and r.meta.hand == "allegro"
         assert r.meta.extra["hand"] == "sim-allegro" and r.meta.extra["policy"] == policy
-        assert r.meta.properties["scale"] == pytest.approx(0.78)
+        # the emulated body is the policy's own hand model, at its env's nominal scale (0.78 on 'digit360')
+        scales = default_randomization(bundles.policy_hand(bundles.load_bundle(policy))).scales
+        assert r.meta.properties["scale"] == pytest.approx(scales[len(scales) // 2])
         assert r.stream("labels/object_pose").data.shape == (recorded, 7)
         for finger in ("index", "middle", "ring", "thumb"):
             assert len(r.stream(f"digit360/{finger}/imu")) > 200 and len(r.stream(f"digit360/{finger}/pressure")) > 100
@@ -110,17 +114,23 @@ def test_real_allegro_path_against_an_emulator_on_a_virtual_bus(tmp_path, policy
     monkeypatch.setattr(allegro, "AllegroConfig", functools.partial(allegro.AllegroConfig, feedback_timeout_s=0.3,
                                                                     reply_timeout_s=0.2))
     record = tmp_path / "real.h5"
+    # a policy of the vendor-kinematics model runs on a real Allegro as it is; one of another model (a randomly
+    # initialised stand-in records none: the older model) only with --allow-model-mismatch, recorded as such
+    bundle = bundles.load_bundle(policy)
+    mismatch = bundles.policy_hand(bundle) != REAL_ALLEGRO_MODEL
     with AllegroEmulator(channel="deploy-test-bus") as emu:
         summary = run(Config(hand="allegro", can="virtual:deploy-test-bus", policy=policy, duration=1.5,
-                             allow_model_mismatch=True, record=str(record)))
+                             allow_model_mismatch=mismatch, record=str(record)))
         assert summary["exit_code"] == 0 and summary["source"] == "real" and summary["rotation_rad"] is None
-        assert summary["model_mismatch_allowed"]  # the older model's student on a real-hand path, recorded as such
+        assert summary["model_mismatch_allowed"] is mismatch
         assert summary["motors_off"] and summary["motors_off_confirmed"] and summary["motors_off_witness"] == "hand"
         assert not emu.servo_on
     with read_session(record, summary["steps"]) as r:
         assert r.meta.source == "real" and not r.has("labels/object_pose") and r.meta.properties == {}
         assert r.meta.extra["hand_info"]["serial"] == "SAH040E1"
-        assert r.meta.extra["model_mismatch_allowed"] and r.meta.extra["policy_sim"] == {}
+        # the policy's sim identity (its hand model; {} for the older model) travels with the session
+        assert r.meta.extra["model_mismatch_allowed"] is mismatch
+        assert r.meta.extra["policy_sim"] == json.loads(json.dumps(bundle.config.sim))
 
 
 def pause_allegro_stream(opened):
@@ -259,7 +269,7 @@ def test_a_failed_recording_drain_ends_the_run_with_the_motors_off(tmp_path, pol
         assert not r.complete and len(r.stream("digit360/index/imu")) > 0  # what the first two drains moved
 
 
-def test_a_fault_still_records_the_sensors_last_samples(tmp_path, policy, hand_hook, monkeypatch):
+def test_a_fault_still_records_the_sensors_last_samples(tmp_path, first_hand_policy, hand_hook, monkeypatch):
     """After a fault the motors go off first; then the samples the drain thread had not yet moved (up to its
     0.25 s interval, the moments before the fault) still reach the session before it closes. The drains are made
     too rare to run during the run here, so all the fingertips' samples reach the session after the fault."""
@@ -272,7 +282,9 @@ def test_a_fault_still_records_the_sensors_last_samples(tmp_path, policy, hand_h
     monkeypatch.setattr(loop_module, "DrainThread", RareDrains)
     hand_hook.after(1.0, send_sigint)
     record = tmp_path / "signal.h5"
-    summary = run(Config(hand="sim-allegro", policy=policy, duration=10.0, record=str(record), digit360="sim"))
+    # the first hand's fingertips, which render in real time here (tests/deploy/conftest.py first_hand_policy)
+    summary = run(Config(hand="sim-allegro", policy=first_hand_policy, duration=10.0, record=str(record),
+                         digit360="sim"))
     assert summary["exit_code"] == 130 and summary["motors_off"]
     with read_session(record, 10) as r:
         assert not r.complete

@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from deploy_checks import again_if_loaded, load_fault
 
+from envs.physics import default_randomization
+from envs.scene import skin_geoms
 from rotation.data.session_reader import SessionReader
 from rotation.deploy.config import Config
 from rotation.deploy.job import run
@@ -64,8 +66,18 @@ def test_set_object_changes_the_contacts_friction_and_the_bodys_mass():
     c = d.contact
     on_cup = (m.geom_bodyid[c.geom1] == body) | (m.geom_bodyid[c.geom2] == body)
     assert d.ncon and on_cup.sum() >= 3, "the grasp holds the cup by contacts"
-    # what MuJoCo's contacts use (the larger of the two geoms' coefficients): the stated one
-    assert c.friction[on_cup, 0] == pytest.approx(0.45)
+    # what MuJoCo's contacts use (the larger of the two geoms' coefficients), as the env's randomization writes them
+    # (envs.core): the stated one against the skin; against the links and palm, on a hand whose links have their own
+    # friction (the default 'digit360_v4'), the links' nominal one (the middle of its range), else the stated one too
+    on_skin = np.isin(c.geom1, skin_geoms(m)) | np.isin(c.geom2, skin_geoms(m))
+    assert (on_cup & on_skin).any(), "the grasp holds the cup by fingertips"
+    assert c.friction[on_cup & on_skin, 0] == pytest.approx(0.45)
+    link_range = default_randomization(physics.hand).link_friction
+    link = 0.45 if link_range is None else float(np.mean(link_range))
+    assert c.friction[on_cup & ~on_skin, 0] == pytest.approx(link)
+    physics.set_object(friction=1.1)  # grippier than any link: the object's geom keeps the links' coefficient
+    assert physics.object_properties()["friction"] == pytest.approx(1.1)  # what the fingertips' contacts use
+    assert physics.data.contact.friction[on_cup & on_skin, 0] == pytest.approx(1.1)
     fresh = HandPhysics.at_grasp("cup", 0, hold=True)
     fresh.set_object(mass=0.31)
     light = fresh.model.body_inertia[body].copy()

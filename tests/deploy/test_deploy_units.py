@@ -10,7 +10,9 @@ import pytest
 
 from envs import EnvConfig, RandomizationConfig, RotateCupVec
 from envs import constants as C
+from envs.constants import DEFAULT_HAND
 from envs.grasp_cache import load_default_cache
+from envs.physics import default_randomization
 from rotation.cli import main
 from rotation.deploy.config import Config
 from rotation.deploy.job import run
@@ -124,12 +126,15 @@ def test_digit360_option():
 
 
 def test_emulated_hand_starts_at_a_cached_grasp_and_holds_until_released():
-    cache = load_default_cache("cup")
-    bucket = int(np.abs(cache.scales - 0.78).argmin())  # RotateCup-v0's nominal scale
+    scales = default_randomization(DEFAULT_HAND).scales
+    nominal = scales[len(scales) // 2]  # RotateCup-v0's nominal scale on the default hand (0.78 on 'digit360')
+    cache = load_default_cache("cup", hand=DEFAULT_HAND)
+    bucket = int(np.abs(cache.scales - nominal).argmin())
     physics = HandPhysics.at_grasp("cup", grasp=3)
     row = cache.grasps[bucket, 3]
     q, _ = physics.joint_state()
-    assert physics.scale == pytest.approx(0.78) and physics.grasp == 3 and physics.held
+    assert physics.hand == DEFAULT_HAND and physics.scale == pytest.approx(nominal)
+    assert physics.grasp == 3 and physics.held
     np.testing.assert_allclose(q, row[:16])
     np.testing.assert_allclose(physics.object_pose(), row[16:])
     physics.advance(0.05)  # held: nothing moves, not even under gravity

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import math
+import re
 
 import gymnasium as gym
 import numpy as np
 import pytest
 
 from envs import EnvConfig, Perturbation, RandomizationConfig, RewardConfig, RotateCupVec
+from envs.config import default_randomization
+from envs.constants import DEFAULT_HAND
 from envs.rotate_cup import RotateCupEnv
 from envs.vector import RotateCupVectorEnv
 
@@ -183,28 +186,48 @@ def test_friction_above_what_the_contact_model_holds_is_refused():
     from envs.config import MAX_FRICTION
 
     assert MAX_FRICTION == 3.0
-    # the default randomization reaches 3.0 already: any friction_scale above 1 exceeds the limit
+    # the shipped physics (hand 'digit360'): its randomization reaches 3.0 already, any friction_scale above 1 exceeds
+    # the limit
     with pytest.raises(ValueError, match=r"perturb\.friction_scale 3 makes the friction reach 9, above 3\.0, the most "
                                          r"the contact model holds .*friction_scale must be in \(0, 1\]"):
-        EnvConfig(perturb=Perturbation(friction_scale=3.0))
+        EnvConfig(hand="digit360", perturb=Perturbation(friction_scale=3.0))
     with pytest.raises(ValueError, match=r"friction_scale must be in \(0, 1\]"):
-        gym.make("envs:RotateCup-v0", perturb={"friction_scale": 1.2})
+        gym.make("envs:RotateCup-v0", hand="digit360", perturb={"friction_scale": 1.2})
     # without randomization the friction is the middle of the range (1.65): up to x1.82
     nominal = RandomizationConfig(enabled=False)
-    EnvConfig(randomization=nominal, perturb=Perturbation(friction_scale=1.8))
+    EnvConfig(hand="digit360", randomization=nominal, perturb=Perturbation(friction_scale=1.8))
     with pytest.raises(ValueError, match=r"friction_scale must be in \(0, 1\.82\]"):
-        EnvConfig(randomization=nominal, perturb=Perturbation(friction_scale=1.9))
+        EnvConfig(hand="digit360", randomization=nominal, perturb=Perturbation(friction_scale=1.9))
+    # the default hand: the top of its own friction range sets the limit (on 'digit360_v4' the gel's 1.2: up to x2.5)
+    top = MAX_FRICTION / default_randomization(DEFAULT_HAND).friction[1]
+    EnvConfig(perturb=Perturbation(friction_scale=top))
+    with pytest.raises(ValueError, match=rf"perturb\.friction_scale {2 * top:g} makes the friction reach 6, above 3\.0"
+                                         rf".*friction_scale must be in \(0, {re.escape(f'{top:.3g}')}\]"):
+        EnvConfig(perturb=Perturbation(friction_scale=2 * top))
+    with pytest.raises(ValueError, match=rf"friction_scale must be in \(0, {re.escape(f'{top:.3g}')}\]"):
+        gym.make("envs:RotateCup-v0", perturb={"friction_scale": 1.1 * top})
     with pytest.raises(ValueError, match=r"randomization\.friction=\(0\.3, 4\.0\) is outside the allowed interval "
                                          r"\[0\.01, 3\.0\]"):
         RandomizationConfig(friction=(0.3, 4.0))
 
 
 def test_added_mass_above_what_the_actuators_lift_is_refused():
-    EnvConfig(perturb=Perturbation(added_mass=0.25))  # 0.25 kg randomized + 0.25 kg = 0.5 kg, the ceiling
+    from envs.config import MAX_OBJECT_MASS
+
+    assert MAX_OBJECT_MASS == 0.5
+    # the shipped physics (hand 'digit360'): 0.25 kg randomized + 0.25 kg = 0.5 kg, the ceiling
+    EnvConfig(hand="digit360", perturb=Perturbation(added_mass=0.25))
     with pytest.raises(ValueError, match=r"perturb\.added_mass 0\.3 kg makes the object weigh up to 0\.55 kg, above "
                                          r"0\.5 kg, what the 0\.5 N m actuators can lift; .* added_mass must be in "
                                          r"\[0, 0\.25\] kg"):
-        EnvConfig(perturb=Perturbation(added_mass=0.3))
+        EnvConfig(hand="digit360", perturb=Perturbation(added_mass=0.3))
+    # the default hand: the top of its own mass range (on 'digit360_v4' a 0.4 kg mug: up to +0.1 kg)
+    top = MAX_OBJECT_MASS - default_randomization(DEFAULT_HAND).mass[1]
+    assert top > 0
+    EnvConfig(perturb=Perturbation(added_mass=top))
+    with pytest.raises(ValueError, match=rf"makes the object weigh up to 0\.55 kg, above 0\.5 kg.* added_mass must be "
+                                         rf"in \[0, {re.escape(f'{top:.3g}')}\] kg"):
+        EnvConfig(perturb=Perturbation(added_mass=top + 0.05))
     with pytest.raises(ValueError, match=r"perturb\.added_mass must be in \[0, 0\.5\] kg"):
         Perturbation(added_mass=2.0)
     with pytest.raises(ValueError, match=r"randomization\.mass=\(0\.1, 1\.0\) is outside the allowed interval"):

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from envs import EnvConfig, RotateCupVec
+from envs.constants import DEFAULT_HAND
 from envs.objects import get_object
-from envs.scene import CANONICAL_POSE, build_model, hand_xml_path
+from envs.scene import build_model, hand_variant, hand_xml_path
 from envs.sensors import digit360_image as I
 from envs.sensors import digit360_model as M
 from envs.sensors import digit360_render as R
@@ -32,11 +33,14 @@ SUBSTEPS = 5
 
 @pytest.fixture(scope="module")
 def grasp():
-    """Hand + cylinder with the Digit 360 sensors, fingers closed on the object for 1 s."""
-    model = build_model(get_object("cylinder"), 0.8, 0.01, edit=partial(add_digit360_sensors, history=SUBSTEPS))
+    """The default hand + cylinder with the Digit 360 sensors, fingers closed on the object (at the hand's
+    canonical pose) for 1 s."""
+    model = build_model(get_object("cylinder"), 0.8, 0.01, edit=partial(add_digit360_sensors, history=SUBSTEPS),
+                        hand=DEFAULT_HAND)
     data = mujoco.MjData(model)
-    data.qpos[:16] = CANONICAL_POSE
-    data.ctrl[:] = CANONICAL_POSE
+    pose = hand_variant(DEFAULT_HAND).canonical_pose
+    data.qpos[:16] = pose
+    data.ctrl[:] = pose
     mujoco.mj_forward(model, data)
     for _ in range(100):
         mujoco.mj_step(model, data)
@@ -78,9 +82,10 @@ def test_contact_fields_are_physical(grasp):
     rows = Digit360Readout(model).read_current(data.sensordata[None])[0, :, 0]  # (4, D)
     touching = rows[:, FIELD["c0_found"]] > 0
     assert touching.sum() >= 2  # the grasp holds the object
+    radius = hand_variant(DEFAULT_HAND).tip_radius  # the default hand's domes (14 mm on 'digit360', 12 mm on v4)
     for row in rows[touching]:
         p = np.array([row[FIELD[f"c0_{a}"]] for a in "xyz"])
-        assert abs(np.linalg.norm(p) - DOME_RADIUS) < 1e-3  # on the dome surface (m)
+        assert abs(np.linalg.norm(p) - radius) < 1e-3  # on the dome surface (m)
         force = np.array([row[FIELD["force_x"]], row[FIELD["force_y"]], -row[FIELD["force_n"]]])  # on the dome
         assert -force @ p / np.linalg.norm(p) == pytest.approx(row[FIELD["c0_fn"]], rel=0.05)  # pushes inward
         assert row[FIELD["c0_fn"]] > 0 and row[FIELD["c0_slip"]] >= 0
@@ -222,7 +227,8 @@ def test_the_vendor_hands_domes_render_at_their_own_radius():
     for _ in range(3):
         obs, *_ = env.step(np.zeros((2, 16)))
     assert obs["tactile"].model.dome_radius == 0.012 and obs["tactile"]["index"]["image"].shape[0] == 2
-    assert RotateCupVec(EnvConfig(tactile=True), num_envs=1, seed=1, nthread=1).touch.sensor == M.DEFAULT_MODEL
+    older = RotateCupVec(EnvConfig(hand="digit360", tactile=True), num_envs=1, seed=1, nthread=1)
+    assert older.touch.sensor == M.DEFAULT_MODEL and M.DEFAULT_MODEL.dome_radius == 0.014
     track = _track()
     small = dataclasses.replace(M.DEFAULT_MODEL, dome_radius=0.012)
     frames = {m: I.render_frames(track, np.array([9, 36]), key=3, model=m).astype(int)

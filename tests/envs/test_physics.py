@@ -96,8 +96,9 @@ def test_each_drawn_parameter_reaches_its_simulation():
         assert m.opt.noslip_iterations == (10 if p["noslip"][i] else 0)
         assert m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert np.array_equal(env.delay, p["delay"].astype(int))
-    # the shipped hand's simulations are left as compiled: no per-simulation copies of these fields
-    plain = RotateCupVec(EnvConfig(), num_envs=2, seed=5, nthread=1)
+    # a hand on the shipped physics (Hora's: 'digit360', 'xela') leaves its simulations as compiled: no per-simulation
+    # copies of these fields
+    plain = RotateCupVec(EnvConfig(hand="digit360"), num_envs=2, seed=5, nthread=1)
     plain.reset()
     assert plain.starts._fields == {} and not plain.delay.any()
 

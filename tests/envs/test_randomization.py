@@ -1,5 +1,6 @@
 """Domain randomization lands in the per-simulation model fields, matches `priv`, stays in range; perturbations
-shift exactly the sampled values; with randomization off every env gets the nominal values (worked out by hand)."""
+shift exactly the sampled values; with randomization off every env gets the nominal values (worked out by hand).
+The randomized env is the default hand's, with its own physics (envs.physics.HAND_PHYSICS)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ def fields(core: RotateCupVec) -> dict[str, np.ndarray]:
         "subtree_mass": b.expanded("body_subtreemass")[:, body],  # derived by set_const from the written mass
         "com": b.expanded("body_ipos")[:, body],
         "inertia": b.expanded("body_inertia")[:, body],
-        "friction": b.expanded("geom_friction")[:, :, 0],  # (N, ngeom): hand and object alike (Hora)
+        "friction": b.expanded("geom_friction")[:, :, 0],  # (N, ngeom)
         "size": b.expanded("geom_size")[:, geoms],  # (N, object geoms, 3)
         "gain": b.expanded("actuator_gainprm")[:, :, 0],
         "bias_kp": b.expanded("actuator_biasprm")[:, :, 1],
@@ -43,10 +44,20 @@ def test_model_fields_equal_priv_and_params(randomized):
     np.testing.assert_array_equal(f["mass"], p["mass"])
     np.testing.assert_allclose(f["subtree_mass"], p["mass"], rtol=1e-12)
     np.testing.assert_array_equal(f["com"], p["com"])
-    np.testing.assert_array_equal(f["friction"], np.repeat(p["friction"][:, None], core.model.ngeom, axis=1))
-    np.testing.assert_array_equal(f["gain"], p["kp"])
-    np.testing.assert_array_equal(f["bias_kp"], -p["kp"])
-    np.testing.assert_array_equal(f["bias_kd"], -p["kd"])
+    # friction: one coefficient for hand and object (Hora's, the shipped physics); on the hardware physics the drawn
+    # friction is the fingertips' (the gel domes), the links and palm have their own, and the object takes the lower
+    friction = np.repeat(p["friction"][:, None], core.model.ngeom, axis=1)
+    st = core.starts
+    if "link_friction" in p:
+        friction[:, st.link_geoms] = p["link_friction"][:, None]
+        friction[:, st.obj_geoms] = np.minimum(p["friction"], p["link_friction"])[:, None]
+    np.testing.assert_array_equal(f["friction"], friction)
+    assert len(st.tip_geoms) and np.all(f["friction"][:, st.tip_geoms] == p["friction"][:, None])  # the domes
+    # the PD gains, in N m per normalized torque unit where the hand's physics draws one (torque_scale)
+    scale = p["torque_scale"][:, None] if "torque_scale" in p else 1.0
+    np.testing.assert_array_equal(f["gain"], p["kp"] * scale)
+    np.testing.assert_array_equal(f["bias_kp"], -p["kp"] * scale)
+    np.testing.assert_array_equal(f["bias_kd"], -p["kd"] * scale)
     # the object geoms are the compiled ones (at the largest scale) shrunk to the env's scale
     compiled = core.model.geom_size[core.obj_geoms]  # (geoms, 3)
     used = compiled > 0  # size slots a primitive does not use stay 0
@@ -57,7 +68,7 @@ def test_model_fields_equal_priv_and_params(randomized):
     np.testing.assert_allclose(f["size"][:, 0, :2], np.stack([0.040 * p["scale"], 0.0425 * p["scale"]], 1), rtol=1e-12)
     # priv reports exactly these values (in float32), in the PRIV_FIELDS layout
     np.testing.assert_array_equal(priv[:, PRIV["mass"]], f["mass"].astype(np.float32))
-    np.testing.assert_array_equal(priv[:, PRIV["friction"]], f["friction"][:, 0].astype(np.float32))
+    np.testing.assert_array_equal(priv[:, PRIV["friction"]], f["friction"][:, st.tip_geoms[0]].astype(np.float32))
     np.testing.assert_array_equal(priv[:, [PRIV["com_x"], PRIV["com_y"], PRIV["com_z"]]], f["com"].astype(np.float32))
     np.testing.assert_array_equal(priv[:, PRIV["scale"]], p["scale"].astype(np.float32))
     pos = core.batch.bind("qpos")[:, core.obj_qpos : core.obj_qpos + 3]
@@ -66,8 +77,9 @@ def test_model_fields_equal_priv_and_params(randomized):
     for i in (0, N - 1):
         m = core.batch.get_model(i)
         assert m.body_mass[core.obj_body] == p["mass"][i]
-        assert m.geom_friction[core.obj_geoms[0], 0] == p["friction"][i]
-        np.testing.assert_array_equal(m.actuator_gainprm[:, 0], p["kp"][i])
+        assert m.geom_friction[st.tip_geoms[0], 0] == p["friction"][i]
+        assert m.geom_friction[core.obj_geoms[0], 0] == friction[i, core.obj_geoms[0]]
+        np.testing.assert_array_equal(m.actuator_gainprm[:, 0], f["gain"][i])
 
 
 def test_samples_lie_in_the_configured_ranges(randomized):
@@ -76,11 +88,15 @@ def test_samples_lie_in_the_configured_ranges(randomized):
     buckets = np.asarray(rc.scales)
     jitter = np.abs(p["scale"][:, None] - buckets[None]).min(axis=1)
     assert np.all(jitter <= rc.scale_jitter + 1e-12)
-    for key, (lo, hi) in (("mass", rc.mass), ("friction", rc.friction), ("com", rc.com), ("kp", rc.kp), ("kd", rc.kd)):
+    ranges = [("mass", rc.mass), ("friction", rc.friction), ("com", rc.com), ("kp", rc.kp), ("kd", rc.kd)]
+    if rc.link_friction is not None:  # the hardware physics' own friction of the links and palm
+        ranges.append(("link_friction", rc.link_friction))
+    for key, (lo, hi) in ranges:
         assert np.all((p[key] >= lo) & (p[key] <= hi)), key
         assert np.unique(p[key]).size == p[key].size, f"{key} is not sampled per env (and per joint)"
-    # 16 envs cover a good part of each range (a sampler stuck in a corner would not)
-    assert np.ptp(p["mass"]) > 0.1 and np.ptp(p["friction"]) > 1.0 and np.ptp(p["scale"]) > 0.05
+    # 16 envs cover a good part (a third) of each range (a sampler stuck in a corner would not)
+    for key, (lo, hi) in (("mass", rc.mass), ("friction", rc.friction), ("scale", (min(buckets), max(buckets)))):
+        assert np.ptp(p[key]) > (hi - lo) / 3, key
 
 
 def test_subset_reset_rewrites_only_those_envs():

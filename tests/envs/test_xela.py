@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from envs import EnvConfig, RotateCupVec
+from envs.constants import DEFAULT_HAND
 from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
 from envs.scene import build_model, hand_spec, hand_xml_path
@@ -233,8 +234,8 @@ def test_skin_does_not_change_the_physics_or_the_plain_env(skin_env):
         obs, _, _, _, info = quiet.step(a)
     assert set(obs) == {"proprio", "proprio_hist", "priv"} and "skin_force" not in info and quiet.skin is None
     assert np.array_equal(obs["proprio"], trace[-1][0]["proprio"]) and np.array_equal(obs["priv"], trace[-1][0]["priv"])
-    plain = RotateCupVec(EnvConfig(), num_envs=1, seed=0, nthread=1)  # the default: Digit 360 hand, no skin
-    assert plain.skin is None and plain.model.nsensor == 0 and plain.cfg.hand == "digit360"
+    plain = RotateCupVec(EnvConfig(), num_envs=1, seed=0, nthread=1)  # the default: a Digit 360 hand, no skin
+    assert plain.skin is None and plain.model.nsensor == 0 and plain.cfg.hand == DEFAULT_HAND
     assert not any(plain.model.geom(i).name.startswith("xela_") for i in range(plain.model.ngeom))
     assert set(plain.reset(seed=0)) == {"proprio", "proprio_hist", "priv"}
 
@@ -248,8 +249,8 @@ def test_config_refuses_mismatched_hand_and_sensors():
         EnvConfig(hand="leap")
     with pytest.raises(ValueError, match="skin: the Xela skin samples at 100 Hz"):
         EnvConfig(hand="xela", skin=True, physics_dt=0.005)
-    with pytest.raises(ValueError, match="generated for the digit360 hand, not for the xela hand"):
-        load_default_cache("cup", str(load_default_cache("cup").source), hand="xela")
+    with pytest.raises(ValueError, match=f"generated for the {DEFAULT_HAND} hand, not for the xela hand"):
+        load_default_cache("cup", str(load_default_cache("cup").source), hand="xela")  # the default hand's cache
     with pytest.raises(ValueError, match="no grasp cache ships for object 'cylinder' on the xela hand"):
         RotateCupVec(EnvConfig(object="cylinder", hand="xela"))
     assert load_default_cache("cup", hand="xela").hand == "xela"

@@ -16,6 +16,7 @@ import torch
 from envs.config import ContactConfig, Perturbation
 from envs.grasps import generate_grasps
 from envs.metrics import METRICS
+from envs.sim_identity import LEGACY_HAND
 from rotation.evaluate import job
 from rotation.evaluate.report import EPISODE_FIELDS
 from rotation.evaluate.suites import get_suite, make_condition
@@ -27,14 +28,15 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
-    """Random-init teacher and student bundles and a small grasp cache."""
+    """Random-init teacher and student bundles and a small grasp cache; the bundles record no sim, so they act on
+    LEGACY_HAND, the hand the cache is generated for."""
     root = tmp_path_factory.mktemp("evaluate")
     torch.manual_seed(0)
     teacher = PolicyBundle(BundleConfig())
     teacher.save(root / "teacher")
     teacher.to_student().save(root / "student")
-    generate_grasps("cup", (0.78,), per_scale=4, batch_size=16, max_rounds=5, seed=0, nthread=1).save(
-        root / "grasps.npz")
+    generate_grasps("cup", (0.78,), per_scale=4, batch_size=16, max_rounds=5, seed=0, nthread=1,
+                    hand=LEGACY_HAND).save(root / "grasps.npz")
     return root
 
 

@@ -12,6 +12,7 @@ import torch
 
 from envs.errors import RequestRefused
 from envs.grasp_cache import cache_digest
+from envs.sim_identity import LEGACY_HAND
 from rotation.cli import main
 from rotation.evaluate import finished, job
 from rotation.policy.bundle import PolicyBundle
@@ -121,7 +122,7 @@ def test_a_regenerated_grasp_cache_is_another_evaluation(bundles, tmp_path, monk
     """Episodes start from the grasp cache: one regenerated at the same path must not continue the old rows."""
     from envs.grasp_cache import GraspCache, load_default_cache
 
-    shipped = load_default_cache("cup")
+    shipped = load_default_cache("cup", hand=LEGACY_HAND)  # the hand of the bundles, which record no sim
     cache = tmp_path / "grasps_cup.npz"
     shipped.save(cache)
     out = tmp_path / "eval"
@@ -131,7 +132,7 @@ def test_a_regenerated_grasp_cache_is_another_evaluation(bundles, tmp_path, monk
         job.run(cfg)
     assert json.loads((out / "progress.json").read_text())["grasps"]["cache"] == cache_digest(cfg.grasp_cache,
                                                                                                cfg.object)
-    GraspCache("cup", shipped.scales, shipped.grasps[:, ::-1], seed=1).save(cache)
+    GraspCache("cup", shipped.scales, shipped.grasps[:, ::-1], seed=1, hand=shipped.hand).save(cache)
     with pytest.raises(ValueError, match=r"other settings \(the grasp cache: '[0-9a-f]{16}' -> '[0-9a-f]{16}'\)"):
         job.run(make_cfg(bundles, out, grasp_cache=str(cache), resume=True))
     assert (out / "conditions" / "nominal.json").is_file()  # nothing was touched

@@ -71,7 +71,11 @@ def test_a_fresh_adapter_has_exactly_the_students_error_in_every_bin(errors_scri
 def test_a_bundle_without_touch_is_refused(errors_script, tmp_path, capsys):
     assert errors_script.main(["--adapter", "student", "--out", str(tmp_path / "r")]) == 2
     assert "not an adapter bundle" in capsys.readouterr().err
-    assert errors_script.main(["--teacher", "student", "--out", str(tmp_path / "r")]) == 2
+    # a real adapter (none ships while one is retrained on the current hand model: a fresh one) with a student given
+    # as its teacher
+    build_adapted("student", "sparshx-tinier-sim", ("pressure",)).save(tmp_path / "adapter")
+    assert errors_script.main(["--adapter", str(tmp_path / "adapter"), "--teacher", "student", "--out",
+                               str(tmp_path / "r")]) == 2
     assert "not a teacher bundle" in capsys.readouterr().err
     assert errors_script.main(["--friction-edges", "1.5", "0.75", "--out", str(tmp_path / "r")]) == 2
     assert "strictly increasing" in capsys.readouterr().err

@@ -6,6 +6,9 @@ import json
 
 import pytest
 
+from envs.config import default_randomization
+from envs.constants import DEFAULT_HAND
+from envs.grasp_cache import GraspCache
 from envs.grasps import HoldRule, generate_grasps, hold_check
 
 
@@ -15,16 +18,21 @@ def stats(load_script):
 
 
 def test_pass_rate_of_a_cache_generated_without_the_rule(stats, tmp_path):
-    cache = generate_grasps("cup", (0.78,), per_scale=16, batch_size=16, seed=0, nthread=1)
+    """Grasps of the default hand at its nominal scale, checked with the rule `rotate grasps` uses on that hand (its
+    nominal friction and mass, given to the script; its own defaults are HoldRule's, the first hand's)."""
+    scales = default_randomization(DEFAULT_HAND).scales
+    cache = generate_grasps("cup", (scales[len(scales) // 2],), per_scale=16, batch_size=16, seed=0, nthread=1)
     cache.save(tmp_path / "g.npz")
     out = tmp_path / "hold"
-    assert stats.main(["--caches", f"plain={tmp_path / 'g.npz'}", "--out", str(out)]) == 0
+    rule = HoldRule.for_hand(DEFAULT_HAND)
+    assert stats.main(["--caches", f"plain={tmp_path / 'g.npz'}", "--friction", str(rule.friction), "--mass",
+                       str(rule.mass), "--out", str(out)]) == 0
     result = json.loads((out / "hold_stats.json").read_text())
-    expected = (hold_check(cache, HoldRule()) < HoldRule().max_tilt).mean()
+    expected = (hold_check(GraspCache.load(tmp_path / "g.npz"), rule) < rule.max_tilt).mean()
     assert 0.0 < expected < 1.0  # this sample has grasps that fail
     assert result["caches"]["plain"]["pass"] == pytest.approx(expected, abs=1e-4)
     assert result["caches"]["plain"]["grasps"] == 16 and result["caches"]["plain"]["cache_hold_rule"] == []
-    assert result["rule"] == list(HoldRule().as_array())
+    assert result["rule"] == list(rule.as_array())
     assert (out / "hold_tilt.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

@@ -1,5 +1,5 @@
 """scripts/teacher_cpu_recipe.py: the five teacher stages and the two student stages chain, skip what is finished
-and resume what was stopped."""
+and resume what was stopped (on the first hand; another hand's recipe adds two stages)."""
 
 from __future__ import annotations
 
@@ -9,13 +9,19 @@ import shutil
 import pytest
 
 from envs.config import EnvConfig
+from envs.constants import DEFAULT_HAND
 from envs.grasp_cache import default_cache_path
 from envs.sim_identity import sim_record
 from rotation import cli
 from rotation.configs import save_config
 from rotation.evaluate import job as evaluate_job
-from rotation.policy.bundle import resolve_bundle
+from rotation.policy.bundle import PolicyBundle
+from rotation.policy.bundle_config import BundleConfig
 from rotation.train import finetune_student, student, teacher
+
+FIRST = "digit360"
+"""The first hand, whose recipe (stages 1-5, its shipped hold-checked grasps) most tests here run; the recipe's
+default is DEFAULT_HAND."""
 
 
 @pytest.fixture(scope="module")
@@ -43,26 +49,35 @@ def _finished_teacher(recipe, out):
         _fake_bundle(out / name / "bundle", {"steps": steps})
 
 
+def test_the_recipe_trains_the_default_hand_unless_told(recipe, tmp_path):
+    assert recipe.Config(out=tmp_path).hand == DEFAULT_HAND
+    stage1 = dict((w.split(":")[0], a) for w, a in recipe.commands(recipe.Config(out=tmp_path)))["stage1"]
+    assert stage1[stage1.index("--hand") + 1] == DEFAULT_HAND
+
+
 def test_every_stage_is_a_valid_command_of_its_job(recipe, tmp_path):
     out = tmp_path / "recipe"
-    todo = recipe.commands(recipe.Config(out=out, progress=False))
+    todo = recipe.commands(recipe.Config(out=out, progress=False, hand=FIRST))
     assert [what.split(":")[0] for what, _ in todo] == ["stage 0", "stage1", "stage2", "stage3", "stage4",
                                                         "stage5", "student", "student_rl", "evaluation",
                                                         "evaluation"]
+    assert todo[0][1][-2:] == ["--hand", FIRST]  # its grasps, whatever the jobs' default hand
     # with the files each stage reads in place, the options parse and validate as the job's own Config
     (out / "grasps_unchecked").mkdir(parents=True)
-    shutil.copy(default_cache_path("cup"), out / "grasps_unchecked" / "grasps_cup.npz")
+    shutil.copy(default_cache_path("cup", FIRST), out / "grasps_unchecked" / "grasps_cup.npz")
     for name, _, _ in recipe.STAGES[:-1]:
         _fake_bundle(out / name / "bundle", {"steps": 1, "interrupted": "stopped"})  # not finished: still to run
-    distilled = shutil.copytree(resolve_bundle("student"), out / "student" / "bundle")  # the fine-tune loads it
+    # the fine-tune loads the distilled student: a bundle recording no sim, of the first hand like the stages'
+    distilled = PolicyBundle(BundleConfig()).to_student().save(out / "student" / "bundle")
     config = json.loads((distilled / "config.json").read_text())
     config["card"] = {"env_steps": 1, "interrupted": "stopped"}
     (distilled / "config.json").write_text(json.dumps(config))
     configs = {}
-    for _, args in recipe.commands(recipe.Config(out=out, progress=False)):
+    for _, args in recipe.commands(recipe.Config(out=out, progress=False, hand=FIRST)):
         configs.setdefault(args[0], []).append(_parsed(args))
     assert list(configs) == ["train-teacher", "train-student", "finetune-student", "evaluate"]
     stages = configs["train-teacher"]
+    assert {c.hand for c in stages} == {FIRST}
     assert [c.seed for c in stages] == [0, 3, 7, 11, 13]
     assert [c.fall_reward for c in stages] == [-20.0, -20.0, -60.0, -35.0, -60.0]
     assert [c.rotate_back_clip for c in stages] == [0.5, 5.0, 5.0, 5.0, 5.0]
@@ -79,7 +94,7 @@ def test_every_stage_is_a_valid_command_of_its_job(recipe, tmp_path):
     [rl] = configs["finetune-student"]
     assert (rl.student, rl.out, rl.init_from) == (str(out / "student" / "bundle"), out / "student_rl", None)
     assert (rl.total_steps, rl.checkpoint_every, rl.seed, rl.fall_reward) == (4_000_000, 500_000, 12, -60.0)
-    assert not rl.overlap and not rl.progress and not rl.grasp_cache
+    assert not rl.overlap and not rl.progress and not rl.grasp_cache and rl.hand == FIRST
     # teacher and final student on the same fresh seeds
     evaluation, contact = configs["evaluate"]
     assert evaluation.policies == {"teacher_cpu": str(out / "stage5" / "bundle"),
@@ -127,10 +142,10 @@ def test_another_hand_gets_the_speed_stage_between_stages_4_and_5_and_the_hold_s
 
 def test_teacher_only_leaves_the_student_out_and_evaluates_the_teacher_alone(recipe, tmp_path, capsys):
     out = tmp_path / "recipe"
-    assert recipe.main(["--out", str(out), "--teacher-only", "--dry-run"]) == 0
+    assert recipe.main(["--out", str(out), "--teacher-only", "--dry-run", "--hand", FIRST]) == 0
     printed = capsys.readouterr().out
     assert "rotate train-teacher" in printed and "student" not in printed and not out.exists()
-    todo = recipe.commands(recipe.Config(out=out, teacher_only=True))
+    todo = recipe.commands(recipe.Config(out=out, teacher_only=True, hand=FIRST))
     assert [what.split(":")[0] for what, _ in todo] == ["stage 0", "stage1", "stage2", "stage3", "stage4",
                                                         "stage5", "evaluation", "evaluation"]
     evaluation = _parsed(todo[-2][1])
@@ -139,8 +154,10 @@ def test_teacher_only_leaves_the_student_out_and_evaluates_the_teacher_alone(rec
     # its evaluation is not the full recipe's: a later run without --teacher-only still evaluates the student
     (out / "evaluation").mkdir(parents=True)
     (out / "evaluation" / "results.md").write_text("# Evaluation\n")
-    assert recipe.commands(recipe.Config(out=out, teacher_only=True, contact_check=False))[-1][0].startswith("stage5")
-    assert recipe.commands(recipe.Config(out=out, contact_check=False))[-1][1][-1] == str(out / "evaluation_student")
+    assert recipe.commands(recipe.Config(out=out, teacher_only=True, contact_check=False, hand=FIRST))[-1][0] \
+        .startswith("stage5")
+    assert recipe.commands(recipe.Config(out=out, contact_check=False, hand=FIRST))[-1][1][-1] == str(
+        out / "evaluation_student")
 
 
 def test_student_from_picks_the_teacher_stage_and_refuses_a_student_of_another(recipe, tmp_path, capsys):
@@ -148,7 +165,8 @@ def test_student_from_picks_the_teacher_stage_and_refuses_a_student_of_another(r
     started from another teacher is refused in one line, not resumed; an unknown stage is refused too."""
     out = tmp_path / "recipe"
     _finished_teacher(recipe, out)
-    todo = dict((w.split(":")[0], a) for w, a in recipe.commands(recipe.Config(out=out, student_from="stage3")))
+    todo = dict((w.split(":")[0], a) for w, a in recipe.commands(recipe.Config(out=out, student_from="stage3",
+                                                                               hand=FIRST)))
     assert _parsed(todo["student"]).teacher == str(out / "stage3" / "bundle")
     assert f"teacher_cpu={out / 'stage3' / 'bundle'}" in todo["evaluation"]
     distill = out / "student"
@@ -156,12 +174,13 @@ def test_student_from_picks_the_teacher_stage_and_refuses_a_student_of_another(r
                 distill / "config.json")
     (distill / "ckpt_000003125.pt").write_bytes(b"")
     with pytest.raises(ValueError, match="move that folder aside"):
-        recipe.commands(recipe.Config(out=out, student_from="stage3"))
-    assert recipe.main(["--out", str(out), "--student-from", "stage3", "--dry-run"]) != 0
+        recipe.commands(recipe.Config(out=out, student_from="stage3", hand=FIRST))
+    assert recipe.main(["--out", str(out), "--student-from", "stage3", "--dry-run", "--hand", FIRST]) != 0
     assert "move that folder aside" in capsys.readouterr().err
-    assert [w.split(":")[0] for w, _ in recipe.commands(recipe.Config(out=out, eval_episodes=0))][0] == "student"
+    assert [w.split(":")[0] for w, _ in recipe.commands(recipe.Config(out=out, eval_episodes=0, hand=FIRST))][0] \
+        == "student"
     with pytest.raises(ValueError, match="student_from: one of"):
-        recipe.Config(out=out, student_from="stage4b")  # the first hand's recipe has no speed stage
+        recipe.Config(out=out, student_from="stage4b", hand=FIRST)  # the first hand's recipe has no speed stage
 
 
 def test_finished_stages_are_skipped_and_a_stopped_one_resumes(recipe, tmp_path):
@@ -173,7 +192,7 @@ def test_finished_stages_are_skipped_and_a_stopped_one_resumes(recipe, tmp_path)
     _fake_bundle(out / "stage2" / "bundle", {"steps": 123, "interrupted": "stopped by SIGTERM"})
     (out / "stage2" / "checkpoints").mkdir()
     (out / "stage2" / "checkpoints" / "last.zip").write_bytes(b"")
-    todo = recipe.commands(recipe.Config(out=out, eval_episodes=0, teacher_only=True))
+    todo = recipe.commands(recipe.Config(out=out, eval_episodes=0, teacher_only=True, hand=FIRST))
     assert [what.split(":")[0] for what, _ in todo] == ["stage2", "stage3", "stage4", "stage5"]
     assert todo[0][1] == ["train-teacher", "--resume", str(out / "stage2" / "checkpoints" / "last.zip"),
                           "--total-steps", str(steps2)]
@@ -187,7 +206,7 @@ def test_finished_student_stages_are_skipped_and_a_stopped_one_resumes(recipe, t
     assert recipe.DISTILL_CHECKPOINTS == student.CHECKPOINT_GLOB
 
     def todo():
-        cfg = recipe.Config(out=out, eval_episodes=0, progress=False)
+        cfg = recipe.Config(out=out, eval_episodes=0, progress=False, hand=FIRST)
         return [(what.split(":")[0], args) for what, args in recipe.commands(cfg)]
 
     # the distillation stopped (its bundle says so, beside its checkpoints): it resumes with the run's own options
@@ -242,10 +261,10 @@ def test_a_tiny_recipe_runs_end_to_end_and_a_second_call_has_nothing_left(recipe
     monkeypatch.setattr(recipe, "STUDENT_STAGES", student_stages)
     out = tmp_path / "recipe"
     (out / "grasps_unchecked").mkdir(parents=True)
-    shutil.copy(default_cache_path("cup"), out / "grasps_unchecked" / "grasps_cup.npz")
-    assert recipe.main(["--out", str(out), "--eval-episodes", "8", "--no-progress"]) == 0
+    shutil.copy(default_cache_path("cup", FIRST), out / "grasps_unchecked" / "grasps_cup.npz")
+    assert recipe.main(["--out", str(out), "--eval-episodes", "8", "--no-progress", "--hand", FIRST]) == 0
     cards = [json.loads((out / name / "bundle" / "config.json").read_text())["card"] for name, _, _ in stages]
-    assert [c["steps"] for c in cards] == [256] * 5
+    assert [c["steps"] for c in cards] == [256] * 5 and {c["train_config"]["hand"] for c in cards} == {FIRST}
     assert [c["train_config"]["init_from"] for c in cards] == [None, *(str(out / n / "bundle") for n, _, _ in
                                                                      stages[:-1])]
     distilled = json.loads((out / "student" / "bundle" / "config.json").read_text())["card"]
@@ -259,7 +278,7 @@ def test_a_tiny_recipe_runs_end_to_end_and_a_second_call_has_nothing_left(recipe
     contact = (out / "evaluation_contact" / "results.md").read_text()
     assert "teacher_cpu" in contact and "Contact model: elliptic" in contact, contact
     capsys.readouterr()
-    assert recipe.main(["--out", str(out), "--no-progress"]) == 0
+    assert recipe.main(["--out", str(out), "--no-progress", "--hand", FIRST]) == 0
     assert "every stage is done" in capsys.readouterr().out
 
     # both student stages stopped halfway (their bundles say so; the checkpoints after it are lost): they resume
@@ -273,7 +292,7 @@ def test_a_tiny_recipe_runs_end_to_end_and_a_second_call_has_nothing_left(recipe
     for name, card in (("student", distilled), ("student_rl", finetuned)):
         (out / name / "bundle" / "config.json").write_text(
             json.dumps({"card": card | {"interrupted": "stopped by SIGTERM"}}))
-    assert recipe.main(["--out", str(out), "--no-progress"]) == 0
+    assert recipe.main(["--out", str(out), "--no-progress", "--hand", FIRST]) == 0
     said = [line for line in capsys.readouterr().out.splitlines() if line.startswith("teacher_cpu_recipe: ")]
     assert said == [f"teacher_cpu_recipe: student: resume at {out / 'student' / 'ckpt_000000008.pt'}",
                     f"teacher_cpu_recipe: student_rl: resume at {rl_ckpts / 'last.zip'}",
@@ -285,5 +304,5 @@ def test_a_tiny_recipe_runs_end_to_end_and_a_second_call_has_nothing_left(recipe
     assert "interrupted" not in distilled and distilled["env_steps"] == 64
     assert "interrupted" not in finetuned and finetuned["steps"] == 256
     assert finetuned["resumed_from"] == str(rl_ckpts / "last.zip")
-    assert recipe.main(["--out", str(out), "--no-progress"]) == 0
+    assert recipe.main(["--out", str(out), "--no-progress", "--hand", FIRST]) == 0
     assert "every stage is done" in capsys.readouterr().out

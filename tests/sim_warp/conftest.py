@@ -16,11 +16,13 @@ from rotation.sim_warp.core import RotateCupWarp, WarpConfig  # noqa: E402
 
 NUM_WORLDS = 3
 SEED = 7
+HAND = "digit360"
+"""The hand the warp backend simulates: it refuses the digit360_v4 hand's physics (rotation.sim_warp.core)."""
 
 
 @pytest.fixture(scope="session")
 def warp_env():
-    """RotateCup on Warp's CPU device with NUM_WORLDS worlds (the default randomized task); tests reset it."""
-    env = RotateCupWarp(EnvConfig(), num_envs=NUM_WORLDS, seed=SEED, warp_cfg=WarpConfig(device="cpu"))
+    """RotateCup on Warp's CPU device with NUM_WORLDS worlds (the randomized task on HAND); tests reset it."""
+    env = RotateCupWarp(EnvConfig(hand=HAND), num_envs=NUM_WORLDS, seed=SEED, warp_cfg=WarpConfig(device="cpu"))
     yield env
     env.close()

@@ -14,10 +14,12 @@ from rotation.sim_warp.core import RotateCupWarp, WarpConfig
 
 NUM_WORLDS = 3
 """The size of the session's warp_env (tests/sim_warp/conftest.py)."""
+HAND = "digit360"
+"""The hand of the session's warp_env, the one the warp backend simulates (it refuses the digit360_v4 hand's)."""
 
 
 def test_same_spaces(warp_env):
-    cpu = RotateCupVec(EnvConfig(), num_envs=1, nthread=1)
+    cpu = RotateCupVec(EnvConfig(hand=HAND), num_envs=1, nthread=1)
     assert warp_env.single_observation_space == cpu.single_observation_space
     assert warp_env.single_action_space == cpu.single_action_space
 
@@ -32,7 +34,7 @@ def _message(fn):
                                      np.where(np.eye(NUM_WORLDS, 16) > 0, np.nan, 0.0),
                                      np.where(np.eye(NUM_WORLDS, 16) > 0, np.inf, 0.0)])
 def test_same_errors_on_bad_actions(warp_env, actions):
-    cpu = RotateCupVec(EnvConfig(), num_envs=NUM_WORLDS, nthread=1)
+    cpu = RotateCupVec(EnvConfig(hand=HAND), num_envs=NUM_WORLDS, nthread=1)
     cpu.reset(seed=0)
     warp_env.reset(seed=0)
     assert _message(lambda: warp_env.step(torch.as_tensor(actions))) == _message(lambda: cpu.step(actions))
@@ -41,27 +43,29 @@ def test_same_errors_on_bad_actions(warp_env, actions):
 @pytest.mark.parametrize("kwargs", [dict(num_envs=0), dict(num_envs=2.5), dict(num_envs=True), dict(seed=-1),
                                     dict(seed=2**64), dict(cfg="cup")])
 def test_same_errors_on_bad_arguments(kwargs):
-    args = dict(cfg=EnvConfig(), num_envs=2, seed=0) | kwargs
+    args = dict(cfg=EnvConfig(hand=HAND), num_envs=2, seed=0) | kwargs
     cpu = _message(lambda: RotateCupVec(**args, nthread=1))
     assert _message(lambda: RotateCupWarp(**args, warp_cfg=WarpConfig(device="cpu"))) == cpu
 
 
 def test_step_before_reset_and_cpu_only_features():
-    env = RotateCupWarp(EnvConfig(), num_envs=1, warp_cfg=WarpConfig(device="cpu"))
+    env = RotateCupWarp(EnvConfig(hand=HAND), num_envs=1, warp_cfg=WarpConfig(device="cpu"))
     with pytest.raises(RuntimeError, match="call reset"):
         env.step(torch.zeros(1, 16))
     with pytest.raises(ValueError, match="tactile: the simulated Digit 360 runs on the cpu backend only"):
-        RotateCupWarp(EnvConfig(tactile=True), num_envs=1, warp_cfg=WarpConfig(device="cpu"))
+        RotateCupWarp(EnvConfig(hand=HAND, tactile=True), num_envs=1, warp_cfg=WarpConfig(device="cpu"))
+    with pytest.raises(ValueError, match="digit360_v4 hand's physics .* cpu backend only for now; use --backend cpu"):
+        RotateCupWarp(EnvConfig(hand="digit360_v4"), num_envs=1, warp_cfg=WarpConfig(device="cpu"))
     with pytest.raises(ValueError, match="warp.device"):
         WarpConfig(device="tpu")
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="no CUDA GPU"):
-            RotateCupWarp(EnvConfig(), num_envs=1, warp_cfg=WarpConfig(device="cuda"))
+            RotateCupWarp(EnvConfig(hand=HAND), num_envs=1, warp_cfg=WarpConfig(device="cuda"))
 
 
 def test_gymnasium_vector_entry_point():
     env = gym.make_vec("rotation.sim_warp:RotateCupWarp-v0", num_envs=2, vectorization_mode="vector_entry_point",
-                       device="cpu", episode_steps=2)
+                       device="cpu", episode_steps=2, hand=HAND)
     obs, _ = env.reset(seed=3)
     assert isinstance(obs["proprio"], torch.Tensor) and tuple(obs["proprio"].shape) == (2, 3, 32)
     assert env.observation_space["priv"].shape == (2, 9)
@@ -78,7 +82,7 @@ def test_gymnasium_vector_entry_point():
 
 @pytest.mark.gpu
 def test_thousands_of_worlds_on_the_gpu():
-    env = RotateCupWarp(EnvConfig(), num_envs=1024, warp_cfg=WarpConfig(device="cuda"))
+    env = RotateCupWarp(EnvConfig(hand=HAND), num_envs=1024, warp_cfg=WarpConfig(device="cuda"))
     obs = env.reset(seed=0)
     assert obs["proprio"].device.type == "cuda"
     for _ in range(5):

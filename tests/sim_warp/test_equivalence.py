@@ -25,11 +25,13 @@ TOL = 2e-3
 SEED = 7
 NUM_WORLDS = 3
 """The size of the session's warp_env (tests/sim_warp/conftest.py)."""
+HAND = "digit360"
+"""The hand of the session's warp_env, the one the warp backend simulates (it refuses the digit360_v4 hand's)."""
 
 
 @pytest.fixture(scope="module")
 def cpu_env():
-    env = RotateCupVec(EnvConfig(), num_envs=NUM_WORLDS, seed=SEED, nthread=1)
+    env = RotateCupVec(EnvConfig(hand=HAND), num_envs=NUM_WORLDS, seed=SEED, nthread=1)
     yield env
     env.close()
 

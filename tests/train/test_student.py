@@ -10,6 +10,7 @@ import torch
 
 from envs.config import EnvConfig
 from envs.grasps import generate_grasps
+from envs.sim_identity import LEGACY_HAND
 from rotation.bundles import load_bundle
 from rotation.policy.bundle import PolicyBundle
 from rotation.policy.bundle_config import BundleConfig
@@ -18,14 +19,16 @@ from rotation.train import student
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
-    """A random-init teacher bundle and a small grasp cache (one scale bucket) in a temp directory."""
+    """A random-init teacher bundle and a small grasp cache (one scale bucket) in a temp directory; the teacher
+    records no sim, so it and its students act on LEGACY_HAND, the hand the cache is generated for."""
     root = tmp_path_factory.mktemp("student")
     torch.manual_seed(0)
     teacher = PolicyBundle(BundleConfig(card={"kind": "random teacher"}))
     with torch.no_grad():  # a latent that varies strongly with the privileged vector, so there is much to learn
         teacher.net.extractor.encoder.mlp[0].weight.mul_(20.0)
     teacher.save(root / "teacher")
-    cache = generate_grasps("cylinder", (0.78,), per_scale=4, batch_size=16, max_rounds=20, seed=0, nthread=1)
+    cache = generate_grasps("cylinder", (0.78,), per_scale=4, batch_size=16, max_rounds=20, seed=0, nthread=1,
+                            hand=LEGACY_HAND)
     cache.save(root / "grasps.npz")
     return root
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from envs.constants import DEFAULT_HAND
 from envs.core import RotateCupVec
 from rotation.bundles import load_bundle
 from rotation.interrupt import Interrupted
@@ -380,7 +381,8 @@ def test_teacher_trains_on_either_hand(tmp_path):
     """--hand xela trains a teacher on the Xela hand (its own grasp caches), the hand a skin adapter runs on."""
     xela = teacher.Config(out=tmp_path / "x", hand="xela").env_config()
     assert xela.hand == "xela" and not xela.skin
-    assert teacher.Config(out=tmp_path / "d").env_config().hand == "digit360"
+    assert teacher.Config(out=tmp_path / "d").env_config().hand == DEFAULT_HAND  # not told: the default hand
+    assert teacher.Config(out=tmp_path / "d", hand="digit360").env_config().hand == "digit360"
     env = RotateCupVec(xela, num_envs=1, seed=0, nthread=1)
     try:
         env.reset(seed=0)
