@@ -46,6 +46,15 @@ def adapter_dir(tmp_path_factory, policy) -> str:
     return str(path)
 
 
+@pytest.fixture(scope="module")
+def first_hand_adapter_dir(tmp_path_factory, first_hand_policy) -> str:
+    """The same adapter on the first hand model's random student: the tests that count touch falling back and coming
+    back run fingertips that keep real time on 2 cores (tests/deploy/conftest.py first_hand_policy)."""
+    path = tmp_path_factory.mktemp("adapter_first") / "pressure"
+    build_adapted(first_hand_policy, ENCODER, ("pressure",), touch_every=4).save(path)
+    return str(path)
+
+
 def summary_of(out: str) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
@@ -221,7 +230,7 @@ def test_a_stalled_fingertip_falls_back_to_the_student_and_comes_back(adapter_di
     assert summary["held_steps"] <= summary["steps"] // 2  # the loop went on through the stall
 
 
-def test_non_finite_embeddings_and_worker_errors_fall_back(adapter_dir, caplog, hand_hook, monkeypatch):
+def test_non_finite_embeddings_and_worker_errors_fall_back(first_hand_adapter_dir, caplog, hand_hook, monkeypatch):
     """Refreshes 2, 5 and 8 give NaN, raise TouchUnavailable, raise a bug-level error: each falls
     back with one warning naming it (the bug with its traceback), and the adapter acts again after each."""
     caplog.set_level(logging.INFO, logger="rotation")
@@ -243,7 +252,8 @@ def test_non_finite_embeddings_and_worker_errors_fall_back(adapter_dir, caplog, 
         return policy
 
     monkeypatch.setattr(bundles, "load_bundle", load)
-    summary = again_if_loaded(lambda: run(Config(hand="sim-allegro", policy=adapter_dir, duration=3.0)), caplog)
+    summary = again_if_loaded(lambda: run(Config(hand="sim-allegro", policy=first_hand_adapter_dir, duration=3.0)),
+                              caplog)
     assert_done_or_load_fault(summary)
     messages = [r.getMessage() for r in touch_warnings(caplog)]
     for cause in ("non-finite touch correction", "non-finite touch embeddings", "RuntimeError: boom in the encoder"):
