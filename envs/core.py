@@ -24,6 +24,7 @@ from envs.geometry import angular_velocity  # noqa: F401 (re-exported for rotati
 from envs.grasp_cache import GraspCache, load_default_cache
 from envs.objects import ObjectSpec, get_object
 from envs.observation import ProprioHistory
+from envs.physics import object_friction
 from envs.rng import CounterRNG, env_keys
 from envs.scene import OBJECT_BODY, build_model, link_geoms, skin_geoms, touch_model
 from envs.sensors.digit360 import add_digit360_sensors
@@ -145,7 +146,7 @@ class EpisodeStarts:
         fr[:, :, 0] = p["friction"][:, None]  # one coefficient for hand and object (Hora); the floor never collides
         if "link_friction" in p:  # gel domes and the rest of the hand apart; the contact takes the larger (MuJoCo)
             fr[:, self.link_geoms, 0] = p["link_friction"][:, None]
-            fr[:, self.obj_geoms, 0] = np.minimum(p["friction"], p["link_friction"])[:, None]
+            fr[:, self.obj_geoms, 0] = object_friction(p["friction"], p["link_friction"])[:, None]
         self.geom_friction[ids] = fr
         self.body_mass[ids, self.obj_body] = p["mass"]
         self.body_ipos[ids, self.obj_body] = p["com"]

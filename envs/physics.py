@@ -15,6 +15,8 @@ import math
 from dataclasses import dataclass, replace
 from typing import Literal
 
+import numpy as np
+
 from envs.constants import DEFAULT_HAND
 from envs.validation import check_types
 
@@ -240,3 +242,12 @@ def default_randomization(hand: str = DEFAULT_HAND, enabled: bool = True) -> Ran
     middles)."""
     rc = hand_physics(hand).randomization
     return rc if enabled else replace(rc, enabled=False)
+
+
+def object_friction(friction, link_friction):
+    """The object's own sliding coefficient when the gel domes (``friction``, the cup's randomized coefficient) and
+    the links and palm (``link_friction``) have their own: MuJoCo gives a contact the larger of its two geoms'
+    coefficients, so the object holds the smaller of the two and each contact reads the hand material it touches
+    (domes: ``friction``, links: ``link_friction``). Scalars or arrays (numpy broadcasting). The one place of this
+    rule: the batched env (envs.core), the emulated hand (rotation.sim_hardware.hand_physics) and what reads it back."""
+    return np.minimum(friction, link_friction)

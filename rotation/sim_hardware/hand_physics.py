@@ -35,6 +35,7 @@ from envs.core import set_contact
 from envs.grasp_cache import load_default_cache
 from envs.objects import get_object
 from envs.physics import hand_physics as physics_of
+from envs.physics import object_friction
 from envs.scene import OBJECT_JOINT, build_model, hand_variant, link_geoms, skin_geoms
 from envs.sensors.digit360 import Digit360Readout, add_digit360_sensors, sensor_name
 from envs.task import object_inertia
@@ -67,7 +68,7 @@ class HandPhysics:
             obj = np.flatnonzero(self.model.geom_bodyid == self.model.body("object").id)
             nominal = float(np.mean(link_friction))
             self.model.geom_friction[link_geoms(self.model, obj), 0] = nominal
-            self.model.geom_friction[obj, 0] = np.minimum(self.model.geom_friction[obj, 0], nominal)
+            self.model.geom_friction[obj, 0] = object_friction(self.model.geom_friction[obj, 0], nominal)
         self.model.actuator_gainprm[:, 0] = 0.0  # position actuators off: torque comes from qfrc_applied
         self.model.actuator_biasprm[:, :3] = 0.0
         self.data = mujoco.MjData(self.model)
@@ -132,7 +133,7 @@ class HandPhysics:
                 m.geom_friction[:, 0] = friction
                 if default_randomization(self.hand).link_friction is not None and len(links):
                     m.geom_friction[links, 0] = link_friction
-                    m.geom_friction[obj, 0] = min(float(friction), float(link_friction.min()))
+                    m.geom_friction[obj, 0] = object_friction(float(friction), float(link_friction.min()))
             if mass is not None:
                 spec = get_object(self.object_name)
                 m.body_mass[body] = mass

@@ -15,6 +15,7 @@ from envs import task
 from envs.config import ContactConfig, EnvConfig, RandomizationConfig, default_randomization
 from envs.core import RotateCupVec
 from envs.physics import OPTIONAL_RANGES, V4_PHYSICS
+from envs.scene import link_geoms
 
 V4 = "digit360_v4"
 
@@ -135,3 +136,28 @@ def test_the_xela_hand_on_the_vendor_kinematics_feels_its_grasp():
     assert not terminated.any()
     assert np.all((normal > 0.05).sum(axis=1) >= 2) and np.all(normal.sum(axis=1) > 0.5), normal.sum(axis=1)
     assert obs["skin"].shape == (4, 10, 368, 6)
+
+
+def test_each_contact_with_the_cup_reads_the_friction_of_the_hand_material_it_touches():
+    """envs.physics.object_friction: MuJoCo combines two geoms' coefficients by their maximum, so with the cup's
+    geom at the smaller of the two, a dome contact reads the domes' coefficient and a link or palm contact the
+    links'. Checked on the contacts MuJoCo itself builds while the hand holds the cup."""
+    env = RotateCupVec(EnvConfig(hand=V4), num_envs=2, seed=5)
+    env.reset()
+    for _ in range(3):
+        env.step(np.zeros((2, C.NUM_JOINTS), np.float32))
+    seen = set()
+    for i in range(2):
+        m, d = env.get_data(i)
+        obj = m.body("object").id
+        links = set(link_geoms(m, np.flatnonzero(m.geom_bodyid == obj)).tolist())
+        for c in d.contact[: d.ncon]:
+            pair = {int(c.geom1), int(c.geom2)}
+            if not any(m.geom_bodyid[g] == obj for g in pair):
+                continue
+            hand_geom = next(g for g in pair if m.geom_bodyid[g] != obj)
+            dome = hand_geom not in links
+            want = env.params["friction"][i] if dome else env.params["link_friction"][i]
+            assert c.friction[0] == pytest.approx(want, rel=1e-6)
+            seen.add(dome)
+    assert seen == {True, False}  # both materials touched the cup
