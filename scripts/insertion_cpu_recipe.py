@@ -1,0 +1,133 @@
+"""The plug-insertion benchmark on a CPU alone: demonstrations, the imitation policies of each row, and their
+closed-loop evaluation on seeds no demonstration used (docs/insertion.md).
+
+Steps (each a `rotate` command; a finished one is skipped, a stopped one resumes):
+
+1. `rotate demos --task insertion` on the Digit 360 hand (and, with --skin-encoder, on the Xela hand);
+2. `rotate train-il` per row: camera only (``camera``), camera + the frozen encoder's image tokens
+   (``touch_image``), camera + all four modalities (``touch_all``), camera + all modalities trained end to end from
+   random weights (``touch_e2e``, the row without pretraining) and, with --skin-encoder, camera + a frozen
+   Sparsh-skin (``skin``); a stopped training continues with --resume;
+3. `rotate evaluate --task insertion` of every row over ``trials`` closed-loop trials seeded from ``eval_seed``
+   (the demonstrations' episodes are seeded ``e`` for e < episodes: no trial shares one).
+
+    python scripts/insertion_cpu_recipe.py --out runs/insertion_cpu
+    python scripts/insertion_cpu_recipe.py --out runs/insertion_cpu --rows camera touch_all --dry-run
+
+Ship the best touch row as `insertion` and the camera row as `insertion-camera` by copying their bundle folders to
+rotation/policies/<name> with a card naming this command (docs/insertion.md). Budget on 2 CPU cores: the
+demonstrations take minutes; each frozen-touch training first embeds every demonstrated step once, then runs
+``steps`` optimizer steps (the end-to-end row renders its windows per batch, hence its smaller batch and fewer
+steps); each row's evaluation is ``trials`` episodes of up to 15 s. The recipe prints each step's wall time through
+the commands' own reports; size ``steps`` to the time a session has.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from rotation.configs import script_main
+from rotation.jobs.recipe import run_steps
+
+ROWS = ("camera", "touch_image", "touch_all", "touch_e2e", "skin")
+"""Rows of the benchmark's table, in its order."""
+TOUCH = {"camera": "none", "touch_image": "image", "touch_all": "all", "touch_e2e": "e2e", "skin": "skin"}
+"""Each row's `rotate train-il --touch`."""
+
+
+@dataclass
+class Config:
+    out: Path = Path("runs/insertion_cpu")
+    """Folder of the recipe: demos/, demos_xela/, il_<row>/, eval/."""
+    rows: tuple[str, ...] = ("camera", "touch_image", "touch_all", "touch_e2e")
+    """Rows to train and evaluate (camera, touch_image, touch_all, touch_e2e, skin)."""
+    episodes: int = 100
+    """Demonstrations per hand."""
+    encoder: str = "sparshx-tinier-sim"
+    """The Sparsh-X encoder of the touch rows (a shipped name or an encoder folder)."""
+    skin_encoder: str = ""
+    """The Sparsh-skin encoder of the skin row (needed only with the row ``skin``)."""
+    steps: int = 3000
+    """Optimizer steps of each frozen-touch and camera row."""
+    e2e_steps: int = 1500
+    """Optimizer steps of the end-to-end row."""
+    e2e_batch_size: int = 8
+    """Batch of the end-to-end row (each sample renders four fingertip windows)."""
+    trials: int = 100
+    """Closed-loop trials per row."""
+    eval_seed: int = 500_000
+    """Seed of the first trial (trial j: eval_seed + j)."""
+    progress: bool = True
+    dry_run: bool = False
+    """Print the commands without running them."""
+
+    def __post_init__(self) -> None:
+        self.out = Path(self.out)
+        self.rows = tuple(self.rows)
+        bad = [r for r in self.rows if r not in ROWS]
+        if bad or not self.rows or len(set(self.rows)) != len(self.rows):
+            raise ValueError(f"rows: give distinct rows of {', '.join(ROWS)}, got {list(self.rows)}")
+        if "skin" in self.rows and not self.skin_encoder:
+            raise ValueError("rows: the skin row needs --skin-encoder (a pretrained Sparsh-skin: "
+                             "scripts/skin_cpu_recipe.py)")
+        for name in ("episodes", "steps", "e2e_steps", "e2e_batch_size", "trials"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.eval_seed < self.episodes:
+            raise ValueError(f"eval_seed must be >= episodes ({self.episodes}): trials would repeat demonstrated "
+                             f"episodes, got {self.eval_seed}")
+
+
+def _progress(cfg: Config) -> list[str]:
+    return [] if cfg.progress else ["--no-progress"]
+
+
+def _train(cfg: Config, row: str) -> list[str]:
+    run = cfg.out / f"il_{row}"
+    demos = cfg.out / ("demos_xela" if row == "skin" else "demos")
+    args = ["train-il", "--demos", str(demos), "--touch", TOUCH[row], "--out", str(run), *_progress(cfg)]
+    if row != "camera":
+        args += ["--encoder", cfg.skin_encoder if row == "skin" else cfg.encoder]
+    if row == "touch_e2e":
+        args += ["--steps", str(cfg.e2e_steps), "--batch-size", str(cfg.e2e_batch_size)]
+    else:
+        args += ["--steps", str(cfg.steps)]
+    return [*args, "--resume"] if (run / "checkpoint.pt").is_file() else args
+
+
+def commands(cfg: Config) -> list[tuple[str, list[str]]]:
+    """(what, command) still to run, in order (demonstrations are always listed: `rotate demos` keeps what is
+    complete and records the rest)."""
+    out, todo = cfg.out, []
+    todo.append(("demonstrations (Digit 360 hand)", ["demos", "--task", "insertion", "--episodes", str(cfg.episodes),
+                                                    "--seed", "0", "--out", str(out / "demos"), *_progress(cfg)]))
+    if "skin" in cfg.rows:
+        todo.append(("demonstrations (Xela hand)", ["demos", "--task", "insertion", "--hand", "xela_v4",
+                                                    "--episodes", str(cfg.episodes), "--seed", "0", "--out",
+                                                    str(out / "demos_xela"), *_progress(cfg)]))
+    for row in cfg.rows:
+        if not (out / f"il_{row}" / "bundle").is_dir():
+            todo.append((f"train {row}", _train(cfg, row)))
+    if not (out / "eval" / "results.json").is_file():
+        policies = [a for row in cfg.rows for a in ("--policy", f"{row}={out / f'il_{row}' / 'bundle'}")]
+        todo.append((f"evaluate {len(cfg.rows)} rows over {cfg.trials} trials",
+                     ["evaluate", "--task", "insertion", *policies, "--episodes", str(cfg.trials), "--seed",
+                      str(cfg.eval_seed), "--out", str(out / "eval"), *_progress(cfg)]))
+    return todo
+
+
+def run(cfg: Config) -> int:
+    status = run_steps("insertion_cpu_recipe", commands(cfg), cfg.dry_run)
+    if status == 0 and not cfg.dry_run:
+        print(f"insertion_cpu_recipe: done; the table is {cfg.out / 'eval' / 'results.md'}")
+    return status
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main(Config, run, __doc__, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
