@@ -123,13 +123,16 @@ def test_a_gated_ensemble_is_the_ungated_one_with_its_gate(ensemble_dir, env_obs
     groups = {k: obs[k] for k in plain.config.obs_groups}
     ungated = plain.correction(plain.env_windows(obs), groups)
     signal = ungated[:, 3] + ungated[:, 4]
+    assert np.abs(signal).max() > 0
+    sign = 1.0 if signal.max() > 0 else -1.0  # the gate opens on a positive signal: point it at the samples' side
+    signal = sign * signal
     width = float(2 * np.abs(signal).max())  # every sample's gate strictly between 0 and 1 where the signal is > 0
     out = tmp_path / "gated"
     assert main(["ensemble-adapters", "--members", *members, "--weights", "0.25", "0.75", "--touch-every", "3",
-                 "--gate-dims", "0", "2", "--gate-signal", "0", "0", "0", "1", "1", "0", "0", "0",
+                 "--gate-dims", "0", "2", "--gate-signal", "0", "0", "0", str(sign), str(sign), "0", "0", "0",
                  "--gate-width", str(width), "--out", str(out)]) == 0
     assert json.loads((out / "config.json").read_text())["gate"] == {
-        "dims": [0, 2], "signal": [0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], "width": width}
+        "dims": [0, 2], "signal": [0.0, 0.0, 0.0, sign, sign, 0.0, 0.0, 0.0], "width": width}
     gated = load_bundle(out)
     corr = gated.correction(gated.env_windows(obs), groups)
     g = np.clip(signal / width, 0.0, 1.0)

@@ -123,8 +123,9 @@ def test_a_port_that_sends_nothing_or_only_garbage(rotate, monkeypatch):
     finally:
         link.close()
     assert code == 1 and f"{link.path} sent no Digit 360 message in 0.3 s" in _one_line(err)
-    with Digit360Emulator() as emu:
-        emu.faults.corrupt_frames = 10**9
+    emu = Digit360Emulator()
+    emu.faults.corrupt_frames = 10**9  # before its thread starts: its first message (system) is corrupted too
+    with emu:
         code, _, err = rotate("--digit360", emu.path, "--seconds", "0.3")
     assert code == 1 and "undecodable frame(s) and no Digit 360 message in 0.3 s" in _one_line(err)
 
