@@ -81,17 +81,18 @@ def _from_table(table: Sequence[tuple[int, float]], spec: str) -> TouchDelay:
     return TouchDelay(tuple(keys), tuple(merged[k] / total for k in keys), spec)
 
 
-MEASURED_TABLE: tuple[tuple[int, float], ...] = (
-    (3, 0.008), (4, 0.106), (5, 0.265), (6, 0.273), (7, 0.144), (8, 0.189), (9, 0.015))
+MEASURED_TABLE: tuple[tuple[int, float], ...] = ((1, 0.170), (2, 0.830))
 """The measured default, in control steps at 20 Hz: (steps, fraction of corrections) from each correction's read to
-its first action, for the shipped adapter (the two-member ensemble on sparshx-tinier-sim: every modality, and IMU +
-pressure + tracking) in `rotate deploy --hand sim-allegro` on 2 CPU cores, the emulated hand and fingertips sharing
-them, without the emulated fingertips' rendering of their image and audio (a real sensor's window costs no
-rendering; the module docstring). Median 6 steps (300 ms): the touch worker's single thread encodes in 262 ms
-(median; p95 376 ms). ``python scripts/bench_adapter.py --deploy 60`` (``delay_spec_no_render``, 131 corrections;
-the delay with the rendering: median 482 ms, 9 steps). Measure again whenever the shipped adapter's encoder or
-members change: the delay depends on the networks' size, not on their weights, so a fresh adapter of the new
-architecture gives it before training (``--adapter`` with a bundle of ``build_adapted``)."""
+its first action, for the adapter structure the recipe ships (a two-member ensemble on the 3 + 1-layer
+sparshx-tinier-sim: every modality, and IMU + pressure + tracking; fresh members, the delay depends on the networks'
+size, not their weights) in a 60 s `rotate deploy --hand sim-allegro` of the vendor-kinematics hand on 2 CPU cores,
+the emulated hand and fingertips sharing them, 0 late steps, without the emulated fingertips' rendering of their
+image and audio (a real sensor's window costs no rendering; the module docstring). Median 2 steps (100 ms): the
+touch worker encodes in 52 ms (median; p95 59 ms). ``python scripts/bench_adapter.py --deploy 60 --adapter
+ENSEMBLE`` (``delay_spec_no_render``, 300 corrections; with the rendering: median 120 ms, 2-3 steps). The first
+hand model's ensemble (6 + 2 layers) was 3-9 steps, median 6, on a slower 2-core machine. Measure again whenever
+the shipped adapter's encoder or members change (``--adapter`` with an ensemble of fresh ``build_adapted`` members
+gives it before training)."""
 MEASURED = _from_table(MEASURED_TABLE, "measured")
 
 
