@@ -36,7 +36,7 @@ from pathlib import Path
 
 from adapters.finetune.config import CHECKPOINT_GLOB
 from rotation.configs import script_main
-from rotation.jobs.recipe import run_steps
+from rotation.jobs.recipe import progress_args, run_steps
 
 ROWS: tuple[tuple[str, list[str]], ...] = (
     ("all_modalities", ["--modalities", "img,mic,imu,pressure"]),
@@ -110,7 +110,7 @@ def _finished(run: Path, steps: int) -> bool:
 def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     """(what, command) still to run, in order (`rotate` subcommands, or 'python' and a script)."""
     out, todo = cfg.out, []
-    progress = [] if cfg.progress else ["--no-progress"]
+    progress = progress_args(cfg.progress)
     for row, options in ROWS:
         run = out / "members" / row
         if _finished(run, cfg.total_steps):

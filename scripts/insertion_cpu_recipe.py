@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rotation.configs import script_main
-from rotation.jobs.recipe import run_steps
+from rotation.jobs.recipe import progress_args, run_steps
 
 ROWS = ("camera", "touch_image", "touch_all", "touch_e2e", "skin")
 """Rows of the benchmark's table, in its order."""
@@ -80,14 +80,11 @@ class Config:
                              f"episodes, got {self.eval_seed}")
 
 
-def _progress(cfg: Config) -> list[str]:
-    return [] if cfg.progress else ["--no-progress"]
-
-
 def _train(cfg: Config, row: str) -> list[str]:
     run = cfg.out / f"il_{row}"
     demos = cfg.out / ("demos_xela" if row == "skin" else "demos")
-    args = ["train-il", "--demos", str(demos), "--touch", TOUCH[row], "--out", str(run), *_progress(cfg)]
+    args = ["train-il", "--demos", str(demos), "--touch", TOUCH[row], "--out", str(run),
+            *progress_args(cfg.progress)]
     if row != "camera":
         args += ["--encoder", cfg.skin_encoder if row == "skin" else cfg.encoder]
     if row == "touch_e2e":
@@ -100,13 +97,13 @@ def _train(cfg: Config, row: str) -> list[str]:
 def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     """(what, command) still to run, in order (demonstrations are always listed: `rotate demos` keeps what is
     complete and records the rest)."""
-    out, todo = cfg.out, []
+    out, todo, progress = cfg.out, [], progress_args(cfg.progress)
     todo.append(("demonstrations (Digit 360 hand)", ["demos", "--task", "insertion", "--episodes", str(cfg.episodes),
-                                                    "--seed", "0", "--out", str(out / "demos"), *_progress(cfg)]))
+                                                    "--seed", "0", "--out", str(out / "demos"), *progress]))
     if "skin" in cfg.rows:
         todo.append(("demonstrations (Xela hand)", ["demos", "--task", "insertion", "--hand", "xela_v4",
                                                     "--episodes", str(cfg.episodes), "--seed", "0", "--out",
-                                                    str(out / "demos_xela"), *_progress(cfg)]))
+                                                    str(out / "demos_xela"), *progress]))
     for row in cfg.rows:
         if not (out / f"il_{row}" / "bundle").is_dir():
             todo.append((f"train {row}", _train(cfg, row)))
@@ -114,7 +111,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
         policies = [a for row in cfg.rows for a in ("--policy", f"{row}={out / f'il_{row}' / 'bundle'}")]
         todo.append((f"evaluate {len(cfg.rows)} rows over {cfg.trials} trials",
                      ["evaluate", "--task", "insertion", *policies, "--episodes", str(cfg.trials), "--seed",
-                      str(cfg.eval_seed), "--out", str(out / "eval"), *_progress(cfg)]))
+                      str(cfg.eval_seed), "--out", str(out / "eval"), *progress]))
     return todo
 
 

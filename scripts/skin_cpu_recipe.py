@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rotation.configs import script_main
-from rotation.jobs.recipe import pretrained, run_steps
+from rotation.jobs.recipe import pretrained, progress_args, run_steps
 
 PROBE_SEED = 300
 """Seed of the probe's sessions (the pretraining collection uses 0)."""
@@ -64,15 +64,11 @@ class Config:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
 
 
-def _progress(cfg: Config) -> list[str]:
-    return [] if cfg.progress else ["--no-progress"]
-
-
 def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     """(what, command) still to run, in order (collections are always listed: `rotate collect` keeps what is
     complete)."""
-    out, todo = cfg.out, []
-    common = ["--skin", "--hand", "xela_v4", "--policy", "play", "--num-envs", "8", *_progress(cfg)]
+    out, todo, progress = cfg.out, [], progress_args(cfg.progress)
+    common = ["--skin", "--hand", "xela_v4", "--policy", "play", "--num-envs", "8", *progress]
     todo.append(("collect the pretraining sessions", ["collect", *common, "--episodes", str(cfg.episodes), "--seed",
                                                       "0", "--out", str(out / "sessions")]))
     todo.append(("collect the probe's sessions", ["collect", *common, "--episodes", str(cfg.probe_episodes),
@@ -86,7 +82,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
                       str(cfg.lr), "--weight-decay", "0.04", "--weight-decay-end", "0.4", "--warmup-fraction", "0.1",
                       "--checkpoint-every", str(cfg.checkpoint_every), "--keep-checkpoints", "2", "--log-every", "25",
                       "--num-workers", str(cfg.num_workers), "--device", cfg.device, *resume,
-                      *_progress(cfg)]))
+                      *progress]))
     encoder = out / "encoder" / "encoder.safetensors"
     if not encoder.is_file() or (pretrain / "encoder.safetensors").is_file() and \
             (pretrain / "encoder.safetensors").stat().st_mtime > encoder.stat().st_mtime:
@@ -96,7 +92,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
         todo.append(("probe: pretrained against end to end", [
             "probe", "--encoder", "skin", "--checkpoint", str(out / "encoder"), "--sessions",
             str(out / "probe_sessions"), "--steps", str(cfg.probe_steps), "--num-workers", str(cfg.num_workers),
-            "--device", cfg.device, "--out", str(out / "probe"), *_progress(cfg)]))
+            "--device", cfg.device, "--out", str(out / "probe"), *progress]))
     return todo
 
 

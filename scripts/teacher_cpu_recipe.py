@@ -57,7 +57,7 @@ from pathlib import Path
 from envs.constants import DEFAULT_HAND
 from envs.grasp_cache import default_cache_path
 from rotation.configs import script_main
-from rotation.jobs.recipe import run_steps
+from rotation.jobs.recipe import progress_args, run_steps
 
 STAGE2_PPO = ["--critic-warmup", "20", "--num-envs", "512", "--n-steps", "32", "--batch-size", "4096", "--n-epochs",
               "5", "--learning-rate", "3e-4", "--log-std-init", "-1.0", "--rotate-back-clip", "5", "--no-overlap"]
@@ -223,7 +223,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     if not grasps.is_file():
         todo.append(("stage 0: the grasp cache without the hold check",
                      ["grasps", "--objects", "cup", "--hold-seconds", "0", "--out", str(grasps_dir), *hand]))
-    progress = [] if cfg.progress else ["--no-progress"]
+    progress = progress_args(cfg.progress)
     prev = None
     # stages 3 on train (and the evaluation runs) on the hold-checked grasps: the shipped ones of the first hand,
     # the recipe's own for another hand (generated before stage 3 needs them)

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rotation.configs import script_main
-from rotation.jobs.recipe import pretrained, run_steps
+from rotation.jobs.recipe import pretrained, progress_args, run_steps
 
 COLLECTIONS: tuple[tuple[str, bool, int, list[str]], ...] = (
     ("policy", True, 0, []),
@@ -96,15 +96,11 @@ class Config:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
 
 
-def _progress(cfg: Config) -> list[str]:
-    return [] if cfg.progress else ["--no-progress"]
-
-
 def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     """(what, command) still to run, in order; `rotate` commands start with their subcommand, the export with
     'python'. Collections are always listed: `rotate collect` itself keeps what is complete and records the rest."""
-    out, todo = cfg.out, []
-    common = ["--episode-steps", str(cfg.episode_steps), "--num-envs", "16", "--hand", cfg.hand, *_progress(cfg)]
+    out, todo, progress = cfg.out, [], progress_args(cfg.progress)
+    common = ["--episode-steps", str(cfg.episode_steps), "--num-envs", "16", "--hand", cfg.hand, *progress]
     for name, acts, seed, options in COLLECTIONS:
         todo.append((f"collect {name}", ["collect", "--policy", cfg.policy if acts else "random", "--episodes",
                                          str(cfg.episodes), "--seed", str(seed), "--out", str(out / "sessions" / name),
@@ -117,7 +113,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
                       "--stride", "10", "--steps", str(cfg.steps), "--batch-size", str(cfg.batch_size), "--lr",
                       str(cfg.lr), "--warmup-fraction", "0.1", "--checkpoint-every", str(cfg.checkpoint_every),
                       "--keep-checkpoints", "2", "--log-every", "25", "--num-workers", str(cfg.num_workers),
-                      "--device", cfg.device, *_layers(cfg), *resume, *_progress(cfg)]))
+                      "--device", cfg.device, *_layers(cfg), *resume, *progress]))
     encoder = out / "encoder" / "encoder.safetensors"
     if not encoder.is_file() or (pretrain / "encoder.safetensors").is_file() and \
             (pretrain / "encoder.safetensors").stat().st_mtime > encoder.stat().st_mtime:
@@ -129,7 +125,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     if not (out / "touch_report" / "results.md").is_file():
         todo.append(("the information ladder", ["touch-report", "--sessions", str(out / "report_sessions"),
                                                 "--checkpoint", str(out / "encoder"), "--stride", "15", "--out",
-                                                str(out / "touch_report"), *_progress(cfg)]))
+                                                str(out / "touch_report"), *progress]))
     return todo
 
 

@@ -9,6 +9,11 @@ import sys
 from pathlib import Path
 
 
+def progress_args(progress: bool) -> list[str]:
+    """The option a recipe passes to each `rotate` step for its own --progress / --no-progress."""
+    return [] if progress else ["--no-progress"]
+
+
 def pretrained(run: Path, steps: int) -> bool:
     """Whether the `rotate pretrain` run ``run`` holds its checkpoint of step ``steps`` (or later)."""
     ckpts = sorted(Path(run).glob("ckpt_*.safetensors"))
