@@ -1,9 +1,10 @@
 """The tactile adapter of one student on a CPU alone: the five ablation rows of docs/adapter.md trained in simulation
-with the measured touch delay, the oracle-latent student, the two-member ensemble, one evaluation of all of them
-beside the teacher and the student on fresh seeds, and the ensemble's ttf against the delay.
+with the measured touch delay, the oracle-latent student, the two-member ensemble, its evaluation beside the
+teacher, the student and the oracle on fresh seeds, the rows' evaluation on the same seeds, and the ensemble's ttf
+against the delay.
 
-    python scripts/adapter_cpu_recipe.py --student runs/sim_v4/teacher/student_rl/bundle \\
-        --teacher runs/sim_v4/teacher/stage5/bundle --encoder runs/touch_cpu/encoder --out runs/adapter_cpu
+    python scripts/adapter_cpu_recipe.py --student student --teacher teacher --encoder sparshx-tinier-sim \\
+        --out runs/adapter_cpu
     python scripts/adapter_cpu_recipe.py ... --dry-run           # the commands, run nothing
 
 Steps (each a `rotate` command or a script; a finished one is skipped, a stopped one resumes):
@@ -16,14 +17,19 @@ Steps (each a `rotate` command or a script; a finished one is skipped, a stopped
    the ceiling of any latent correction;
 3. `rotate ensemble-adapters` of the all-modality and IMU + pressure + tracking rows (equal weights): the shipped
    adapter's structure;
-4. `rotate evaluate` of the teacher, the student, the oracle, the five rows and the ensemble on the same episodes
-   (fresh seeds, the slippery, heavy and combined extremes of the perturbation suite and nominal), with the same
-   delay: OUT/evaluation/results.md;
-5. `scripts/delay_sweep.py` of the ensemble: ttf against the delay, 0 to 4 control steps (OUT/delay_sweep/).
+4. `rotate evaluate` of the teacher, the student, the oracle and the ensemble on the same episodes (fresh seeds,
+   the slippery, heavy and combined extremes of the perturbation suite and nominal; ``episodes`` each), with the
+   same delay: OUT/evaluation/results.md, the table a shipping decision reads;
+5. `rotate evaluate` of the five rows, the ablation, on the first ``ablation_episodes`` of those episodes (the same
+   seeds, so every row pairs with the policies of step 4) and ABLATION_CONDITIONS: OUT/ablation/results.md;
+6. `scripts/delay_sweep.py` of the ensemble: ttf against the delay, 0 to 4 control steps, on SWEEP_CONDITIONS
+   (``sweep_episodes`` each; OUT/delay_sweep/).
 
 Budget on 2 CPU cores: a row of 24,000 env steps takes about 7 min reading IMU and pressure (the shipped
 imu_pressure_tracking member's card) and longer with the image and audio, whose windows are rendered and encoded at
-every refresh; the evaluation of ten policies, with touch rendered for the seven that read it, takes the longest.
+every refresh (about 16 env steps/s for the all-modality row: 25 min). An evaluation that renders touch runs at
+a few hundred env steps/s, so the ablation and the sweep evaluate fewer episodes and conditions than step 4; give
+a GPU's sizes with --ablation-episodes and --sweep-episodes.
 Each `rotate` step keeps its checkpoints, so running the script again after a stop continues it.
 """
 
@@ -50,6 +56,10 @@ ENSEMBLE = ("all_modalities", "imu_pressure_tracking")
 """The rows the ensemble puts together (the shipped adapter's two members)."""
 CONDITIONS = ("nominal", "friction_0.25", "mass_+0.1kg", "friction_0.5+mass_+0.1kg")
 """The perturbation suite's slippery, heavy and combined extremes on the vendor-kinematics hand, and nominal."""
+ABLATION_CONDITIONS = ("nominal", "friction_0.25", "mass_+0.1kg")
+"""What the ablation rows are evaluated on: which input carries friction, which mass, and what each costs at nominal."""
+SWEEP_CONDITIONS = ("friction_0.25", "mass_+0.1kg")
+"""What the delay sweep evaluates on: the two perturbations the adapter targets."""
 SCRIPTS = Path(__file__).resolve().parent
 ORACLE_TOOL = SCRIPTS.parent / "experiments" / "tools" / "oracle_latent.py"
 
@@ -77,7 +87,11 @@ class Config:
     seed: int = 31
     """Seed of every row's training (the same episodes for all rows)."""
     episodes: int = 128
-    """Evaluation episodes per policy and condition."""
+    """Evaluation episodes per policy and condition of step 4 (teacher, student, oracle, ensemble)."""
+    ablation_episodes: int = 64
+    """Episodes per row and condition of the ablation (the first of step 4's episodes)."""
+    sweep_episodes: int = 64
+    """Episodes per delay and condition of the delay sweep."""
     eval_seed: int = 9_700_000
     """First seed of the evaluation and of the delay sweep (keep it away from every seed a choice used)."""
     progress: bool = True
@@ -91,7 +105,8 @@ class Config:
         if missing:
             raise ValueError(f"give {', '.join('--' + m for m in missing)}: the student the adapters correct, its "
                              "teacher, and the touch encoder they read")
-        for name in ("total_steps", "student_steps", "num_envs", "touch_every", "episodes"):
+        for name in ("total_steps", "student_steps", "num_envs", "touch_every", "episodes", "ablation_episodes",
+                     "sweep_episodes"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.student_steps >= self.total_steps:
@@ -132,17 +147,22 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
                                       *(str(out / "members" / row / "bundle") for row in ENSEMBLE),
                                       "--out", str(out / "ensemble")]))
     policies = {"teacher": cfg.teacher, "student": cfg.student, "oracle": str(out / "oracle"),
-                **{row: str(out / "members" / row / "bundle") for row, _ in ROWS}, "ensemble": str(out / "ensemble")}
-    if not (out / "evaluation" / "results.md").is_file():
-        todo.append(("the evaluation", ["evaluate", *(a for n, p in policies.items() for a in ("--policy", f"{n}={p}")),
-                                        "--conditions", *CONDITIONS, "--episodes", str(cfg.episodes), "--num-envs",
-                                        "16", "--seed", str(cfg.eval_seed), "--touch-delay", cfg.touch_delay,
-                                        "--out", str(out / "evaluation"), *progress]))
+                "ensemble": str(out / "ensemble")}
+    rows = {row: str(out / "members" / row / "bundle") for row, _ in ROWS}
+    for what, folder, chosen, conditions, episodes in (
+            ("the evaluation", "evaluation", policies, CONDITIONS, cfg.episodes),
+            ("the ablation", "ablation", rows, ABLATION_CONDITIONS, cfg.ablation_episodes)):
+        if not (out / folder / "results.md").is_file():
+            todo.append((what, ["evaluate", *(a for n, p in chosen.items() for a in ("--policy", f"{n}={p}")),
+                                "--conditions", *conditions, "--episodes", str(episodes), "--num-envs", "16",
+                                "--seed", str(cfg.eval_seed), "--touch-delay", cfg.touch_delay,
+                                "--out", str(out / folder), *progress]))
     if not (out / "delay_sweep" / "delay_sweep.md").is_file():
         todo.append(("ttf against the delay", ["python", str(SCRIPTS / "delay_sweep.py"), "--adapter",
                                                str(out / "ensemble"), "--student", cfg.student, "--teacher",
-                                               cfg.teacher, "--episodes", str(cfg.episodes), "--seed",
-                                               str(cfg.eval_seed), "--out", str(out / "delay_sweep")]))
+                                               cfg.teacher, "--conditions", *SWEEP_CONDITIONS, "--episodes",
+                                               str(cfg.sweep_episodes), "--seed", str(cfg.eval_seed), "--out",
+                                               str(out / "delay_sweep"), *progress]))
     return todo
 
 
@@ -153,8 +173,8 @@ def run(cfg: Config) -> int:
         return 0
     status = run_steps("adapter_cpu_recipe", todo, cfg.dry_run)
     if status == 0 and not cfg.dry_run:
-        print(f"adapter_cpu_recipe: done; the table is {cfg.out / 'evaluation' / 'results.md'}, the delay sweep "
-              f"{cfg.out / 'delay_sweep' / 'delay_sweep.md'}")
+        print(f"adapter_cpu_recipe: done; the table is {cfg.out / 'evaluation' / 'results.md'}, the ablation "
+              f"{cfg.out / 'ablation' / 'results.md'}, the delay sweep {cfg.out / 'delay_sweep' / 'delay_sweep.md'}")
     return status
 
 

@@ -1,5 +1,6 @@
-"""scripts/adapter_cpu_recipe.py: the five ablation rows, the oracle, the ensemble, the evaluation and the delay
-sweep chain; every `rotate` command is one its job accepts, a finished row is skipped and a stopped one resumes."""
+"""scripts/adapter_cpu_recipe.py: the five ablation rows, the oracle, the ensemble, the evaluation, the ablation's
+evaluation and the delay sweep chain; every `rotate` command is one its job accepts, a finished row is skipped and a
+stopped one resumes."""
 
 from __future__ import annotations
 
@@ -37,16 +38,21 @@ def test_every_step_is_listed_and_the_training_and_evaluation_commands_parse(rec
     steps = recipe.commands(_config(recipe, out))
     rows = [row for row, _ in recipe.ROWS]
     assert [w.split(":")[0] for w, _ in steps] == [*rows, "the oracle-latent student", "the ensemble",
-                                                    "the evaluation", "ttf against the delay"]
+                                                    "the evaluation", "the ablation", "ttf against the delay"]
     trained = [_parsed(args) for _, args in steps[:5]]
     assert {c.touch_delay for c in trained} == {"measured"} and {c.seed for c in trained} == {31}
     assert [c.modalities for c in trained] == ["img,mic,imu,pressure", "img", "mic,imu,pressure", "imu,pressure",
                                                "pressure"]
     assert [c.tracking for c in trained] == [False, False, False, True, True]
     assert [getattr(c, "blind_touch", False) for c in trained] == [False] * 4 + [True]
-    evaluation = _parsed(steps[-2][1])
-    assert list(evaluation.policies) == ["teacher", "student", "oracle", *rows, "ensemble"]
+    evaluation, ablation = _parsed(steps[-3][1]), _parsed(steps[-2][1])
+    assert list(evaluation.policies) == ["teacher", "student", "oracle", "ensemble"]
     assert evaluation.conditions == recipe.CONDITIONS and evaluation.touch_delay == "measured"
+    assert list(ablation.policies) == rows and ablation.conditions == recipe.ABLATION_CONDITIONS
+    assert (ablation.seed, ablation.touch_delay) == (evaluation.seed, "measured")  # the rows pair with step 4
+    assert ablation.episodes == 64 < evaluation.episodes == 128
+    sweep = steps[-1][1]
+    assert sweep[sweep.index("--conditions") + 1:sweep.index("--episodes")] == list(recipe.SWEEP_CONDITIONS)
     assert steps[5][1][1].endswith("oracle_latent.py") and steps[-1][1][1].endswith("delay_sweep.py")
     ensemble = steps[6][1]
     assert ensemble[ensemble.index("--members") + 1:ensemble.index("--out")] == [
