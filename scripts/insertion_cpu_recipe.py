@@ -45,6 +45,11 @@ class Config:
     """Rows to train and evaluate (camera, touch_image, touch_all, touch_e2e, skin)."""
     episodes: int = 100
     """Demonstrations per hand."""
+    noise_m: float = 0.0
+    """Demonstrations' executed-action noise, translation std (m; `rotate demos --noise-m`: the recorded actions
+    stay the expert's, which then shows its corrections)."""
+    noise_rad: float = 0.0
+    """Demonstrations' executed-action noise, rotation std (rad; `rotate demos --noise-rad`)."""
     encoder: str = "sparshx-tinier-sim"
     """The Sparsh-X encoder of the touch rows (a shipped name or an encoder folder)."""
     skin_encoder: str = ""
@@ -98,11 +103,12 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     """(what, command) still to run, in order (demonstrations are always listed: `rotate demos` keeps what is
     complete and records the rest)."""
     out, todo, progress = cfg.out, [], progress_args(cfg.progress)
+    noise = ["--noise-m", str(cfg.noise_m), "--noise-rad", str(cfg.noise_rad)] if cfg.noise_m or cfg.noise_rad else []
     todo.append(("demonstrations (Digit 360 hand)", ["demos", "--task", "insertion", "--episodes", str(cfg.episodes),
-                                                    "--seed", "0", "--out", str(out / "demos"), *progress]))
+                                                    "--seed", "0", *noise, "--out", str(out / "demos"), *progress]))
     if "skin" in cfg.rows:
         todo.append(("demonstrations (Xela hand)", ["demos", "--task", "insertion", "--hand", "xela_v4",
-                                                    "--episodes", str(cfg.episodes), "--seed", "0", "--out",
+                                                    "--episodes", str(cfg.episodes), "--seed", "0", *noise, "--out",
                                                     str(out / "demos_xela"), *progress]))
     for row in cfg.rows:
         if not (out / f"il_{row}" / "bundle").is_dir():

@@ -80,3 +80,36 @@ def test_the_closed_loop_touch_is_the_touch_the_demonstrations_hold(tmp_path):
         assert np.allclose(sample["imu"].numpy(), live[finger]["imu"], atol=1e-6)
         assert np.allclose(sample["pressure"].numpy()[:, 0], live[finger]["pressure"], atol=1e-4)
         assert np.allclose(sample["image"].numpy(), pack_image(live[finger]["image"]), atol=1e-6)
+
+
+def test_noisy_demonstrations_record_the_experts_corrections_not_the_noise(tmp_path, capsys):
+    """With executed-action noise (DART) the recorded action is what the expert chose on the state the noise led to:
+    the wrist's recorded offsets are not the sum of the recorded actions, the same command records the same file, and
+    a clean run's folder refuses a noisy run."""
+    clean, noisy = tmp_path / "clean", tmp_path / "noisy"
+    demos.run(demos.Config(episodes=1, out=clean, seed=5, image_size=(48, 36), progress=False))
+    cfg = demos.Config(episodes=1, out=noisy, seed=5, image_size=(48, 36), noise_m=0.0004, noise_rad=0.003,
+                       progress=False)
+    demos.run(cfg)
+
+    def read(out):
+        with SessionReader(find_sessions(out)[0]) as r:
+            return (r.meta.properties, r.stream("actions/wrist").data.copy(), r.stream("wrist/pose").data.copy(),
+                    r.meta.extra["demos"])
+
+    props_c, act_c, pose_c, _ = read(clean)
+    props_n, act_n, pose_n, extra = read(noisy)
+    assert (extra["noise_m"], extra["noise_rad"]) == (0.0004, 0.003) and props_n["steps"] == len(act_n)
+    n = min(len(act_c), len(act_n))
+    assert not np.allclose(act_c[:n], act_n[:n])  # the expert reacted to other states
+    # clean: each action moves the wrist target by itself (within the env's clip); noisy: by itself plus the noise
+    step_c = np.diff(pose_c[:, :3], axis=0) - np.clip(act_c[:-1, :3], -0.003, 0.003)
+    step_n = np.diff(pose_n[:, :3], axis=0) - np.clip(act_n[:-1, :3], -0.003, 0.003)
+    assert np.abs(step_c).max() < 1e-6 and 2e-4 < step_n.std() < 6e-4
+    again = tmp_path / "again"
+    demos.run(demos.Config(**{**cfg.__dict__, "out": again}))
+    assert np.array_equal(read(again)[1], act_n)
+    assert main(["demos", "--episodes", "1", "--out", str(clean), "--seed", "5", "--image-size", "48", "36",
+                 "--noise-m", "0.0004"]) == 1
+    assert "another run's demonstration" in capsys.readouterr().err
+    assert main(["demos", "--noise-m", "0.01", "--out", str(tmp_path / "x")]) == 2
