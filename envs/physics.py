@@ -56,6 +56,7 @@ OPTIONAL_RANGES_LIMITS: dict[str, tuple[float, float]] = {
     "action_delay": (0.0, MAX_ACTION_DELAY),
     "impratio": (1.0, 100.0),
     "contact_timeconst": (0.002, 0.2),
+    "surface_friction": (0.05, 1.0),
 }
 """The randomization ranges that are off (None) on the shipped physics, with the interval each must lie in."""
 OPTIONAL_RANGES = tuple(OPTIONAL_RANGES_LIMITS)
@@ -112,6 +113,10 @@ class RandomizationConfig:
     contact_timeconst: tuple[float, float] | None = None
     """Time constant (s) of every contact (MuJoCo's solref[0]: how fast penetration is pushed out), one draw per
     episode; None = the model's 0.02 s."""
+    surface_friction: tuple[float, float] | None = None
+    """A factor of the cup's surface, one draw per episode, log-uniform: it multiplies the domes' and the links'
+    friction together (a wet or oily glaze changes every contact at once, as the perturbation suite's friction
+    scale does), so that training reaches the slippery cups the suite tries; None = 1. Only with randomization on."""
     noslip_dropout: float = 0.0
     """Share of episodes run without the noslip solver, where the config's contact model uses it (friction that
     creeps a little, as under MuJoCo's plain solver): a policy must not need one solver to hold the cup."""

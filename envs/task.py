@@ -33,10 +33,11 @@ PARAM_DRAWS = 40
 """Uniform draws per env and reset: scale bucket, jitter, mass, CoM (3), friction, kp (16), kd (16), grasp row."""
 PARAM_KEYS = ("scale", "mass", "friction", "com", "kp", "kd")
 """Physical parameters of one episode, what `params` holds and `priv` reports (with the object position)."""
-PHYS_DRAWS = 22
+PHYS_DRAWS = 23
 """Uniform draws per env and reset for the hardware physics' parameters (their own stream, so the shipped physics'
 draws never move): link friction, joint friction (16), torque scale, action delay, impratio, contact time
-constant, noslip dropout."""
+constant, noslip dropout, surface friction factor. Column j of a draw does not depend on how many are drawn
+(envs.rng), so adding one at the end leaves every earlier episode's draws as they were."""
 PHYS_KEYS = ("link_friction", "joint_friction", "torque_scale", "delay", "impratio", "timeconst", "noslip")
 """The hardware physics' per-episode parameters (present only where the randomization config sets them)."""
 
@@ -90,6 +91,11 @@ def sample_params(xp: ModuleType, cfg: EnvConfig, u: Array, u_phys: Array | None
                  kd=u[:, 23:39] * 0.0 + cfg.kd)
     if u_phys is not None:
         p.update(sample_hardware_params(xp, cfg, u_phys))
+        surface = p.pop("surface_friction", None)
+        if surface is not None:  # the cup's surface: the domes' and the links' friction together
+            p["friction"] = p["friction"] * surface
+            if "link_friction" in p:
+                p["link_friction"] = p["link_friction"] * surface
     pert = cfg.perturb
     p["friction"] = p["friction"] * pert.friction_scale
     if "link_friction" in p:
@@ -104,7 +110,8 @@ def sample_hardware_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str
     """The hardware physics' parameters of k episodes from (k, PHYS_DRAWS) uniform draws, for the ranges the
     randomization sets (envs.physics.RandomizationConfig; without randomization each range's middle, noslip on):
     ``link_friction`` (k,), ``joint_friction`` (k, 16) N m, ``torque_scale`` (k,), ``delay`` (k,) whole physics
-    steps, ``impratio`` (k,), ``timeconst`` (k,) s, ``noslip`` (k,) 1.0 where the episode runs the noslip solver."""
+    steps, ``impratio`` (k,), ``timeconst`` (k,) s, ``noslip`` (k,) 1.0 where the episode runs the noslip solver,
+    ``surface_friction`` (k,) the cup surface's factor (sample_params folds it into both frictions)."""
     rc = cfg.randomization
     if not rc.enabled:
         u = u * 0.0 + 0.5  # the middle of every range
@@ -127,6 +134,8 @@ def sample_hardware_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str
         p["impratio"] = draw(rc.impratio, u[:, 19], log=True)
     if rc.contact_timeconst is not None:
         p["timeconst"] = draw(rc.contact_timeconst, u[:, 20])
+    if rc.surface_friction is not None and rc.enabled:
+        p["surface_friction"] = draw(rc.surface_friction, u[:, 22], log=True)
     if rc.noslip_dropout > 0:
         p["noslip"] = (u[:, 21] >= rc.noslip_dropout) * 1.0 if rc.enabled else u[:, 21] * 0.0 + 1.0
     return p

@@ -13,6 +13,7 @@ from typing import Literal
 
 from adapters.touch_delay import parse_delay
 from envs.config import EnvConfig, RandomizationConfig
+from envs.physics import DEFAULT_HAND, MAX_OBJECT_MASS, default_randomization
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import config_resuming_in_out, from_jsonable
 from rotation.tactile.models.encoders import parse_groups
@@ -22,9 +23,18 @@ RUN_OUTPUTS = ("config.json", "run.json", "bundle", "curves.jsonl", "tb")
 RESUMABLE_CHANGES = {"out", "total_steps", "epochs", "resume", "progress", "torch_threads", "nthread", "overwrite"}
 
 
-def hard_randomization() -> RandomizationConfig:
-    """The training randomization: the env's, with friction reaching 4x lower and mass 0.2 kg heavier."""
-    return RandomizationConfig(friction=(0.075, 1.5), mass=(0.05, 0.45))
+def hard_randomization(hand: str = DEFAULT_HAND) -> RandomizationConfig:
+    """The training randomization: the hand's own physics (envs.physics.HAND_PHYSICS: its cups, its friction
+    split, its hardware randomization), reaching 4x more slippery and to heavier cups, where the student's gap is.
+
+    On the first hand model (one friction for every geom): friction 0.075-1.5, mass 0.05-0.45 kg. On a hand with
+    its own link friction (the vendor-kinematics hands): a cup-surface factor of 0.25-1 on the domes' and the
+    links' friction together (log-uniform: the perturbation suite's friction x0.25 at its low end) and masses up
+    to MAX_OBJECT_MASS (the suite's +0.1 kg on the hand's heaviest cup)."""
+    base = default_randomization(hand)
+    if base.link_friction is None:  # Hora's 0.3-3.0 and 0.01-0.25 kg
+        return dataclasses.replace(base, friction=(0.075, 1.5), mass=(0.05, 0.45))
+    return dataclasses.replace(base, surface_friction=(0.25, 1.0), mass=(base.mass[0], MAX_OBJECT_MASS))
 
 
 @dataclass
@@ -168,6 +178,8 @@ class Config:
         check_int("torch_threads", self.torch_threads, 1, 1024)
         needs = {"hand": "xela", "skin": True, "tactile": False} if self.touch_kind == "skin" else {"tactile": True}
         if any(getattr(self.env, k) != v for k, v in needs.items()):
+            if "hand" in needs and self.env.randomization == hard_randomization(self.env.hand):
+                needs["randomization"] = hard_randomization(needs["hand"])  # the new hand's, not the default's
             self.env = dataclasses.replace(self.env, **needs)
         if self.resume and self.overwrite:
             raise ValueError("--resume continues the run in --out and --overwrite deletes it: give one of them")

@@ -95,6 +95,10 @@ class Config:
     mass: tuple[float, float] | None = None
     """Range of the cup's mass (kg) the randomization draws; None = the hand's. The heaviest cup, with the
     evaluation's added mass, must stay within what the actuators hold (envs.config.MAX_OBJECT_MASS)."""
+    surface_friction: tuple[float, float] | None = None
+    """Range of a per-episode factor of the cup's surface (log-uniform) that multiplies the gel tips' and the links'
+    friction together, as the perturbation suite's friction scale does (envs.physics.RandomizationConfig); None =
+    1. (0.2, 1.0) trains on cups down to a fifth of the hand's friction everywhere, past the suite's friction x0.25."""
     noslip_dropout: float | None = None
     """Share of episodes run without MuJoCo's noslip solver, on a hand whose contact model uses it (digit360_v4:
     0.25); None = the hand's. Those episodes are where a held cup creeps, and where the v4 teacher drops it most
@@ -252,7 +256,8 @@ class Config:
 
     def env_config(self) -> EnvConfig:
         rc = default_randomization(self.hand, self.randomize)  # the hand's physics (envs.physics.HAND_PHYSICS)
-        ranges: dict[str, Any] = {k: tuple(v) for k, v in (("friction", self.friction), ("mass", self.mass))
+        ranges: dict[str, Any] = {k: tuple(v) for k, v in (("friction", self.friction), ("mass", self.mass),
+                                                           ("surface_friction", self.surface_friction))
                                   if v is not None}
         if self.noslip_dropout is not None:
             ranges["noslip_dropout"] = self.noslip_dropout

@@ -153,6 +153,26 @@ def test_a_blind_adapter_reads_the_latent_and_the_tracking_but_not_the_touch():
     assert finetune.Config(out=Path("x"), blind_touch=True, tracking=True).blind_touch
 
 
+def test_the_training_randomization_is_the_hands_own_reaching_slippery_and_heavy_cups():
+    """The adapter trains on its student's hand's physics (cups, friction split, hardware randomization), widened to
+    the perturbation suite's slippery and heavy extremes; the first hand model keeps its own widened ranges."""
+    from adapters.finetune.config import hard_randomization
+    from envs.physics import MAX_OBJECT_MASS, default_randomization
+
+    cfg = finetune.Config(out=Path("x"))
+    rc, hand = cfg.env.randomization, default_randomization(cfg.env.hand)
+    assert cfg.env.hand == "digit360_v4" and cfg.env.tactile
+    kept = ("scales", "friction", "friction_log", "link_friction", "joint_friction", "torque_scale", "action_delay",
+            "impratio", "contact_timeconst", "noslip_dropout")
+    assert {k: getattr(rc, k) for k in kept} == {k: getattr(hand, k) for k in kept}
+    assert rc.surface_friction == (0.25, 1.0)  # the suite's friction x0.25 at its low end
+    assert rc.mass == (hand.mass[0], MAX_OBJECT_MASS) and hand.mass[1] + 0.1 <= rc.mass[1]  # and its +0.1 kg
+    first = hard_randomization("digit360")
+    assert (first.friction, first.mass, first.link_friction) == ((0.075, 1.5), (0.05, 0.45), None)
+    skin = finetune.Config(out=Path("x"), modalities="skin", encoder="skin_encoder")
+    assert skin.env.hand == "xela" and skin.env.randomization == hard_randomization("xela")
+
+
 def test_adapter_network_checks_its_inputs():
     with pytest.raises(ValueError, match="samples"):
         AdapterNetConfig(samples=(), groups=(("img", 196),), width=96)

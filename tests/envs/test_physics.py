@@ -29,7 +29,8 @@ def test_the_shipped_hands_keep_their_physics_and_the_vendor_hand_gets_the_hardw
     assert cfg.contact == ContactConfig(cone="elliptic", impratio=10.0, noslip_iterations=10)
     assert cfg.joint_torque_limits == "vendor" and task.uses_hardware_physics(cfg)
     rc = cfg.randomization
-    assert all(getattr(rc, name) is not None for name in OPTIONAL_RANGES)
+    assert all(getattr(rc, name) is not None for name in OPTIONAL_RANGES if name != "surface_friction")
+    assert rc.surface_friction is None  # a training's choice (train-teacher --surface-friction), not the hand's
     assert rc.mass[1] == 0.40 and max(rc.scales) * 0.040 >= 0.044  # a ceramic mug, a standard mug's radius
     assert rc.friction == (0.4, 1.2) and rc.link_friction == (0.2, 0.5)
     # a field given explicitly wins over the hand's
@@ -77,6 +78,28 @@ def test_hardware_draws_fall_in_their_ranges_and_leave_the_shipped_draws_alone()
     plain = task.sample_params(np, EnvConfig(), u40)
     with_hw = task.sample_params(np, EnvConfig(), u40, u[:8])
     assert all(np.array_equal(plain[k], with_hw[k]) for k in plain)
+
+
+def test_the_cup_surface_factor_scales_both_frictions_and_moves_no_other_draw():
+    """--surface-friction multiplies the domes' and the links' friction of an episode by one log-uniform factor;
+    every other parameter of the same episodes is drawn as without it, and nominal physics has no factor."""
+    cfg = EnvConfig(hand=V4)
+    rough = dataclasses.replace(cfg, randomization=dataclasses.replace(cfg.randomization, surface_friction=(0.25, 1.0)))
+    u40 = np.random.default_rng(2).uniform(size=(4000, task.PARAM_DRAWS))
+    u = np.random.default_rng(3).uniform(size=(4000, task.PHYS_DRAWS))
+    plain, scaled = task.sample_params(np, cfg, u40, u), task.sample_params(np, rough, u40, u)
+    factor = 0.25 * 4.0 ** u[:, 22]
+    assert np.allclose(scaled["friction"], plain["friction"] * factor)
+    assert np.allclose(scaled["link_friction"], plain["link_friction"] * factor)
+    assert set(scaled) == set(plain)
+    assert all(np.array_equal(plain[k], scaled[k]) for k in plain if k not in ("friction", "link_friction"))
+    assert abs(np.mean(np.log(factor) < np.log(0.5)) - 0.5) < 0.03  # log-uniform: half the episodes below x0.5
+    assert scaled["friction"].min() >= 0.1 - 1e-9  # the suite's friction x0.25 of the domes' 0.4
+    off = dataclasses.replace(rough.randomization, enabled=False)
+    nominal = task.sample_params(np, dataclasses.replace(rough, randomization=off), u40[:3], u[:3])
+    assert np.allclose(nominal["friction"], np.mean(cfg.randomization.friction))
+    with pytest.raises(ValueError, match="surface_friction"):
+        RandomizationConfig(surface_friction=(0.0, 1.0))
 
 
 def test_each_drawn_parameter_reaches_its_simulation():
