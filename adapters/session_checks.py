@@ -13,7 +13,7 @@ from typing import Literal
 
 import numpy as np
 
-from envs.config import RandomizationConfig
+from envs.config import RandomizationConfig, default_randomization
 from envs.errors import RequestRefused
 from rotation.data.dataset import find_sessions
 from rotation.data.properties import check_properties
@@ -131,8 +131,9 @@ def check_sessions(paths: Sequence[str | Path], fingers: Sequence[str], windows:
 
 def outside_training_ranges(props: dict[str, float | list[float]],
                             rc: RandomizationConfig | None = None) -> list[str]:
-    """The measured properties outside the env's randomization (the shipped teacher's), as 'key value (range)'."""
-    rc = rc or RandomizationConfig()
+    """The measured properties outside the randomization ``rc`` (default: the default hand's, the shipped teacher's),
+    as 'key value (range)'. Friction is the gel domes' (the cup against the sensors)."""
+    rc = rc or default_randomization()
     ranges = {"scale": (min(rc.scales) - rc.scale_jitter, max(rc.scales) + rc.scale_jitter), "mass": rc.mass,
               "friction": rc.friction, "com": rc.com}
     out = []

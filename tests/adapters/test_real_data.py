@@ -262,3 +262,13 @@ def test_finetune_on_sessions_with_joint_tracking_normalizes_by_the_training_sam
     assert 0.0 < float(adapter.track_std[:16].median()) < 0.2  # tracking errors in rad, not the defaults
     assert float(adapter.g[0].weight[:, -TRACKING_DIM:].detach().abs().sum()) > 0
     assert result.history[-1]["latent_mse"] < result.history[0]["latent_mse"]
+
+
+def test_measured_properties_are_checked_against_the_shipped_teachers_ranges():
+    """A lab's cup is warned about against the default hand's randomization (the shipped teacher's), not Hora's."""
+    from adapters.session_checks import outside_training_ranges
+
+    mug = {"scale": 1.0, "mass": 0.35, "friction": 0.6, "com": [0.0, 0.0, 0.0]}  # inside v4's ranges, not Hora's
+    assert outside_training_ranges(mug) == []
+    notes = outside_training_ranges({**mug, "friction": 2.0, "mass": 0.45})
+    assert notes == ["mass 0.45 (0.02..0.4)", "friction 2.0 (0.4..1.2)"]
