@@ -54,6 +54,8 @@ ALLOWED: dict[str, dict[str, str]] = {
     "*:latent_mix": {"zero": "0 = off: the actor trains on phi alone (the default)"},
     "*:noslip_iterations": {"zero": "0 turns MuJoCo's noslip solver off (the shipped policies' contact model)"},
     "grasps:noise": {"zero": "grasps exactly at the canonical pose"},
+    "demos:noise_m": {"zero": "the expert's actions executed as chosen (no DART noise, the default)"},
+    "demos:noise_rad": {"zero": "the expert's rotations executed as chosen (the default)"},
     "grasps:hold_seconds": {"zero": "turns the hold check off (the cache records no hold rule)"},
     "train-teacher:critic_warmup": {"zero": "0 = the actor trains from the first update"},
     "finetune-student:critic_warmup": {"zero": "0 = the actor trains from the first update"},
@@ -359,7 +361,8 @@ def test_every_help_prints(command, capsys):
 
 def test_a_nested_option_keeps_the_rest_of_its_config():
     """Giving one field of a nested config changes that field only: the others keep the field's default, here
-    finetune-adapter's training env (touch on, slippery and heavy cups), not the nested class's own defaults."""
+    finetune-adapter's training env (touch on, the hand's physics widened to slippery and heavy cups), not the
+    nested class's own defaults."""
     from adapters.finetune import job as finetune
     from rotation.configs import add_dataclass_arguments, dataclass_from_args
 
@@ -368,7 +371,8 @@ def test_a_nested_option_keeps_the_rest_of_its_config():
     default = finetune.Config().env
     cfg = dataclass_from_args(finetune.Config, parser.parse_args(["--env.randomization.mass", "0.1", "0.5"]))
     assert cfg.env.randomization.mass == (0.1, 0.5)
-    assert cfg.env.randomization.friction == default.randomization.friction == (0.075, 1.5)
+    assert cfg.env.randomization.surface_friction == default.randomization.surface_friction == (0.25, 1.0)
+    assert cfg.env.randomization.friction == default.randomization.friction == (0.4, 1.2)
     assert cfg.env.tactile and cfg.env == dataclasses.replace(
         default, randomization=dataclasses.replace(default.randomization, mass=(0.1, 0.5)))
     cfg = dataclass_from_args(finetune.Config, parser.parse_args(["--env.episode-steps", "200"]))
