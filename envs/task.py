@@ -91,15 +91,12 @@ def sample_params(xp: ModuleType, cfg: EnvConfig, u: Array, u_phys: Array | None
                  kd=u[:, 23:39] * 0.0 + cfg.kd)
     if u_phys is not None:
         p.update(sample_hardware_params(xp, cfg, u_phys))
-        surface = p.pop("surface_friction", None)
-        if surface is not None:  # the cup's surface: the domes' and the links' friction together
-            p["friction"] = p["friction"] * surface
-            if "link_friction" in p:
-                p["link_friction"] = p["link_friction"] * surface
     pert = cfg.perturb
-    p["friction"] = p["friction"] * pert.friction_scale
+    # the cup's surface (a training draw) and the evaluation's friction scale: the domes' and the links' together
+    scale = p.pop("surface_friction", 1.0) * pert.friction_scale
+    p["friction"] = p["friction"] * scale
     if "link_friction" in p:
-        p["link_friction"] = p["link_friction"] * pert.friction_scale
+        p["link_friction"] = p["link_friction"] * scale
     p["mass"] = p["mass"] + pert.added_mass
     p["com"] = p["com"] + const(xp, pert.com_shift, u)
     p["grasp_u"] = u[:, 39]
