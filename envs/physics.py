@@ -117,6 +117,10 @@ class RandomizationConfig:
     """A factor of the cup's surface, one draw per episode, log-uniform: it multiplies the domes' and the links'
     friction together (a wet or oily glaze changes every contact at once, as the perturbation suite's friction
     scale does), so that training reaches the slippery cups the suite tries; None = 1. Only with randomization on."""
+    surface_share: float = 1.0
+    """Share of episodes whose cup surface is drawn from ``surface_friction``; the others keep the nominal surface
+    (factor 1), so a training that reaches slippery cups still practises the nominal one as often as it asks. The
+    same uniform draw decides both (below the share: the factor, from that draw rescaled), so no other draw moves."""
     noslip_dropout: float = 0.0
     """Share of episodes run without the noslip solver, where the config's contact model uses it (friction that
     creeps a little, as under MuJoCo's plain solver): a policy must not need one solver to hold the cup."""
@@ -141,6 +145,8 @@ class RandomizationConfig:
             if not (0.0 <= getattr(self, name) <= top):
                 raise ValueError(f"randomization.{name} must be finite and >= 0 (at most {top}), "
                                  f"got {getattr(self, name)}")
+        if not (0.0 < self.surface_share <= 1.0):
+            raise ValueError(f"randomization.surface_share must be in (0, 1], got {self.surface_share}")
         if not (0.0 <= self.noslip_dropout <= 1.0):
             raise ValueError(f"randomization.noslip_dropout must be in [0, 1], got {self.noslip_dropout}")
         if not (0.0 <= self.push_prob <= 1.0):

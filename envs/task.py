@@ -108,7 +108,8 @@ def sample_hardware_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str
     randomization sets (envs.physics.RandomizationConfig; without randomization each range's middle, noslip on):
     ``link_friction`` (k,), ``joint_friction`` (k, 16) N m, ``torque_scale`` (k,), ``delay`` (k,) whole physics
     steps, ``impratio`` (k,), ``timeconst`` (k,) s, ``noslip`` (k,) 1.0 where the episode runs the noslip solver,
-    ``surface_friction`` (k,) the cup surface's factor (sample_params folds it into both frictions)."""
+    ``surface_friction`` (k,) the cup surface's factor, 1 on the episodes past ``surface_share`` (sample_params folds
+    it into both frictions)."""
     rc = cfg.randomization
     if not rc.enabled:
         u = u * 0.0 + 0.5  # the middle of every range
@@ -132,7 +133,10 @@ def sample_hardware_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str
     if rc.contact_timeconst is not None:
         p["timeconst"] = draw(rc.contact_timeconst, u[:, 20])
     if rc.surface_friction is not None and rc.enabled:
-        p["surface_friction"] = draw(rc.surface_friction, u[:, 22], log=True)
+        share = rc.surface_share  # below the share the draw, rescaled to [0, 1), picks the factor; above it: 1
+        drawn = u[:, 22] < share
+        p["surface_friction"] = xp.where(drawn, draw(rc.surface_friction, xp.clip(u[:, 22] / share, 0.0, 1.0),
+                                                     log=True), 1.0)
     if rc.noslip_dropout > 0:
         p["noslip"] = (u[:, 21] >= rc.noslip_dropout) * 1.0 if rc.enabled else u[:, 21] * 0.0 + 1.0
     return p

@@ -99,6 +99,9 @@ class Config:
     """Range of a per-episode factor of the cup's surface (log-uniform) that multiplies the gel tips' and the links'
     friction together, as the perturbation suite's friction scale does (envs.physics.RandomizationConfig); None =
     1. (0.2, 1.0) trains on cups down to a fifth of the hand's friction everywhere, past the suite's friction x0.25."""
+    surface_share: float = 1.0
+    """With --surface-friction: the share of episodes whose cup surface is drawn from it; the others keep the nominal
+    surface (factor 1). 1 = every episode (a log-uniform factor makes the nominal cup the edge of what it practises)."""
     noslip_dropout: float | None = None
     """Share of episodes run without MuJoCo's noslip solver, on a hand whose contact model uses it (digit360_v4:
     0.25); None = the hand's. Those episodes are where a held cup creeps, and where the v4 teacher drops it most
@@ -261,6 +264,11 @@ class Config:
                                   if v is not None}
         if self.noslip_dropout is not None:
             ranges["noslip_dropout"] = self.noslip_dropout
+        if self.surface_share != 1.0:
+            if self.surface_friction is None:
+                raise ValueError("surface_share: the share of episodes drawn from --surface-friction; give that range "
+                                 "too")
+            ranges["surface_share"] = self.surface_share
         if ranges:
             if not self.randomize:
                 raise ValueError(f"{' / '.join(ranges)}: settings of the randomization, which --no-randomize turns "

@@ -102,6 +102,31 @@ def test_the_cup_surface_factor_scales_both_frictions_and_moves_no_other_draw():
         RandomizationConfig(surface_friction=(0.0, 1.0))
 
 
+def test_a_surface_share_keeps_the_other_episodes_on_the_nominal_surface():
+    """With surface_share s, the episodes whose column-22 draw u is below s get the factor drawn log-uniformly from
+    u / s, the others exactly 1; s = 1 is the plain factor; no other parameter moves."""
+    cfg = EnvConfig(hand=V4)
+    rc = dataclasses.replace(cfg.randomization, surface_friction=(0.25, 1.0))
+    u40 = np.random.default_rng(4).uniform(size=(4000, task.PARAM_DRAWS))
+    u = np.random.default_rng(5).uniform(size=(4000, task.PHYS_DRAWS))
+    plain = task.sample_params(np, cfg, u40, u)
+    half = task.sample_params(np, dataclasses.replace(cfg, randomization=dataclasses.replace(rc, surface_share=0.5)),
+                              u40, u)
+    whole = task.sample_params(np, dataclasses.replace(cfg, randomization=rc), u40, u)
+    factor = half["friction"] / plain["friction"]
+    drawn = u[:, 22] < 0.5
+    assert np.allclose(factor[~drawn], 1.0)
+    assert np.allclose(half["link_friction"][~drawn], plain["link_friction"][~drawn])
+    assert np.allclose(factor[drawn], 0.25 * 4.0 ** (u[drawn, 22] / 0.5))
+    assert abs(np.mean(factor == 1.0) - 0.5) < 0.03 and factor.min() >= 0.25 - 1e-9
+    assert abs(np.mean(factor[drawn] < 0.5) - 0.5) < 0.04  # the drawn half is still log-uniform over 0.25-1
+    assert np.allclose(whole["friction"] / plain["friction"], 0.25 * 4.0 ** u[:, 22])  # share 1: the plain factor
+    assert all(np.array_equal(plain[k], half[k]) for k in plain if k not in ("friction", "link_friction"))
+    for bad in (0.0, 1.5, -0.1):
+        with pytest.raises(ValueError, match="surface_share"):
+            RandomizationConfig(surface_share=bad)
+
+
 def test_each_drawn_parameter_reaches_its_simulation():
     env = RotateCupVec(EnvConfig(hand=V4), num_envs=6, seed=5, nthread=1)
     env.reset()

@@ -365,6 +365,8 @@ def test_bad_options_are_refused_on_construction(tmp_path):
         (dict(out=tmp_path / "file.txt"), r"out .*file\.txt' is a file, not a directory"),
         (dict(grasp_cache=str(tmp_path / "none.npz")), r"grasp_cache: no such file"),
         (dict(episode_steps=0), r"episode_steps must be >= 1"),
+        (dict(surface_share=0.5), r"surface_share: the share of episodes drawn from --surface-friction; give that"),
+        (dict(surface_friction=(0.25, 1.0), surface_share=0.0), r"randomization\.surface_share must be in \(0, 1\]"),
     ]:
         (tmp_path / "file.txt").write_text("x")
         with pytest.raises(ValueError, match=message):
