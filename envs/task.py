@@ -134,9 +134,7 @@ def sample_hardware_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str
         p["timeconst"] = draw(rc.contact_timeconst, u[:, 20])
     if rc.surface_friction is not None and rc.enabled:
         share = rc.surface_share  # below the share the draw, rescaled to [0, 1), picks the factor; above it: 1
-        drawn = u[:, 22] < share
-        p["surface_friction"] = xp.where(drawn, draw(rc.surface_friction, xp.clip(u[:, 22] / share, 0.0, 1.0),
-                                                     log=True), 1.0)
+        p["surface_friction"] = xp.where(u[:, 22] < share, draw(rc.surface_friction, u[:, 22] / share, log=True), 1.0)
     if rc.noslip_dropout > 0:
         p["noslip"] = (u[:, 21] >= rc.noslip_dropout) * 1.0 if rc.enabled else u[:, 21] * 0.0 + 1.0
     return p
