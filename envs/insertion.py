@@ -11,7 +11,9 @@ only the prong meets the socket.
 
 Control: every ``control_dt`` the wrist's target moves by the action, a 6-vector (dx, dy, dz in m; droll, dpitch,
 dyaw in rad, world axes) clipped to ``max_step`` and ``max_turn``. Success: the prong's tip at least
-``success_depth`` into the hole within ``episode_steps``, with the largest socket force below ``max_force``.
+``success_depth`` into the hole within ``episode_steps``, with the largest socket force below ``max_force``. A trial
+also ends, failed, when the plug leaves the grasp (its centre more than ``lost_distance`` from where it settled in
+the palm's frame): nothing the wrist does afterwards can seat it.
 
 Observation (a dict of numpy arrays): ``wrist`` (7,) the wrist target's offset from its start (position, m;
 quaternion wxyz), ``joints`` (16,) the measured joint angles (rad), ``image`` (H, W, 3) uint8 from the wrist camera
@@ -41,7 +43,6 @@ from envs.held_hand import (
     TouchHistory,
     WristRun,
     check_touch_hand,
-    contact_force,
     finish,
     grip,
     tilt_quat,
@@ -94,6 +95,10 @@ class InsertionConfig:
     """Prong depth in the hole that counts as seated (m)."""
     max_force: float = 40.0
     """A socket force above this (N) fails the episode: excess force."""
+    lost_distance: float = 0.06
+    """The plug's centre this far (m) from where it settled in the palm's frame: it left the grasp, the episode
+    fails. The plug shifts in the grasp while the expert seats it (at most 31 mm over 51 seated trials, seeds
+    200-251); a plug that falls ends up metres away."""
     image_size: tuple[int, int] = (160, 120)
     """Wrist camera width, height (pixels)."""
 
@@ -223,6 +228,25 @@ class InsertionSim:
         inside = abs(local[0]) <= PRONG[0] / 2 + CLEARANCE + 1e-4 and abs(local[1]) <= PRONG[1] / 2 + CLEARANCE + 1e-4
         return float(local[2]), bool(inside)
 
+    def socket_press(self) -> tuple[float, np.ndarray]:
+        """How hard and where the socket presses on the prong now: the sum of their contacts' normal forces (N) and
+        the force-weighted sum of the contacts' positions relative to the prong's tip in the socket's plane (N m;
+        divided by the force, where the press is centred). Privileged, but what a hand feels: a press off the
+        prong's axis is a moment on the held plug, and the fingertips' forces shift with it."""
+        m, d = self.model, self.data
+        total, centre = 0.0, np.zeros(3)
+        for i in range(d.ncon):
+            con = d.contact[i]
+            if self._socket in (m.geom_bodyid[con.geom1], m.geom_bodyid[con.geom2]):
+                mujoco.mj_contactForce(m, d, i, self._wrench)
+                total += self._wrench[0]
+                centre += self._wrench[0] * con.pos
+        if total <= 0.0:
+            return 0.0, np.zeros(2)
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, d.mocap_quat[1])
+        return total, (rot.reshape(3, 3).T @ (centre - total * self._pose_of(self._tip_local)[:3]))[:2]
+
     # ------------------------------------------------------------------ episode
     def reset(self) -> dict[str, np.ndarray]:
         """The start: the plug settles in the still hand, then the socket is placed from the episode's draws."""
@@ -232,8 +256,9 @@ class InsertionSim:
         d.mocap_pos[1] = [0.0, 0.0, 1.0]
         if self.skin is not None:
             self.skin.reset(d)
-        times, self.contact, _ = self._run.run(int(round(cfg.settle_s / TIMESTEP)), self._target,
-                                               None if self.skin is None else self.skin.on_step)
+        times, self.contact, held = self._run.run(int(round(cfg.settle_s / TIMESTEP)), self._target,
+                                                  None if self.skin is None else self.skin.on_step)
+        self._held0 = held[-1].copy()
         if self.touch is not None:
             self.touch = TouchHistory(self.touch_key, TIMESTEP, cfg.hand)
             self.touch.extend(times, self.contact)
@@ -252,7 +277,9 @@ class InsertionSim:
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], bool, dict[str, float]]:
         """Move the wrist's target by ``action`` (see the module docstring) and step ``control_dt``; returns the
-        observation, whether the episode ended, and info: success, depth, force, max_force."""
+        observation, whether the episode ended, and info: success, depth, force, max_force, lost (1 once the plug
+        has left the grasp), press_x and press_y (m: where the socket pressed on the prong over the action's steps,
+        relative to its tip in the socket's plane; 0 without contact; :meth:`socket_press`)."""
         cfg = self.cfg
         a = np.asarray(action, dtype=np.float64).reshape(6)
         if not np.all(np.isfinite(a)):
@@ -262,14 +289,17 @@ class InsertionSim:
         self._pos = self._pos + move
         for axis, angle in zip(np.eye(3), turn, strict=True):
             self._quat = tilt_quat(self._quat, axis, float(angle))
-        forces = []
+        forces, press = [], np.zeros(2)
 
         def on_step(d: mujoco.MjData) -> None:
-            forces.append(contact_force(self.model, d, self._socket, self._wrench))
+            nonlocal press
+            total, moment = self.socket_press()
+            forces.append(total)
+            press = press + moment
             if self.skin is not None:
                 self.skin.on_step(d)
 
-        times, rows, _ = self._run.run(cfg.substeps, self._target, on_step)
+        times, rows, held = self._run.run(cfg.substeps, self._target, on_step)
         self.contact = rows
         if self.touch is not None:
             self.touch.extend(times, rows)
@@ -278,9 +308,12 @@ class InsertionSim:
         self.max_force = max(self.max_force, force)
         depth, inside = self.depth()
         success = inside and depth >= cfg.success_depth and self.max_force <= cfg.max_force
-        done = success or self.steps >= cfg.episode_steps or self.max_force > cfg.max_force
+        lost = float(np.linalg.norm(held[-1] - self._held0)) > cfg.lost_distance
+        press = press / max(sum(forces), 1e-9)  # where the socket pressed over the action's steps
+        done = success or lost or self.steps >= cfg.episode_steps or self.max_force > cfg.max_force
         return self.observe(), done, {"success": float(success), "depth": depth, "inside": float(inside),
-                                      "force": force, "max_force": self.max_force}
+                                      "force": force, "max_force": self.max_force, "lost": float(lost),
+                                      "press_x": float(press[0]), "press_y": float(press[1])}
 
     def observe(self) -> dict[str, np.ndarray]:
         d = self.data

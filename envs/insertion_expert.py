@@ -8,11 +8,19 @@ grasp holds; rotations about the palm move the tip too, which the next step's tr
    ``miss`` away from the hole's centre (drawn per episode: the expert's own aim is off, as a camera's would be),
    6 mm below the entry;
 2. **contact**: rise until the prong touches the plate (socket force above ``touch_force``), or enters the hole;
-3. **align**: slide the tip to the hole's true centre at the plate's height, keeping a light contact, and keep the
-   axes aligned;
+3. **align**: find the hole at the plate's height, keeping a light contact and the axes aligned (``align`` below);
 4. **push**: rise into the hole, centring as it goes, the more gently the larger the socket force (not at all at
    ``jam_force``); if the force stays above half of it for two actions without the depth growing (jammed), back off
    2 mm and align again (at most ``retries`` times).
+
+``align``: how the expert finds the hole after contact. ``"state"`` slides to the hole's true centre, which no
+policy can see (the camera's view of the final alignment is ambiguous by design). ``"feel"`` never reads the hole's
+position: while the prong presses on the plate it steps ``feel_step`` away from where the socket presses on it
+(envs.insertion.InsertionSim.socket_press: the part of the prong's face on the plate, beside the hole, a moment
+on the held plug that the fingertips feel) and holds still without contact, until the tip rises into the hole; in
+the hole it centres the prong as ``"state"`` does (the last half-millimetre: the walls allow no more; following
+the walls' sideways force instead wedged the prong on 7 of 40 seeds). Its corrections follow from what touch
+carries, so an imitation policy that reads touch can learn them.
 """
 
 from __future__ import annotations
@@ -44,6 +52,14 @@ class ExpertConfig:
     """Rise per action while pushing (m)."""
     retries: int = 3
     """Back-offs after a jam before the expert keeps pushing regardless."""
+    align: str = "feel"
+    """'state' (slide to the hole's true centre) or 'feel' (step away from the socket's press; module docstring)."""
+    feel_step: float = 0.0004
+    """Largest lateral target step (m) of a 'feel' correction (times ``gain`` per action)."""
+
+    def __post_init__(self) -> None:
+        if self.align not in ("state", "feel"):
+            raise ValueError(f"align must be 'state' or 'feel', got {self.align!r}")
 
 
 def _rot(quat: np.ndarray) -> np.ndarray:
@@ -75,6 +91,12 @@ class InsertionExpert:
         mujoco.mju_quat2Vel(vel, quat, 1.0)
         return self.x.turn_gain * vel
 
+    def _away(self, tip: np.ndarray, info: dict[str, float]) -> np.ndarray:
+        """The 'feel' rule's lateral target: a step away from where the socket presses on the prong, or stay."""
+        press = np.array([info.get("press_x", 0.0), info.get("press_y", 0.0)])
+        size = float(np.linalg.norm(press))
+        return tip[:2] - self.x.feel_step * press / size if size > 1e-4 else tip[:2].copy()
+
     def act(self, obs: dict[str, np.ndarray], info: dict[str, float] | None = None) -> np.ndarray:
         info = info or {}
         socket, prong = np.asarray(obs["socket"], np.float64), np.asarray(obs["prong"], np.float64)
@@ -94,9 +116,13 @@ class InsertionExpert:
             target[:2], target[2] = self.miss, depth + 0.0015
             if force > self.x.touch_force or depth > 0.001:
                 self.phase = "align"
+        feel = self.x.align == "feel"
         if self.phase == "align":
-            target[2] = min(depth + 0.0005, 0.0) if force < self.x.touch_force else depth - 0.0003
-            if np.linalg.norm(tip[:2]) < self.x.aligned:
+            target[2] = depth - 0.0003 if force >= self.x.touch_force else (
+                depth + 0.0005 if feel else min(depth + 0.0005, 0.0))  # feel: rising is how it finds the hole
+            if feel:
+                target[:2] = self._away(tip, info)
+            if (depth > 0.001) if feel else (np.linalg.norm(tip[:2]) < self.x.aligned):
                 self.phase, self._best_depth, self._stuck = "push", depth, 0
         if self.phase == "push":  # rise more gently as the force grows; none at the jam force
             target[2] = depth + self.x.push_step * max(0.0, 1.0 - force / self.x.jam_force)
@@ -109,6 +135,8 @@ class InsertionExpert:
                 self.phase = "back_off"
         if self.phase == "back_off":
             target[2] = min(depth, 0.0) - 0.002
+            if feel:
+                target[:2] = tip[:2]
             if depth < -0.0015:
                 self.phase = "align"
         move = rot @ (self.x.gain * (target - tip))

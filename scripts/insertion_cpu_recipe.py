@@ -50,6 +50,8 @@ class Config:
     stay the expert's, which then shows its corrections)."""
     noise_rad: float = 0.0
     """Demonstrations' executed-action noise, rotation std (rad; `rotate demos --noise-rad`)."""
+    expert_align: str = "feel"
+    """How the demonstrations' expert finds the hole (`rotate demos --expert-align`: feel or state)."""
     encoder: str = "sparshx-tinier-sim"
     """The Sparsh-X encoder of the touch rows (a shipped name or an encoder folder)."""
     skin_encoder: str = ""
@@ -74,6 +76,8 @@ class Config:
         bad = [r for r in self.rows if r not in ROWS]
         if bad or not self.rows or len(set(self.rows)) != len(self.rows):
             raise ValueError(f"rows: give distinct rows of {', '.join(ROWS)}, got {list(self.rows)}")
+        if self.expert_align not in ("feel", "state"):
+            raise ValueError(f"expert_align must be feel or state, got {self.expert_align!r}")
         if "skin" in self.rows and not self.skin_encoder:
             raise ValueError("rows: the skin row needs --skin-encoder (a pretrained Sparsh-skin: "
                              "scripts/skin_cpu_recipe.py)")
@@ -104,6 +108,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     complete and records the rest)."""
     out, todo, progress = cfg.out, [], progress_args(cfg.progress)
     noise = ["--noise-m", str(cfg.noise_m), "--noise-rad", str(cfg.noise_rad)] if cfg.noise_m or cfg.noise_rad else []
+    noise += ["--expert-align", cfg.expert_align]
     todo.append(("demonstrations (Digit 360 hand)", ["demos", "--task", "insertion", "--episodes", str(cfg.episodes),
                                                     "--seed", "0", *noise, "--out", str(out / "demos"), *progress]))
     if "skin" in cfg.rows:

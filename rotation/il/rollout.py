@@ -4,7 +4,8 @@ Trial j runs the episode seeded ``seed + j`` (socket pose, grasp), the same for 
 demonstration used (`rotate demos` seeds its episodes ``seed x 1,000,000 + e``). A policy acts at 20 Hz on the wrist
 camera's frame, its proprioception and, if it reads touch, the fingertips' windows rendered from the live contact
 history (or, on the Xela hand its bundle names, the skin's window). Per policy: the success rate with its 95% Wilson
-interval, the time to insert (successes), the peak socket force; OUT/results.json (``{"rows": [{"policy",
+interval, the time to insert (successes), the peak socket force, how many trials pressed past the force limit and
+how many lost the plug from the grasp; OUT/results.json (``{"rows": [{"policy",
 "episodes", "success_rate", ...}]}``), results.md, success.png, and per policy a video of the wrist camera in one
 success and one failure (videos/<policy>_success.mp4, _failure.mp4) where there is one.
 """
@@ -58,7 +59,8 @@ def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool, episode_st
     finally:
         sim.close()
     return {"success": float(info["success"]), "steps": sim.steps, "time_s": sim.steps * cfg.control_dt,
-            "max_force": float(info["max_force"]), "depth": float(info["depth"])}, frames
+            "max_force": float(info["max_force"]), "depth": float(info["depth"]),
+            "lost": float(info.get("lost", 0.0)), "over_force": float(info["max_force"] > cfg.max_force)}, frames
 
 
 def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: Path, video: bool = True,
@@ -97,7 +99,8 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
                      "episodes": episodes, "seed": seed, "success_rate": wins / episodes, "ci95": [lo, hi],
                      "time_to_insert_s": float(np.mean(times)) if times else None,
                      "peak_force_N": float(np.mean([t["max_force"] for t in trials])),
-                     "trials": trials})
+                     "lost_plug": int(sum(t["lost"] for t in trials)),
+                     "over_force": int(sum(t["over_force"] for t in trials)), "trials": trials})
     bar.close()
     _report(rows, out)
     return rows
@@ -111,11 +114,12 @@ def _report(rows: list[dict[str, Any]], out: Path) -> None:
 
     (out / "results.json").write_text(json.dumps({"task": "insertion", "rows": rows}, indent=2) + "\n")
     lines = ["# Plug insertion", "", "| policy | touch | episodes | success | 95% interval | time to insert (s) | "
-             "peak force (N) |", "|---|---|---|---|---|---|---|"]
+             "peak force (N) | pressed past the limit | lost the plug |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         t = "" if r["time_to_insert_s"] is None else f"{r['time_to_insert_s']:.2f}"
         lines.append(f"| {r['policy']} | {r['touch']} | {r['episodes']} | {100 * r['success_rate']:.0f}% | "
-                     f"{100 * r['ci95'][0]:.0f}-{100 * r['ci95'][1]:.0f}% | {t} | {r['peak_force_N']:.1f} |")
+                     f"{100 * r['ci95'][0]:.0f}-{100 * r['ci95'][1]:.0f}% | {t} | {r['peak_force_N']:.1f} | "
+                     f"{r['over_force']} | {r['lost_plug']} |")
     (out / "results.md").write_text("\n".join(lines) + "\n\n![success rate](success.png)\n")
     fig, ax = plt.subplots(figsize=(1.2 * len(rows) + 2, 3))
     rates = [r["success_rate"] for r in rows]

@@ -22,7 +22,13 @@ demonstrations then hold the expert correcting the drifts, misaligned pushes and
 lead to, which a clean expert seldom shows (experiments/insertion: 3 of 100 clean demonstrations ever press past
 7.5 N). The noise of episode e is drawn from its own seed, so the same command records the same files.
 
-The session's properties record the outcome (``success``, ``steps``, ``max_force``). A run that stops keeps the
+The expert finds the hole by feel by default (``--expert-align feel``: after touching the plate it steps away from
+where the socket presses on the prong, a moment on the held plug that the fingertips sense), so that what it does
+follows from what a policy's touch can carry; ``--expert-align state`` slides to the hole's true centre, which
+neither the camera nor touch shows (the first demonstrations, experiments/insertion).
+
+The session's properties record the outcome (``success``, ``steps``, ``max_force``, ``lost``: the plug left the
+grasp, ``retries``: the expert's back-offs after a jam). A run that stops keeps the
 finished episodes; running the same command again records the rest (an episode's file is complete or recorded
 again). Other tasks follow as they are added.
 """
@@ -67,6 +73,10 @@ class Config:
     action stays the expert's; 0: none)."""
     noise_rad: float = 0.0
     """Standard deviation (rad) of the noise added to each executed wrist rotation, per axis."""
+    expert_align: Literal["feel", "state"] = "feel"
+    """How the scripted expert finds the hole after touching the plate: 'feel' steps away from where the socket
+    presses on the prong (a correction touch can sense); 'state' slides to the hole's true centre (which no policy
+    sees). envs.insertion_expert."""
     flush_interval_s: float = 2.0
     """Session writers flush at least this often (s)."""
     progress: bool = True
@@ -103,7 +113,7 @@ def demo_streams(image_size: tuple[int, int], control_hz: float, skin: bool = Fa
 
 
 SAME_RUN = {"task": None, "seed": None, "image_size": None, "episode_steps": None, "hand": "digit360_v4",
-            "noise_m": 0.0, "noise_rad": 0.0}
+            "noise_m": 0.0, "noise_rad": 0.0, "expert_align": "state"}
 """Settings an episode's file must share with this run to be kept (complete) or recorded again (incomplete), with
 the value a file recorded before the setting existed had."""
 
@@ -136,14 +146,14 @@ def _kept(cfg: Config, episode: int) -> bool:
 def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
     """Play and write episode ``episode``; returns its outcome."""
     from envs.insertion import TIMESTEP, InsertionConfig, InsertionSim, draw_episode
-    from envs.insertion_expert import InsertionExpert
+    from envs.insertion_expert import ExpertConfig, InsertionExpert
     from envs.scene import touch_model
 
     icfg = InsertionConfig(hand=cfg.hand, image_size=cfg.image_size, episode_steps=cfg.episode_steps)
     seed = cfg.seed * 1_000_000 + episode
     ep = draw_episode(icfg, seed, grasps)
     sim = InsertionSim(icfg, ep, grasps, render=True)
-    expert = InsertionExpert(icfg, seed)
+    expert = InsertionExpert(icfg, seed, ExpertConfig(align=cfg.expert_align))
     noise_rng = np.random.default_rng([seed, 0xDA27])  # the executed action's noise (DART), apart from the expert's
     noise_std = np.array([cfg.noise_m] * 3 + [cfg.noise_rad] * 3)
     key = sim.touch_key
@@ -174,7 +184,8 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
                 skin.append(sim.skin.drain())
     finally:
         sim.close()
-    outcome = {"success": bool(info["success"]), "steps": sim.steps, "max_force": float(info["max_force"])}
+    outcome = {"success": bool(info["success"]), "steps": sim.steps, "max_force": float(info["max_force"]),
+               "lost": bool(info["lost"]), "retries": expert.retries}
     meta = SessionMeta(**meta_base, properties=outcome, extra=extra)
     with SessionWriter(path, meta, demo_streams(cfg.image_size, 1.0 / icfg.control_dt, bool(skin)),
                        flush_interval_s=cfg.flush_interval_s, overwrite=True) as w:

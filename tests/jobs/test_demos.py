@@ -113,3 +113,8 @@ def test_noisy_demonstrations_record_the_experts_corrections_not_the_noise(tmp_p
                  "--noise-m", "0.0004"]) == 1
     assert "another run's demonstration" in capsys.readouterr().err
     assert main(["demos", "--noise-m", "0.01", "--out", str(tmp_path / "x")]) == 2
+    # the expert's way of finding the hole is part of the run: feel by default, recorded, a state run refused here
+    assert extra["expert_align"] == "feel" and {"lost", "retries"} <= set(props_n)
+    assert main(["demos", "--episodes", "1", "--out", str(clean), "--seed", "5", "--image-size", "48", "36",
+                 "--expert-align", "state"]) == 1
+    assert "another run's demonstration" in capsys.readouterr().err

@@ -51,10 +51,11 @@ def test_every_step_is_listed_and_parses(recipe, tmp_path):
     (out / "eval").mkdir()
     (out / "eval" / "results.json").write_text("[]")
     assert not any(w.startswith("evaluate") for w, _ in recipe.commands(cfg))
-    assert (parsed[0].noise_m, parsed[0].noise_rad) == (0.0, 0.0)
+    assert (parsed[0].noise_m, parsed[0].noise_rad, parsed[0].expert_align) == (0.0, 0.0, "feel")
     noisy = [_parsed(args) for _w, args in recipe.commands(recipe.Config(
-        out=out, rows=("camera", "skin"), skin_encoder="s", noise_m=0.0005, noise_rad=0.01, progress=False))[:2]]
-    assert {(d.noise_m, d.noise_rad) for d in noisy} == {(0.0005, 0.01)}
+        out=out, rows=("camera", "skin"), skin_encoder="s", noise_m=0.0005, noise_rad=0.01, expert_align="state",
+        progress=False))[:2]]
+    assert {(d.noise_m, d.noise_rad, d.expert_align) for d in noisy} == {(0.0005, 0.01, "state")}
 
 
 @pytest.mark.parametrize("options, message", [
