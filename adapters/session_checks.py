@@ -129,13 +129,31 @@ def check_sessions(paths: Sequence[str | Path], fingers: Sequence[str], windows:
     return infos
 
 
+def teacher_randomization(teacher: str | Path = "teacher") -> RandomizationConfig:
+    """The randomization the teacher ``teacher`` (a shipped name or a bundle directory) trained on, from its card's
+    training config; the default hand's when the card does not say (a bundle from before cards kept it)."""
+    import json
+
+    from rotation.configs import from_jsonable
+    from rotation.policy.bundle import resolve_bundle
+    from rotation.train.teacher_config import Config as TeacherConfig
+
+    try:
+        card = json.loads((resolve_bundle(teacher) / "config.json").read_text()).get("card", {})
+        return from_jsonable(TeacherConfig, card["train_config"]).env_config().randomization
+    except (OSError, ValueError, KeyError, TypeError):
+        return default_randomization()
+
+
 def outside_training_ranges(props: dict[str, float | list[float]],
                             rc: RandomizationConfig | None = None) -> list[str]:
-    """The measured properties outside the randomization ``rc`` (default: the default hand's, the shipped teacher's),
-    as 'key value (range)'. Friction is the gel domes' (the cup against the sensors)."""
-    rc = rc or default_randomization()
+    """The measured properties outside the randomization ``rc`` (default: the shipped teacher's,
+    :func:`teacher_randomization`), as 'key value (range)'. Friction is the gel domes' (the cup against the
+    sensors); a cup-surface factor (``surface_friction``) multiplies it in training, so its low end widens the range."""
+    rc = rc or teacher_randomization()
+    low = rc.friction[0] * (rc.surface_friction[0] if rc.surface_friction is not None else 1.0)
     ranges = {"scale": (min(rc.scales) - rc.scale_jitter, max(rc.scales) + rc.scale_jitter), "mass": rc.mass,
-              "friction": rc.friction, "com": rc.com}
+              "friction": (low, rc.friction[1]), "com": rc.com}
     out = []
     for key, (lo, hi) in ranges.items():
         values = np.atleast_1d(props[key])
