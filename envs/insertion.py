@@ -97,8 +97,8 @@ class InsertionConfig:
     """A socket force above this (N) fails the episode: excess force."""
     lost_distance: float = 0.06
     """The plug's centre this far (m) from where it settled in the palm's frame: it left the grasp, the episode
-    fails. The plug shifts in the grasp while the expert seats it (at most 31 mm over 51 seated trials, seeds
-    200-251); a plug that falls ends up metres away."""
+    fails. The plug shifts in the grasp while the expert seats it (with ``align='state'``: at most 31 mm over 51
+    seated trials, seeds 200-251); a plug that falls ends up metres away."""
     image_size: tuple[int, int] = (160, 120)
     """Wrist camera width, height (pixels)."""
 
