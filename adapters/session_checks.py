@@ -121,8 +121,9 @@ def check_sessions(paths: Sequence[str | Path], fingers: Sequence[str], windows:
         if (info.hand, info.source) != (first.hand, first.source):
             raise SessionError(f"session {info.path} comes from another hand ({info.hand}, {info.source}) than "
                                f"{first.path} ({first.hand}, {first.source}): fine-tune one adapter per hand")
+    trained = teacher_randomization()  # read once, not per session
     for info in infos:
-        notes = outside_training_ranges(info.properties)
+        notes = outside_training_ranges(info.properties, trained)
         if notes:
             log.warning("session %s: %s outside the teacher's training ranges; its z there is an extrapolation",
                         info.path, "; ".join(notes))

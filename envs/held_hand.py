@@ -64,15 +64,22 @@ def check_touch_hand(task: str, hand: str, skin: bool = False) -> None:
     raise ValueError(f"{task}: the hand must have Digit 360 fingertips ({allowed}), got {hand!r}")
 
 
-def contact_force(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> float:
-    """Sum of the normal forces (N) of the contacts that involve ``body``'s geoms."""
-    total = 0.0
+def contact_press(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> tuple[float, np.ndarray]:
+    """Sum of the normal forces (N) of the contacts that involve ``body``'s geoms, and the force-weighted sum of their
+    positions (N m, world frame; divided by the force, where the press is centred)."""
+    total, moment = 0.0, np.zeros(3)
     for i in range(d.ncon):
         con = d.contact[i]
         if m.geom_bodyid[con.geom1] == body or m.geom_bodyid[con.geom2] == body:
             mujoco.mj_contactForce(m, d, i, wrench)
             total += wrench[0]
-    return total
+            moment += wrench[0] * con.pos
+    return total, moment
+
+
+def contact_force(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> float:
+    """Sum of the normal forces (N) of the contacts that involve ``body``'s geoms."""
+    return contact_press(m, d, body, wrench)[0]
 
 
 def grip(grasps: GraspCache, bucket: int, u: float) -> Grip:

@@ -43,6 +43,7 @@ from envs.held_hand import (
     TouchHistory,
     WristRun,
     check_touch_hand,
+    contact_press,
     finish,
     grip,
     tilt_quat,
@@ -218,34 +219,18 @@ class InsertionSim:
         """The hole's entry centre (m) and the socket's orientation (wxyz)."""
         return np.concatenate([self.data.mocap_pos[1], self.data.mocap_quat[1]])
 
+    def _socket_rot(self) -> np.ndarray:
+        """The socket's orientation (3 x 3, its axes as columns)."""
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, self.data.mocap_quat[1])
+        return rot.reshape(3, 3)
+
     def depth(self) -> tuple[float, bool]:
         """How far (m) the prong's tip is above the socket's entry plane, along the socket's axis, and whether it is
         within the hole's outline."""
-        d = self.data
-        rot = np.zeros(9)
-        mujoco.mju_quat2Mat(rot, d.mocap_quat[1])
-        local = rot.reshape(3, 3).T @ (self._pose_of(self._tip_local)[:3] - d.mocap_pos[1])
+        local = self._socket_rot().T @ (self._pose_of(self._tip_local)[:3] - self.data.mocap_pos[1])
         inside = abs(local[0]) <= PRONG[0] / 2 + CLEARANCE + 1e-4 and abs(local[1]) <= PRONG[1] / 2 + CLEARANCE + 1e-4
         return float(local[2]), bool(inside)
-
-    def socket_press(self) -> tuple[float, np.ndarray]:
-        """How hard and where the socket presses on the prong now: the sum of their contacts' normal forces (N) and
-        the force-weighted sum of the contacts' positions relative to the prong's tip in the socket's plane (N m;
-        divided by the force, where the press is centred). Privileged, but what a hand feels: a press off the
-        prong's axis is a moment on the held plug, and the fingertips' forces shift with it."""
-        m, d = self.model, self.data
-        total, centre = 0.0, np.zeros(3)
-        for i in range(d.ncon):
-            con = d.contact[i]
-            if self._socket in (m.geom_bodyid[con.geom1], m.geom_bodyid[con.geom2]):
-                mujoco.mj_contactForce(m, d, i, self._wrench)
-                total += self._wrench[0]
-                centre += self._wrench[0] * con.pos
-        if total <= 0.0:
-            return 0.0, np.zeros(2)
-        rot = np.zeros(9)
-        mujoco.mju_quat2Mat(rot, d.mocap_quat[1])
-        return total, (rot.reshape(3, 3).T @ (centre - total * self._pose_of(self._tip_local)[:3]))[:2]
 
     # ------------------------------------------------------------------ episode
     def reset(self) -> dict[str, np.ndarray]:
@@ -279,7 +264,8 @@ class InsertionSim:
         """Move the wrist's target by ``action`` (see the module docstring) and step ``control_dt``; returns the
         observation, whether the episode ended, and info: success, depth, force, max_force, lost (1 once the plug
         has left the grasp), press_x and press_y (m: where the socket pressed on the prong over the action's steps,
-        relative to its tip in the socket's plane; 0 without contact; :meth:`socket_press`)."""
+        force-weighted, relative to its tip in the socket's plane; 0 without contact; privileged, but what a hand
+        feels: a press off the prong's axis is a moment on the held plug, and the fingertips' forces shift with it)."""
         cfg = self.cfg
         a = np.asarray(action, dtype=np.float64).reshape(6)
         if not np.all(np.isfinite(a)):
@@ -289,13 +275,14 @@ class InsertionSim:
         self._pos = self._pos + move
         for axis, angle in zip(np.eye(3), turn, strict=True):
             self._quat = tilt_quat(self._quat, axis, float(angle))
-        forces, press = [], np.zeros(2)
+        forces, moment = [], np.zeros(3)
 
         def on_step(d: mujoco.MjData) -> None:
-            nonlocal press
-            total, moment = self.socket_press()
+            nonlocal moment
+            total, pressed = contact_press(self.model, d, self._socket, self._wrench)
             forces.append(total)
-            press = press + moment
+            if total > 0.0:  # where the socket presses, relative to the prong's tip at that step
+                moment = moment + pressed - total * self._pose_of(self._tip_local)[:3]
             if self.skin is not None:
                 self.skin.on_step(d)
 
@@ -309,7 +296,8 @@ class InsertionSim:
         depth, inside = self.depth()
         success = inside and depth >= cfg.success_depth and self.max_force <= cfg.max_force
         lost = float(np.linalg.norm(held[-1] - self._held0)) > cfg.lost_distance
-        press = press / max(sum(forces), 1e-9)  # where the socket pressed over the action's steps
+        press = (self._socket_rot().T @ moment)[:2] / max(sum(forces), 1e-9)  # over the action's steps, in the
+        # socket's plane: a press off the prong's axis is a moment on the held plug, which the fingertips feel
         done = success or lost or self.steps >= cfg.episode_steps or self.max_force > cfg.max_force
         return self.observe(), done, {"success": float(success), "depth": depth, "inside": float(inside),
                                       "force": force, "max_force": self.max_force, "lost": float(lost),

@@ -16,8 +16,9 @@ grasp holds; rotations about the palm move the tip too, which the next step's tr
 ``align``: how the expert finds the hole after contact. ``"state"`` slides to the hole's true centre, which no
 policy can see (the camera's view of the final alignment is ambiguous by design). ``"feel"`` never reads the hole's
 position: while the prong presses on the plate it steps ``feel_step`` away from where the socket presses on it
-(envs.insertion.InsertionSim.socket_press: the part of the prong's face on the plate, beside the hole, a moment
-on the held plug that the fingertips feel) and holds still without contact, until the tip rises into the hole; in
+(``press_x``, ``press_y`` of envs.insertion.InsertionSim.step's info: the part of the prong's face on the plate,
+beside the hole, a moment on the held plug that the fingertips feel) and holds still without contact, until the tip
+rises into the hole; in
 the hole it centres the prong as ``"state"`` does (the last half-millimetre: the walls allow no more; following
 the walls' sideways force instead wedged the prong on 7 of 40 seeds). Its corrections follow from what touch
 carries, so an imitation policy that reads touch can learn them.
@@ -32,6 +33,9 @@ import mujoco
 import numpy as np
 
 from envs.insertion import InsertionConfig
+
+ALIGNS = ("feel", "state")
+"""How the expert can find the hole after contact (``ExpertConfig.align``; the module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -58,7 +62,7 @@ class ExpertConfig:
     """Largest lateral target step (m) of a 'feel' correction (times ``gain`` per action)."""
 
     def __post_init__(self) -> None:
-        if self.align not in ("state", "feel"):
+        if self.align not in ALIGNS:
             raise ValueError(f"align must be 'state' or 'feel', got {self.align!r}")
 
 

@@ -28,6 +28,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from envs.insertion_expert import ALIGNS
 from rotation.configs import script_main
 from rotation.jobs.recipe import progress_args, run_steps
 
@@ -76,7 +77,7 @@ class Config:
         bad = [r for r in self.rows if r not in ROWS]
         if bad or not self.rows or len(set(self.rows)) != len(self.rows):
             raise ValueError(f"rows: give distinct rows of {', '.join(ROWS)}, got {list(self.rows)}")
-        if self.expert_align not in ("feel", "state"):
+        if self.expert_align not in ALIGNS:
             raise ValueError(f"expert_align must be feel or state, got {self.expert_align!r}")
         if "skin" in self.rows and not self.skin_encoder:
             raise ValueError("rows: the skin row needs --skin-encoder (a pretrained Sparsh-skin: "

@@ -60,7 +60,7 @@ def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool, episode_st
         sim.close()
     return {"success": float(info["success"]), "steps": sim.steps, "time_s": sim.steps * cfg.control_dt,
             "max_force": float(info["max_force"]), "depth": float(info["depth"]),
-            "lost": float(info.get("lost", 0.0)), "over_force": float(info["max_force"] > cfg.max_force)}, frames
+            "lost": float(info["lost"]), "over_force": float(info["max_force"] > cfg.max_force)}, frames
 
 
 def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: Path, video: bool = True,
