@@ -135,8 +135,11 @@ def finish(spec: mujoco.MjSpec, hand: str, object_prefix: str, noslip: bool = Tr
 class WristRun:
     """Steps a compiled held-hand scene with a scripted wrist and records the fingertips' contact fields."""
 
-    def __init__(self, model: mujoco.MjModel, grip_: Grip, palm_quat: np.ndarray, held_body: str) -> None:
+    def __init__(self, model: mujoco.MjModel, grip_: Grip, palm_quat: np.ndarray, held_body: str,
+                 targets: np.ndarray | None = None) -> None:
         self.model, self.grip, self.palm_quat = model, grip_, palm_quat
+        self.targets = grip_.q if targets is None else np.asarray(targets, dtype=float)
+        """The joints' position targets (16,): the grasp's joints, or past them where the grip squeezes."""
         self.data = mujoco.MjData(model)
         digit360 = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, sensor_name(FINGERS[0], "contact")) >= 0
         self.readout = Digit360Readout(model) if digit360 else None
@@ -147,11 +150,11 @@ class WristRun:
         self._palm, self._held = model.body("palm").id, model.body(held_body).id
 
     def reset(self, pos: np.ndarray, quat: np.ndarray) -> None:
-        """The start: the grasp's joints and targets, the wrist's mocap at (pos, quat), everything at rest."""
+        """The start: the grasp's joints and the targets, the wrist's mocap at (pos, quat), everything at rest."""
         m, d = self.model, self.data
         mujoco.mj_resetData(m, d)
         d.qpos[self._joints] = self.grip.q
-        d.ctrl[:] = self.grip.q
+        d.ctrl[:] = self.targets
         d.mocap_pos[0], d.mocap_quat[0] = pos, quat
         mujoco.mj_forward(m, d)
 

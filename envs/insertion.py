@@ -2,12 +2,14 @@
 pose it does not know exactly; a wrist camera sees the approach, and the fingertips feel the contact.
 
 The scene is the held-hand scene (envs.held_hand): the hand palm up on a welded wrist, holding at one of its cup
-grasps the plug's grip, a cylinder of the cup's outer size, from whose top a prong (PRONG: 12 x 6 mm, 24 mm long)
-sticks up. The socket faces down above it: a plate SOCKET_DEPTH thick with a rectangular hole CLEARANCE wider than
-the prong on each side (1 mm in all, no chamfer), its pose drawn per episode (a few millimetres in the plate's
-plane, a few degrees of yaw and tilt, a few millimetres of height: ``socket_xy``, ``socket_yaw``, ``socket_tilt``,
-``socket_z``) around the prong's settled pose. The plug's grip is in the hand as the rotation env's objects are;
-only the prong meets the socket.
+grasps the plug's grip, from whose top a prong (PRONG: 12 x 6 mm, 24 mm long) sticks up. The grip is held in the
+fingertips by default (``grip='fingertips'``: a disc that only the four domes touch, squeezed by them, so the
+socket's forces reach the plug through the sensors, as in the benchmark this task rebuilds; envs.plug_grip), or
+(``grip='palm'``, the first version) is a cylinder of the cup's size resting on the phalanges, which leaves the domes
+about a tenth of the load (experiments/insertion). The socket faces down above it: a plate SOCKET_DEPTH thick with a
+rectangular hole CLEARANCE wider than the prong on each side (1 mm in all, no chamfer), its pose drawn per episode (a
+few millimetres in the plate's plane, a few degrees of yaw and tilt, a few millimetres of height: ``socket_xy``,
+``socket_yaw``, ``socket_tilt``, ``socket_z``) around the prong's settled pose. Only the prong meets the socket.
 
 Control: every ``control_dt`` the wrist's target moves by the action, a 6-vector (dx, dy, dz in m; droll, dpitch,
 dyaw in rad, world axes) clipped to ``max_step`` and ``max_turn``. Success: the prong's tip at least
@@ -40,6 +42,7 @@ import numpy as np
 from envs.grasp_cache import GraspCache, load_default_cache
 from envs.held_hand import (
     OBJECT_CONTYPE,
+    Grip,
     TouchHistory,
     WristRun,
     check_touch_hand,
@@ -50,6 +53,7 @@ from envs.held_hand import (
     wrist_spec,
 )
 from envs.held_skin import SkinHistory
+from envs.plug_grip import GRIP_HEIGHT, MAX_REGRIPS, check_grip, fingertip_grip, holds, regrip_row
 from envs.render import offscreen_renderer
 from envs.rng import splitmix64
 from envs.sensors.xela_layout import XELA_HANDS
@@ -102,9 +106,13 @@ class InsertionConfig:
     seated trials, seeds 200-251); a plug that falls ends up metres away."""
     image_size: tuple[int, int] = (160, 120)
     """Wrist camera width, height (pixels)."""
+    grip: str = "fingertips"
+    """How the plug is held: 'fingertips' (the domes alone) or 'palm' (the cup's body on the phalanges; the first
+    version's runs)."""
 
     def __post_init__(self) -> None:
         check_touch_hand("insertion", self.hand, skin=True)
+        check_grip("insertion", self.grip)
         steps = self.control_dt / TIMESTEP
         if abs(steps - round(steps)) > 1e-9 or steps < 1:
             raise ValueError(f"insertion: control_dt must be a whole number of {TIMESTEP} s steps, got "
@@ -167,31 +175,17 @@ class InsertionSim:
                  render: bool = False) -> None:
         self.cfg, self.episode = cfg, episode
         grasps = grasps if grasps is not None else load_default_cache("cup", "", cfg.hand)
-        g = grip(grasps, episode.bucket, episode.grasp_u)
-        spec, self._palm_quat0 = wrist_spec(cfg.hand, TIMESTEP)
-        plug = spec.worldbody.add_body(name="plug", pos=g.pose[:3].tolist(), quat=g.pose[3:].tolist())
-        plug.add_freejoint(name="plug_free")
-        plug.add_geom(name="plug_grip", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[g.radius, g.height / 2, 0],
-                      density=300.0, contype=OBJECT_CONTYPE, conaffinity=1, condim=4, rgba=[0.2, 0.2, 0.22, 1.0])
-        tip_z = g.height / 2 + PRONG[2]
-        plug.add_geom(name="plug_prong", type=mujoco.mjtGeom.mjGEOM_BOX,
-                      size=[PRONG[0] / 2, PRONG[1] / 2, PRONG[2] / 2], pos=[0, 0, g.height / 2 + PRONG[2] / 2],
-                      density=1000.0, contype=OBJECT_CONTYPE, conaffinity=1 | SOCKET_BIT, condim=4,
-                      friction=[0.3, 0.005, 0.0001], rgba=[0.85, 0.7, 0.3, 1.0])
-        plug.add_body(name="plug_tip", pos=[0, 0, tip_z])
-        self._tip_local = np.array([0.0, 0.0, tip_z])
-        self._socket_geoms = _add_socket(spec)
-        palm = spec.body("palm")
-        palm_rot = np.zeros(9)
-        mujoco.mju_quat2Mat(palm_rot, self._palm_quat0)
-        # the wrist camera: 8 cm beside and 3 cm below the prong's tip at the start, tracking the tip
-        tip0 = g.pose[:3] + np.array([0.0, 0.0, tip_z])
-        cam_world = tip0 + np.array([0.06, -0.05, -0.03])
-        palm.add_camera(name="wrist_cam", pos=(palm_rot.reshape(3, 3).T @ cam_world).tolist(),
-                        mode=mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODY, targetbody="plug_tip", fovy=45)
-        self.model = finish(spec, cfg.hand, "plug_")
-        self._run = WristRun(self.model, g, self._palm_quat0, "plug")
-        self.data = self._run.data
+        self.grasp_u, self.regrips = episode.grasp_u, 0
+        """The grasp row the plug is held at, and how many rows were passed over for it (a fingertip grip that did
+        not hold: envs.plug_grip)."""
+        for attempt in range(MAX_REGRIPS + 1):
+            self.grasp_u, self.regrips = regrip_row(episode.grasp_u, attempt), attempt
+            self._build(grip(grasps, episode.bucket, self.grasp_u))
+            if cfg.grip == "palm" or attempt == MAX_REGRIPS:
+                break
+            self._run.reset(np.zeros(3), self._palm_quat0)
+            if holds(self._run.run(int(round(cfg.settle_s / TIMESTEP)), self._target_start)[2]):
+                break
         self._plug, self._socket = self.model.body("plug").id, self.model.body("socket").id
         self._renderer = offscreen_renderer(self.model, cfg.image_size[1], cfg.image_size[0],
                                             "the wrist camera") if render else None
@@ -207,6 +201,41 @@ class InsertionSim:
         self.steps = 0
         self.max_force = 0.0
         self.contact = np.zeros((4, 0, 0), np.float32)
+
+    def _build(self, g: Grip) -> None:
+        """The scene with the plug held at cup grasp ``g`` (in the fingertips, or as the cup), the socket and the
+        wrist camera."""
+        spec, self._palm_quat0 = wrist_spec(self.cfg.hand, TIMESTEP)
+        height, radius, targets = g.height, g.radius, None
+        if self.cfg.grip == "fingertips":  # a disc at the domes' height, squeezed: only they touch it
+            g, targets, radius = fingertip_grip(spec, g)
+            height = GRIP_HEIGHT
+        plug = spec.worldbody.add_body(name="plug", pos=g.pose[:3].tolist(), quat=g.pose[3:].tolist())
+        plug.add_freejoint(name="plug_free")
+        plug.add_geom(name="plug_grip", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[radius, height / 2, 0],
+                      density=300.0, contype=OBJECT_CONTYPE, conaffinity=1, condim=4, rgba=[0.2, 0.2, 0.22, 1.0])
+        tip_z = height / 2 + PRONG[2]
+        plug.add_geom(name="plug_prong", type=mujoco.mjtGeom.mjGEOM_BOX,
+                      size=[PRONG[0] / 2, PRONG[1] / 2, PRONG[2] / 2], pos=[0, 0, height / 2 + PRONG[2] / 2],
+                      density=1000.0, contype=OBJECT_CONTYPE, conaffinity=1 | SOCKET_BIT, condim=4,
+                      friction=[0.3, 0.005, 0.0001], rgba=[0.85, 0.7, 0.3, 1.0])
+        plug.add_body(name="plug_tip", pos=[0, 0, tip_z])
+        self._tip_local = np.array([0.0, 0.0, tip_z])
+        self._socket_geoms = _add_socket(spec)
+        palm = spec.body("palm")
+        palm_rot = np.zeros(9)
+        mujoco.mju_quat2Mat(palm_rot, self._palm_quat0)
+        # the wrist camera: 8 cm beside and 3 cm below the prong's tip at the start, tracking the tip
+        tip0 = g.pose[:3] + np.array([0.0, 0.0, tip_z])
+        cam_world = tip0 + np.array([0.06, -0.05, -0.03])
+        palm.add_camera(name="wrist_cam", pos=(palm_rot.reshape(3, 3).T @ cam_world).tolist(),
+                        mode=mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODY, targetbody="plug_tip", fovy=45)
+        self.model = finish(spec, self.cfg.hand, "plug_")
+        self._run = WristRun(self.model, g, self._palm_quat0, "plug", targets)
+        self.data = self._run.data
+
+    def _target_start(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(3), self._palm_quat0
 
     # ------------------------------------------------------------------ poses
     def _pose_of(self, local: np.ndarray) -> np.ndarray:

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from envs.insertion_expert import ALIGNS
+from envs.plug_grip import check_grip
 from rotation.configs import script_main
 from rotation.jobs.recipe import progress_args, run_steps
 
@@ -53,6 +54,8 @@ class Config:
     """Demonstrations' executed-action noise, rotation std (rad; `rotate demos --noise-rad`)."""
     expert_align: str = "feel"
     """How the demonstrations' expert finds the hole (`rotate demos --expert-align`: feel or state)."""
+    grip: str = "fingertips"
+    """How the demonstrations' hand holds the plug (`rotate demos --grip`: fingertips or palm)."""
     encoder: str = "sparshx-tinier-sim"
     """The Sparsh-X encoder of the touch rows (a shipped name or an encoder folder)."""
     skin_encoder: str = ""
@@ -79,6 +82,7 @@ class Config:
             raise ValueError(f"rows: give distinct rows of {', '.join(ROWS)}, got {list(self.rows)}")
         if self.expert_align not in ALIGNS:
             raise ValueError(f"expert_align must be feel or state, got {self.expert_align!r}")
+        check_grip("grip", self.grip)
         if "skin" in self.rows and not self.skin_encoder:
             raise ValueError("rows: the skin row needs --skin-encoder (a pretrained Sparsh-skin: "
                              "scripts/skin_cpu_recipe.py)")
@@ -109,7 +113,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     complete and records the rest)."""
     out, todo, progress = cfg.out, [], progress_args(cfg.progress)
     noise = ["--noise-m", str(cfg.noise_m), "--noise-rad", str(cfg.noise_rad)] if cfg.noise_m or cfg.noise_rad else []
-    noise += ["--expert-align", cfg.expert_align]
+    noise += ["--expert-align", cfg.expert_align, "--grip", cfg.grip]
     todo.append(("demonstrations (Digit 360 hand)", ["demos", "--task", "insertion", "--episodes", str(cfg.episodes),
                                                     "--seed", "0", *noise, "--out", str(out / "demos"), *progress]))
     if "skin" in cfg.rows:

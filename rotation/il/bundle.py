@@ -45,6 +45,14 @@ class ILPolicy:
         return str(self.meta.get("hand", InsertionConfig.hand))
 
     @property
+    def grip(self) -> str:
+        """How its demonstrations held the plug, which its evaluation holds it by (a bundle from before bundles
+        recorded it: the first version's grip, 'palm')."""
+        from envs.plug_grip import FIRST_GRIP
+
+        return str(self.meta.get("grip", FIRST_GRIP))
+
+    @property
     def reads_touch(self) -> bool:
         return self.touch_modalities != "none"
 

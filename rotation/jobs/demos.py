@@ -77,6 +77,9 @@ class Config:
     """How the scripted expert finds the hole after touching the plate: 'feel' steps away from where the socket
     presses on the prong (a correction touch can sense); 'state' slides to the hole's true centre (which no policy
     sees). envs.insertion_expert."""
+    grip: Literal["fingertips", "palm"] = "fingertips"
+    """How the hand holds the plug: 'fingertips' (only the domes touch it, squeezed, so the socket's forces reach the
+    sensors) or 'palm' (the cup's body on the phalanges; the first version's demonstrations). envs.plug_grip."""
     flush_interval_s: float = 2.0
     """Session writers flush at least this often (s)."""
     progress: bool = True
@@ -113,7 +116,7 @@ def demo_streams(image_size: tuple[int, int], control_hz: float, skin: bool = Fa
 
 
 SAME_RUN = {"task": None, "seed": None, "image_size": None, "episode_steps": None, "hand": "digit360_v4",
-            "noise_m": 0.0, "noise_rad": 0.0, "expert_align": "state"}
+            "noise_m": 0.0, "noise_rad": 0.0, "expert_align": "state", "grip": "palm"}
 """Settings an episode's file must share with this run to be kept (complete) or recorded again (incomplete), with
 the value a file recorded before the setting existed had."""
 
@@ -149,7 +152,7 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
     from envs.insertion_expert import ExpertConfig, InsertionExpert
     from envs.scene import touch_model
 
-    icfg = InsertionConfig(hand=cfg.hand, image_size=cfg.image_size, episode_steps=cfg.episode_steps)
+    icfg = InsertionConfig(hand=cfg.hand, image_size=cfg.image_size, episode_steps=cfg.episode_steps, grip=cfg.grip)
     seed = cfg.seed * 1_000_000 + episode
     ep = draw_episode(icfg, seed, grasps)
     sim = InsertionSim(icfg, ep, grasps, render=True)
@@ -185,7 +188,8 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
     finally:
         sim.close()
     outcome = {"success": bool(info["success"]), "steps": sim.steps, "max_force": float(info["max_force"]),
-               "lost": bool(info["lost"]), "retries": expert.retries}
+               "lost": bool(info["lost"]), "retries": expert.retries, "grasp_u": sim.grasp_u,
+               "regrips": sim.regrips}
     meta = SessionMeta(**meta_base, properties=outcome, extra=extra)
     with SessionWriter(path, meta, demo_streams(cfg.image_size, 1.0 / icfg.control_dt, bool(skin)),
                        flush_interval_s=cfg.flush_interval_s, overwrite=True) as w:

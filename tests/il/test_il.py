@@ -70,6 +70,23 @@ def test_the_policy_learns_the_demonstrations_and_resumes_exactly(demo_dir, tmp_
         assert torch.equal(x, y), name
     card = json.loads((tmp_path / "full" / "bundle" / "config.json").read_text())["card"]
     assert card["trained_by"] == "rotate train-il" and card["demonstrations"] == 2 and card["steps"] == 160
+    assert a.meta["grip"] == "fingertips" and a.grip == "fingertips"  # its evaluation holds the plug the same way
+
+
+def test_a_bundle_knows_its_grip_and_demonstrations_of_two_grips_are_refused(demo_dir, tmp_path):
+    import shutil
+
+
+    assert ILPolicy(ChunkPolicy(PolicyConfig()), {"task": "insertion"}).grip == "palm"  # bundles from before
+    palm = tmp_path / "palm"
+    demos.run(demos.Config(episodes=1, out=palm, seed=4, image_size=(48, 36), grip="palm", progress=False))
+    mixed = tmp_path / "mixed"
+    shutil.copytree(demo_dir, mixed)
+    [extra] = find_sessions(palm)
+    shutil.copy(extra, mixed / "palm_episode.h5")
+    with pytest.raises(ValueError, match="different grips"):
+        _train(mixed, tmp_path / "il", steps=2)
+    assert not (tmp_path / "il").exists()
 
 
 def test_temporal_ensembling_averages_the_chunks_that_cover_a_step():

@@ -118,3 +118,8 @@ def test_noisy_demonstrations_record_the_experts_corrections_not_the_noise(tmp_p
     assert main(["demos", "--episodes", "1", "--out", str(clean), "--seed", "5", "--image-size", "48", "36",
                  "--expert-align", "state"]) == 1
     assert "another run's demonstration" in capsys.readouterr().err
+    # so is the plug's grip: in the fingertips by default, the grasp row it was held at recorded, a palm run refused
+    assert extra["grip"] == "fingertips" and {"grasp_u", "regrips"} <= set(props_n)
+    assert main(["demos", "--episodes", "1", "--out", str(clean), "--seed", "5", "--image-size", "48", "36",
+                 "--grip", "palm"]) == 1
+    assert "another run's demonstration" in capsys.readouterr().err
