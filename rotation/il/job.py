@@ -100,7 +100,7 @@ class EndToEndTouch:
         return self.embedder.tokens_mean(x).reshape(len(steps), self.rows.shape[1], self.embedder.width)
 
 
-def _hand(paths: list[Path], touch: str) -> tuple[str, str]:
+def _hand_and_grip(paths: list[Path], touch: str) -> tuple[str, str]:
     """The demonstrations' hand and grip of the plug (one of each for all of them), the hand checked against the
     touch the policy reads."""
     from envs.insertion import InsertionConfig
@@ -143,7 +143,7 @@ def run(cfg: Config) -> dict:
         raise RequestRefused(f"resume: no checkpoint in {out}")
     if not cfg.resume and ckpt.is_file():
         raise RequestRefused(f"out: {out} holds a run; continue it with --resume or choose another --out")
-    hand, grip = _hand(paths, cfg.touch)  # before anything is written: a refused request leaves OUT as it was
+    hand, grip = _hand_and_grip(paths, cfg.touch)  # before anything is written: a refused request leaves OUT as it was
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.json")
     touch, touch_dim, fingers, e2e = None, 0, 4, None

@@ -44,6 +44,7 @@ import numpy as np
 from tqdm import tqdm
 
 from envs.constants import FINGERS, NUM_JOINTS
+from envs.plug_grip import FIRST_GRIP
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
 from rotation.configs import to_jsonable
 from rotation.data.session import SessionMeta, StreamSetup
@@ -116,7 +117,7 @@ def demo_streams(image_size: tuple[int, int], control_hz: float, skin: bool = Fa
 
 
 SAME_RUN = {"task": None, "seed": None, "image_size": None, "episode_steps": None, "hand": "digit360_v4",
-            "noise_m": 0.0, "noise_rad": 0.0, "expert_align": "state", "grip": "palm"}
+            "noise_m": 0.0, "noise_rad": 0.0, "expert_align": "state", "grip": FIRST_GRIP}
 """Settings an episode's file must share with this run to be kept (complete) or recorded again (incomplete), with
 the value a file recorded before the setting existed had."""
 
