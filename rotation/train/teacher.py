@@ -26,7 +26,6 @@ checkpoint, curves and bundle, and exit with status 130 / 143.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import signal
 import time
@@ -38,7 +37,7 @@ from stable_baselines3.common.callbacks import CallbackList
 from envs.config import EnvConfig
 from envs.errors import RequestRefused
 from envs.sim_identity import sim_record
-from rotation.configs import save_config
+from rotation.configs import save_config, to_jsonable
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.bundle import PolicyBundle, load_policy_bundle
 from rotation.runs import (
@@ -160,9 +159,9 @@ def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: 
         ckpt.num_timesteps = model.num_timesteps
         ckpt.save()
         steps = int(model.num_timesteps)
+        # the run's config as it loads back (a None stays null: adapters.session_checks.teacher_randomization reads it)
         card = {"role": _role(cfg), "object": cfg.object, "steps": steps, "seed": cfg.seed,
-                "wall_time_s": round(wall, 1), "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out),
-                                                                                       "resume": str(cfg.resume)}}
+                "wall_time_s": round(wall, 1), "train_config": to_jsonable(cfg)}
         card[GRASPS_KEY] = grasps_sha256  # the cache's path alone does not show a regenerated file
         if resumed_from is not None:
             card["resumed_from"] = str(resumed_from)

@@ -40,6 +40,7 @@ from tqdm import tqdm
 from envs.config import EnvConfig
 from envs.errors import RequestRefused
 from envs.metrics import UPRIGHT_TILT
+from rotation.configs import to_jsonable
 from rotation.interrupt import SIGNAL_NAMES, Interrupted, StopSignals
 from rotation.policy.actor import ActorNet
 from rotation.policy.bundle import PolicyBundle, load_policy_bundle
@@ -306,7 +307,7 @@ def train(cfg) -> PolicyBundle:
     curves.append(rows)
     card = {"role": "teacher", "object": cfg.object, "steps": steps, "seed": cfg.seed, "wall_time_s": round(wall, 1),
             "backend": "warp", "learner": "rsl_rl PPO (rotation.train.teacher_warp)",
-            "train_config": dataclasses.asdict(cfg) | {"out": str(cfg.out), "resume": str(cfg.resume)},
+            "train_config": to_jsonable(cfg),
             GRASPS_KEY: record[GRASPS_KEY]}
     if state is not None:
         card["resumed_from"] = str(cfg.resume)

@@ -120,6 +120,11 @@ def test_freeze_encoder_keeps_z_through_init_from_and_resume(tmp_path):
     start = load_bundle("teacher").net.state_dict()
     cfg = _cfg(tmp_path, total_steps=1024, init_from=resolve_bundle("teacher"), critic_warmup=1, freeze_encoder=True)
     teacher.run(cfg)
+    # the card records the run's config as it loads back: no resume (null, not the string 'None') beside init_from
+    from rotation.configs import from_jsonable
+
+    first = json.loads((cfg.out / "bundle" / "config.json").read_text())["card"]["train_config"]
+    assert first["resume"] is None and from_jsonable(teacher_config.Config, first).init_from == cfg.init_from
     teacher.run(_cfg(tmp_path, total_steps=2048, init_from=None, critic_warmup=1, freeze_encoder=True,
                      resume=cfg.out / "checkpoints" / "last.zip"))
     after = load_bundle(cfg.out / "bundle").net.state_dict()
