@@ -141,8 +141,15 @@ def teacher_randomization(teacher: str | Path = "teacher") -> RandomizationConfi
 
     try:
         card = json.loads((resolve_bundle(teacher) / "config.json").read_text()).get("card", {})
+    except (OSError, ValueError, AttributeError):
+        return default_randomization()
+    if not isinstance(card, dict) or "train_config" not in card:
+        return default_randomization()
+    try:
         return from_jsonable(TeacherConfig, card["train_config"]).env_config().randomization
-    except (OSError, ValueError, KeyError, TypeError):
+    except (ValueError, KeyError, TypeError) as err:  # a card that says, but does not load: say so, not silently
+        log.warning("the teacher %s's card has a training config that does not load (%s); the measured properties "
+                    "are checked against the hand's default randomization instead", teacher, err)
         return default_randomization()
 
 

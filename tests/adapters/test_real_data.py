@@ -278,3 +278,31 @@ def test_measured_properties_are_checked_against_the_shipped_teachers_ranges():
     assert notes == ["mass 0.55 (0.02..0.5)", "friction 2.0 (0.1..1.2)"]
     # against the hand's default randomization (what a teacher trained without the slippery cups knows)
     assert outside_training_ranges(mug, default_randomization()) == ["mass 0.45 (0.02..0.4)", "friction 0.2 (0.4..1.2)"]
+
+
+def test_a_teacher_card_that_does_not_load_is_said_not_silently_replaced(tmp_path, caplog):
+    """A card whose training config cannot be read back is reported before the default ranges are used; a bundle
+    with no training config at all (from before cards kept it) takes the default quietly."""
+    import json
+    import logging
+    import shutil
+
+    from adapters.session_checks import teacher_randomization
+    from envs.config import default_randomization
+    from rotation.policy.bundle import resolve_bundle
+
+    bundle = tmp_path / "teacher"
+    shutil.copytree(resolve_bundle("teacher"), bundle)
+    meta = json.loads((bundle / "config.json").read_text())
+    meta["card"]["train_config"]["resume"] = "None"  # what the cards wrote before to_jsonable: not a path that loads
+    meta["card"]["train_config"]["mass"] = "heavy"
+    (bundle / "config.json").write_text(json.dumps(meta))
+    with caplog.at_level(logging.WARNING, logger="adapters.session_checks"):
+        assert teacher_randomization(bundle) == default_randomization()
+    assert "does not load" in caplog.text
+    caplog.clear()
+    del meta["card"]["train_config"]
+    (bundle / "config.json").write_text(json.dumps(meta))
+    with caplog.at_level(logging.WARNING, logger="adapters.session_checks"):
+        assert teacher_randomization(bundle) == default_randomization()
+    assert caplog.text == ""
