@@ -119,6 +119,11 @@ class AdaptedPolicy:
         return self.adapter_config.touch_every
 
     @property
+    def touch_smoothing(self) -> float:
+        """How much of the held correction a refresh keeps (adapters.touch_delay.smooth)."""
+        return float(self.adapter_config.touch_smoothing)
+
+    @property
     def windows(self) -> tuple[str, ...]:
         """Window names per sample it needs (image, audio, imu, pressure; skin)."""
         return tuple(MODALITY_WINDOWS.get(m, m) for m in self.adapter_config.modalities)

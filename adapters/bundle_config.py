@@ -16,6 +16,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file
 
 from adapters.model import AdapterNetConfig
+from adapters.touch_delay import check_smoothing
 from rotation.configs import from_jsonable
 from rotation.policy.bundle import resolve_bundle
 from rotation.policy.bundle_config import BundleError
@@ -35,15 +36,19 @@ SKIN_SAMPLE = "hand"
 
 
 def check_bundle_header(what: str, kind: str, want_kind: str, version: int, want_version: int,
-                        touch_every: Any) -> None:
+                        touch_every: Any, touch_smoothing: Any = 0.0) -> None:
     """BundleError unless a touch bundle's config.json is of ``want_kind``, in a format this version reads, with a
-    refresh period of at least one control step."""
+    refresh period of at least one control step and a smoothing factor in [0, 1)."""
     if kind != want_kind:
         raise BundleError(f"not an {what} (kind {kind!r})")
     if version != want_version:
         raise BundleError(f"{what} format {version} is not readable by this version (reads {want_version})")
     if isinstance(touch_every, bool) or not isinstance(touch_every, int) or touch_every < 1:
         raise BundleError(f"touch_every must be an integer >= 1, got {touch_every!r}")
+    try:
+        check_smoothing(touch_smoothing)
+    except ValueError as err:
+        raise BundleError(str(err)) from None
 
 
 @dataclass(frozen=True)
@@ -64,13 +69,16 @@ class AdapterConfig:
     """Adapter network sizes."""
     touch_every: int = 4
     """Control steps between touch refreshes (the correction is held in between)."""
+    touch_smoothing: float = 0.0
+    """How much of the held correction a refresh keeps (adapters.touch_delay.smooth; 0: a refresh replaces it)."""
     card: dict[str, Any] = field(default_factory=dict)
     """Free-form metadata: training command, steps, evaluation."""
     kind: str = KIND
     format_version: int = FORMAT_VERSION
 
     def __post_init__(self) -> None:
-        check_bundle_header("adapter bundle", self.kind, KIND, self.format_version, FORMAT_VERSION, self.touch_every)
+        check_bundle_header("adapter bundle", self.kind, KIND, self.format_version, FORMAT_VERSION, self.touch_every,
+                            self.touch_smoothing)
         if tuple(self.modalities) != tuple(n for n, _ in self.net.groups):
             raise BundleError(f"modalities {self.modalities} differ from the network's token groups "
                               f"{[n for n, _ in self.net.groups]}")

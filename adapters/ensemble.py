@@ -95,6 +95,11 @@ class EnsemblePolicy:
         return self.ensemble_config.touch_every
 
     @property
+    def touch_smoothing(self) -> float:
+        """How much of the held correction a refresh keeps (adapters.touch_delay.smooth)."""
+        return float(self.ensemble_config.touch_smoothing)
+
+    @property
     def windows(self) -> tuple[str, ...]:
         """The union of the members' windows, in the order they first appear."""
         return tuple(dict.fromkeys(w for m in self.members for w in m.windows))

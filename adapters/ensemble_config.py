@@ -82,6 +82,8 @@ class EnsembleConfig:
     members: tuple[EnsembleMember, ...]
     touch_every: int = 4
     """Control steps between touch refreshes (every member refreshes together; the correction is held between)."""
+    touch_smoothing: float = 0.0
+    """How much of the held correction a refresh keeps (adapters.touch_delay.smooth; 0: a refresh replaces it)."""
     card: dict[str, Any] = field(default_factory=dict)
     """Free-form metadata: how it was put together, its evaluation."""
     gate: CorrectionGate | None = None
@@ -90,7 +92,8 @@ class EnsembleConfig:
     format_version: int = FORMAT_VERSION
 
     def __post_init__(self) -> None:
-        check_bundle_header("adapter ensemble", self.kind, KIND, self.format_version, FORMAT_VERSION, self.touch_every)
+        check_bundle_header("adapter ensemble", self.kind, KIND, self.format_version, FORMAT_VERSION, self.touch_every,
+                            self.touch_smoothing)
         if not self.members or not all(isinstance(m, EnsembleMember) for m in self.members):
             raise BundleError(f"an adapter ensemble needs at least one member, got {self.members!r}")
         bad = [m.weight for m in self.members if isinstance(m.weight, bool) or not isinstance(m.weight, (int, float))

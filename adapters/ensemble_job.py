@@ -22,6 +22,10 @@ and z[4] corrections read the cup as slippery (experiments/adapter/gated_z1)::
 
     rotate ensemble-adapters --members adapter runs/adapter_ip --gate-dims 1 --gate-signal 0 0 0 -1 -1 0 0 0 \
         --gate-width 0.2 --out runs/gated
+
+``--touch-smoothing a`` averages the corrections over refreshes (adapters.touch_delay.smooth): each refresh keeps
+a share a of the held correction, so the ensemble reads an episode's friction and mass from many touch windows
+rather than from the newest alone.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from adapters.ensemble_config import (
     check_gate_width,
     config_path,
 )
+from adapters.touch_delay import check_smoothing
 from envs.errors import RequestRefused
 from envs.validation import check_int, check_output_dir, check_types
 from rotation.configs import to_jsonable
@@ -61,6 +66,11 @@ class Config:
     two members and an 8-dimensional z, 16 numbers); empty: every dimension alike."""
     touch_every: int = 0
     """Control steps between touch refreshes (0: the first member's)."""
+    touch_smoothing: float = 0.0
+    """How much of the held correction each refresh keeps, in [0, 1): the correction after a refresh is
+    a * held + (1 - a) * new, the episode's first taken as it is (0: each refresh replaces it). Friction and mass
+    stay put while one touch window reads them poorly, so averaging over refreshes can read them better; the time
+    constant is touch_every / (1 - a) control steps."""
     gate_dims: tuple[int, ...] = ()
     """Latent dimensions whose correction is gated (empty: no gate); see --gate-signal and --gate-width."""
     gate_signal: tuple[float, ...] = ()
@@ -87,6 +97,7 @@ class Config:
         for k, part in enumerate(self.split_dim_weights()):
             check_dim_weights(part, f"--dim-weights of member {k + 1} ({self.members[k]})")
         check_int("touch_every", self.touch_every, 0, 10_000, unit="control steps")
+        check_smoothing(self.touch_smoothing)
         check_gate_width(self.gate_width, ValueError, "--gate-width")
         if bool(self.gate_dims) != bool(self.gate_signal):
             raise ValueError("--gate-dims and --gate-signal go together (give both or neither)")
@@ -126,7 +137,7 @@ def run(cfg: Config) -> Path:
     touch_every = cfg.touch_every or read_adapter(dirs[0])[1].touch_every
     ens = EnsembleConfig(members=tuple(EnsembleMember(n, float(w), d) for n, w, d in
                                        zip(names, weights, cfg.split_dim_weights(), strict=True)),
-                         touch_every=touch_every, gate=cfg.gate(),
+                         touch_every=touch_every, touch_smoothing=float(cfg.touch_smoothing), gate=cfg.gate(),
                          card={"kind": KIND, "made_by": "rotate ensemble-adapters",
                                "members": {n: str(r) for n, r in zip(names, cfg.members, strict=True)},
                                # the touch delay each member trained with (older members' cards lack it: none)
@@ -147,5 +158,7 @@ def run(cfg: Config) -> Path:
           + ", ".join(f"{r} x {w:g}" + (f" x [{', '.join(f'{v:g}' for v in d)}]" if d else "")
                       for r, w, d in zip(cfg.members, weights, cfg.split_dim_weights(), strict=True))
           + (f"; gate on z{list(ens.gate.dims)} by {list(ens.gate.signal)} / {ens.gate.width:g}" if ens.gate else "")
-          + f"; touch every {touch_every} steps; windows {', '.join(policy.windows)}")
+          + f"; touch every {touch_every} steps"
+          + (f", smoothed by {cfg.touch_smoothing:g}" if cfg.touch_smoothing else "")
+          + f"; windows {', '.join(policy.windows)}")
     return cfg.out

@@ -21,6 +21,12 @@ The delay line (:class:`DelayLine`) keeps one schedule per env, as deploy does f
 at once), and its correction acts from ``d`` steps later, ``d`` drawn from the env's own generator (seeded per
 episode, so an episode's delays do not depend on how many envs run beside it). Between refreshes the newest landed
 correction is held; before the first one lands the student acts alone (a zero correction).
+
+A bundle may also *smooth* its corrections over time (``touch_smoothing`` a in [0, 1), 0 by default): each landing
+correction c then replaces the held one h by ``a * h + (1 - a) * c`` (:func:`smooth`), the first of an episode
+(or of a deploy's run of usable touch) taken as it is. Friction and mass stay put over an episode while a single
+1.12 s window reads them poorly; averaging the readings of many windows reads them better (the information ladder's
+per-session rows: experiments/touch_ladder/v4_encoder). The time constant is ``touch_every / (1 - a)`` control steps.
 """
 
 from __future__ import annotations
@@ -121,6 +127,22 @@ def parse_delay(text: str) -> TouchDelay:
     return _from_table(table, text)
 
 
+def check_smoothing(value: object) -> float:
+    """``value`` as a touch smoothing factor (module docstring); ValueError unless a number in [0, 1)."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= float(value) < 1.0:
+        raise ValueError(f"touch_smoothing must be a number in [0, 1) (0: each refresh replaces the correction), "
+                         f"got {value!r}")
+    return float(value)
+
+
+def smooth(held: np.ndarray, fresh: np.ndarray, smoothing: float) -> np.ndarray:
+    """The correction after ``fresh`` lands on ``held`` (module docstring): ``fresh`` itself when ``smoothing`` is 0."""
+    if smoothing == 0.0:
+        return np.asarray(fresh, np.float32)
+    return (smoothing * np.asarray(held, np.float32) + (1.0 - smoothing) * np.asarray(fresh, np.float32)).astype(
+        np.float32)
+
+
 def delay_spec(delay: TouchDelay) -> str:
     """The ``N:P,...`` text of a distribution (fractions to 3 digits), e.g. for a measured one to be written down."""
     if len(delay.steps) == 1:
@@ -134,12 +156,13 @@ class DelayLine:
     Call :meth:`step` once per control step with the envs that act; it lands the corrections due, asks
     ``compute(ids)`` for the refreshes that start now (the (len(ids), Z) corrections from this step's touch) and
     returns the corrections to act with. :meth:`restart` starts envs over (a fresh episode: the student alone until
-    its first correction lands)."""
+    its first correction lands). ``smoothing``: the bundle's ``touch_smoothing`` (:func:`smooth`)."""
 
-    def __init__(self, n: int, latent_dim: int, touch_every: int, delay: TouchDelay, seeds: Sequence[int]) -> None:
+    def __init__(self, n: int, latent_dim: int, touch_every: int, delay: TouchDelay, seeds: Sequence[int],
+                 smoothing: float = 0.0) -> None:
         if len(seeds) != n:
             raise ValueError(f"DelayLine: {len(seeds)} seeds for {n} envs")
-        self.delay, self.every = delay, int(touch_every)
+        self.delay, self.every, self.smoothing = delay, int(touch_every), check_smoothing(smoothing)
         self.correction = np.zeros((n, latent_dim), np.float32)
         """The correction each env acts with now (zero: the student alone)."""
         self._pending = np.zeros((n, latent_dim), np.float32)
@@ -166,7 +189,7 @@ class DelayLine:
         """The (len(ids), Z) corrections envs ``ids`` act with at control step ``step`` (see the class docstring)."""
         ids = np.asarray(ids, dtype=np.int64)
         land = ids[(self._lands[ids] >= 0) & (self._lands[ids] <= step)]
-        self.correction[land] = self._pending[land]
+        self._land(land, self._pending[land])
         self.read_step[land] = self._pending_read[land]
         self._lands[land] = -1
         ask = ids[(self._lands[ids] < 0) & (self._due[ids] <= step)]
@@ -176,10 +199,16 @@ class DelayLine:
             for j, i in enumerate(ask):
                 d = self.delay.draw(self._rngs[i])
                 if d == 0:
-                    self.correction[i] = fresh[j]
+                    self._land(np.asarray([i]), fresh[j : j + 1])
                     self.read_step[i] = step
                 else:
                     self._pending[i] = fresh[j]
                     self._pending_read[i] = step
                     self._lands[i] = step + d
         return self.correction[ids]
+
+    def _land(self, ids: np.ndarray, fresh: np.ndarray) -> None:
+        """Corrections ``fresh`` land for envs ``ids``: held as they are where none landed yet this episode, else
+        smoothed into the held ones."""
+        first = self.read_step[ids] < 0
+        self.correction[ids] = np.where(first[:, None], fresh, smooth(self.correction[ids], fresh, self.smoothing))

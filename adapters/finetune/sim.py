@@ -57,7 +57,7 @@ def train_in_sim(job: Job) -> Result:
                desc="finetune-adapter", dynamic_ncols=True)
     t_log = time.perf_counter()
     refresh = _Refresh(job, buffer, head, gen)
-    line = DelayLine(n, adapter.cfg.latent_dim, k, cfg.delay, [cfg.seed] * n)
+    line = DelayLine(n, adapter.cfg.latent_dim, k, cfg.delay, [cfg.seed] * n, policy.touch_smoothing)
     every_env = np.arange(n)
     done_iters, flushed, signum = start_iter, 0, None
     stop = StopSignals()
@@ -69,7 +69,8 @@ def train_in_sim(job: Job) -> Result:
                 tracker.begin(refresh.obs)
                 buffer.clear()
                 gen.manual_seed(cfg.seed + it)
-                line = DelayLine(n, adapter.cfg.latent_dim, k, cfg.delay, [cfg.seed + it * n + i for i in range(n)])
+                line = DelayLine(n, adapter.cfg.latent_dim, k, cfg.delay, [cfg.seed + it * n + i for i in range(n)],
+                                 policy.touch_smoothing)
                 line.restart(every_env, it)
             refresh.groups = {key: refresh.obs[key] for key in policy.config.obs_groups}
             correction = line.step(it, every_env, refresh)  # refreshes the envs due, from this step's touch

@@ -13,11 +13,12 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import numpy as np
 
+from adapters.touch_delay import smooth
 from rotation.deploy.touch import adapter_inputs, log
 
 STALE_REFRESHES = 3.0
@@ -172,6 +173,10 @@ class TouchWorker:
         self._t_read = 0.0  # when the running refresh had read its windows (the worker thread's)
         self._first_used: int | None = None  # seq of the newest result whose first step was recorded
         self._causes: Counter[str] = Counter()  # fallbacks per cause (its message without the numbers)
+        self.smoothing = float(getattr(policy, "touch_smoothing", 0.0))
+        """How much of the previous correction a refresh keeps (adapters.touch_delay.smooth); a failed refresh
+        starts the average over, as a new episode does in simulation."""
+        self._smoothed: np.ndarray | None = None  # the newest successful refresh's (smoothed) correction
         self._thread = threading.Thread(target=self._run, name="touch-worker", daemon=True)
         self._thread.start()
 
@@ -338,6 +343,12 @@ class TouchWorker:
                 result = _Result(seq, t_obs, None, cause=f"the touch refresh raised {type(err).__name__}: {err}",
                                  error=err)
             done = time.monotonic()
+            if result.correction is None:
+                self._smoothed = None
+            elif self._smoothed is not None:
+                result = replace(result, correction=smooth(self._smoothed, result.correction, self.smoothing))
+            if result.correction is not None:
+                self._smoothed = result.correction
             with self._cv:
                 self.stats.refresh_s.append(done - start)
                 if result.correction is not None:

@@ -169,7 +169,10 @@ def run(cfg: Config) -> list[dict]:
         print(message, flush=True)
         raise Interrupted(signum, message) from None
     rows = [row for cond in conditions for row in done[cond.name]]
-    write_report(out, rows, dataclasses.replace(cfg, out=out), conditions, hand, touch_policies)
+    smoothing = {name: getattr(bundles[name], "touch_smoothing", 0.0) for name in touch_policies}
+    touch_notes = [name + (f" (corrections smoothed over refreshes by {a:g})" if a else "")
+                   for name, a in smoothing.items()]
+    write_report(out, rows, dataclasses.replace(cfg, out=out), conditions, hand, touch_notes)
     print(f"evaluate: {len(rows)} rows -> {out / 'results.md'}")
     return rows
 

@@ -27,7 +27,8 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
     """Run ``episodes`` episodes (episode j seeded ``seed + j``) in chunks of ``env.num_envs``; one metrics entry
     per episode, in episode order. Each env runs one episode per chunk; finished envs are no longer acted for.
 
-    A tactile adapter's correction is refreshed every ``touch_every`` control steps and held in between; each one
+    A tactile adapter's correction is refreshed every ``touch_every`` control steps and held in between (smoothed
+    over refreshes where the bundle's ``touch_smoothing`` says: adapters.touch_delay.smooth); each one
     acts from ``touch_delay`` steps after the step whose touch it read (drawn per refresh from episode j's own
     stream; None: 0, at once), and the next refresh starts when it is due and the previous one has landed, as in
     ``rotate deploy``, where a refresh runs beside the control loop (adapters.touch_delay). The student acts alone
@@ -49,7 +50,8 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
         if record:
             on_frame(env)
         actions = np.zeros((n, env.single_action_space.shape[0]), dtype=np.float32)
-        line = (DelayLine(n, bundle.config.latent_dim, touch_every, delay, [seed + first + i for i in range(n)])
+        line = (DelayLine(n, bundle.config.latent_dim, touch_every, delay, [seed + first + i for i in range(n)],
+                          getattr(bundle, "touch_smoothing", 0.0))
                 if touch_every else None)
         k = 0
         while active.any():

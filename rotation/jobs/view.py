@@ -104,16 +104,18 @@ def _actor(cfg: Config, bundle):
         rng = np.random.default_rng(cfg.seed)
         return lambda obs: rng.uniform(-1.0, 1.0, (1, 16))
     if getattr(bundle, "touch_every", 0):  # a tactile adapter: refresh its correction as evaluate and deploy do
+        from adapters.touch_delay import DelayLine, parse_delay
         from rotation.evaluate.rollout import touch_correction
 
-        state = {"k": 0, "correction": None}
+        line = DelayLine(1, bundle.config.latent_dim, bundle.touch_every, parse_delay("0"), [cfg.seed],
+                         bundle.touch_smoothing)
+        state = {"k": 0}
 
         def act(obs):
             groups = {key: obs[key] for key in bundle.config.obs_groups}
-            if state["k"] % bundle.touch_every == 0:
-                state["correction"] = touch_correction(bundle, obs, groups)
+            correction = line.step(state["k"], np.arange(1), lambda ids: touch_correction(bundle, obs, groups))
             state["k"] += 1
-            return bundle.act_batch(groups, correction=state["correction"])
+            return bundle.act_batch(groups, correction=correction)
 
         return act
     return lambda obs: bundle.act_batch(obs)

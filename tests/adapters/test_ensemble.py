@@ -279,6 +279,10 @@ def test_bad_ensembles_are_refused_with_the_reason(ensemble_dir, tmp_path):
         load_bundle(write("gone", {"members": [{"adapter": "members/gone", "weight": 1.0}]}))
     with pytest.raises(BundleError, match="touch_every"):
         load_bundle(write("every", {"members": [{"adapter": "members/pressure", "weight": 1.0}], "touch_every": 0}))
+    for name, smoothing in (("smooth_one", 1.0), ("smooth_negative", -0.1), ("smooth_text", "0.5")):
+        with pytest.raises(BundleError, match=r"touch_smoothing must be a number in \[0, 1\)"):
+            load_bundle(write(name, {"members": [{"adapter": "members/pressure", "weight": 1.0}],
+                                     "touch_smoothing": smoothing}))
     with pytest.raises(BundleError, match="unknown config keys"):
         load_bundle(write("typo", {"members": [{"adapter": "members/pressure", "wieght": 1.0}]}))
     # a member whose student changed since it was trained is refused as the adapter alone would be
@@ -339,7 +343,17 @@ def test_ensemble_adapters_refuses_bad_input_with_one_line(ensemble_dir, tmp_pat
     assert main(["ensemble-adapters", "--members", member, member, "--no-copy", "--out", str(tmp_path / "ref")]) == 0
     cfg = json.loads((tmp_path / "ref" / "config.json").read_text())
     assert [m["weight"] for m in cfg["members"]] == [0.5, 0.5] and cfg["touch_every"] == 4
+    assert cfg["touch_smoothing"] == 0.0
     assert not (tmp_path / "ref" / "members").exists()
+    # smoothing over refreshes: recorded in the bundle and read back; out of [0, 1) refused with one line
+    assert main(["ensemble-adapters", "--members", member, "--touch-smoothing", "0.75", "--out",
+                 str(tmp_path / "smooth")]) == 0
+    assert load_bundle(tmp_path / "smooth").touch_smoothing == 0.75
+    assert main(["ensemble-adapters", "--members", member, "--touch-smoothing", "1", "--out",
+                 str(tmp_path / "never")]) == 2
+    err = capsys.readouterr().err
+    assert "touch_smoothing must be a number in [0, 1)" in err and "Traceback" not in err
+    assert not (tmp_path / "never" / "config.json").exists()
 
 
 def test_bench_adapter_times_an_ensemble(ensemble_dir, load_script, capsys):

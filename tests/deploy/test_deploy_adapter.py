@@ -460,3 +460,31 @@ def test_a_busy_touch_worker_never_blocks_the_loop():
         assert adapter.calls == 2 and worker.stats.refreshes == 2
     finally:
         worker.close()
+
+
+def test_touch_worker_smooths_corrections_and_starts_over_after_a_failed_refresh():
+    """A bundle's touch_smoothing averages the worker's refreshes as the simulation's delay line does: the first
+    correction as it is, each next one keeping that share of the held one; a failed refresh starts the average over."""
+    policy, thumb = fake_policy(touch_every=1), FakeReader()
+    policy.touch_smoothing = 0.5
+    readings = iter([1.0, 3.0, 5.0, 7.0, 9.0])
+    policy.correction = lambda windows, obs: np.full((1, 8), next(readings), np.float32)
+    worker = TouchWorker(policy, {"index": FakeReader(), "thumb": thumb}, control_period_s=0.05)
+    obs = {"proprio": np.zeros((3, 32), np.float32)}
+
+    def step(k: int) -> np.ndarray | None:
+        corr = worker.correction(k, 0.05 * k)
+        worker.refresh_if_due(k, obs, 0.05 * k)
+        settle(worker)
+        return corr
+
+    try:
+        assert step(0) is None  # each step acts with what the refreshes up to the step before gave
+        assert np.all(step(1) == 1.0) and np.all(step(2) == 2.0)  # 0.5 * 1 + 0.5 * 3
+        thumb.stale = True  # the refreshes of steps 3 and 4 fail
+        assert np.all(step(3) == 3.5) and step(4) is None  # 0.5 * 2 + 0.5 * 5, then the student alone
+        thumb.stale = False
+        assert step(5) is None and np.all(step(6) == 7.0)  # starts over: 7 as it is, not 0.5 * 3.5 + 0.5 * 7
+        assert np.all(step(7) == 8.0)
+    finally:
+        worker.close()

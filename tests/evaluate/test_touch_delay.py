@@ -20,8 +20,8 @@ LATENT = 3
 class FakeAdapter:
     """Stands in for adapters.bundle.AdaptedPolicy: records the correction each step acts with."""
 
-    def __init__(self, touch_every: int) -> None:
-        self.touch_every = touch_every
+    def __init__(self, touch_every: int, touch_smoothing: float = 0.0) -> None:
+        self.touch_every, self.touch_smoothing = touch_every, touch_smoothing
         self.env_needs: dict = {}
         self.config = SimpleNamespace(latent_dim=LATENT, obs_groups=("proprio",))
         self.acted: list[float] = []  # env 0's correction, one per step
@@ -39,8 +39,8 @@ def env():
     vec.close()
 
 
-def _run(env, monkeypatch, every: int, lag: int | str) -> FakeAdapter:
-    policy = FakeAdapter(every)
+def _run(env, monkeypatch, every: int, lag: int | str, smoothing: float = 0.0) -> FakeAdapter:
+    policy = FakeAdapter(every, smoothing)
 
     def correction(bundle, obs, groups, idx=None):  # refresh r (from 1) reads step `len(acted)`
         bundle.requested.append(len(bundle.acted))
@@ -64,6 +64,35 @@ def test_a_lagged_refresh_acts_later_and_the_next_one_waits_for_it(env, monkeypa
     assert len(policy.acted) == 12, "the cup fell: the schedule below assumes the whole 12-step episode"
     assert policy.requested == requested
     assert policy.acted == acted
+
+
+@pytest.mark.parametrize(("lag", "acted"), [
+    # refreshes read 1, 2, 3: the first is taken as it is, each next one keeps half of the held correction
+    (0, [1, 1, 1, 1, 1.5, 1.5, 1.5, 1.5, 2.25, 2.25, 2.25, 2.25]),
+    # landing late changes when, not what: the student alone until the first lands
+    (2, [0, 0, 1, 1, 1, 1, 1.5, 1.5, 1.5, 1.5, 2.25, 2.25]),
+])
+def test_a_smoothing_bundle_averages_its_corrections_over_refreshes(env, monkeypatch, lag, acted):
+    policy = _run(env, monkeypatch, 4, lag, smoothing=0.5)
+    assert len(policy.acted) == 12
+    assert policy.requested == [0, 4, 8]
+    assert policy.acted == pytest.approx(acted)
+
+
+def test_a_restarted_episode_takes_its_first_correction_as_it_is():
+    line = DelayLine(2, LATENT, 1, parse_delay("0"), [1, 2], smoothing=0.9)
+    value = iter(range(1, 100))
+    fresh = lambda ids: np.full((len(ids), LATENT), float(next(value)), np.float32)  # noqa: E731
+    assert line.step(0, np.arange(2), fresh)[:, 0].tolist() == [1, 1]  # one call for both envs: both read 1
+    assert line.step(1, np.arange(2), fresh)[:, 0] == pytest.approx([1.1, 1.1])  # 0.9 * 1 + 0.1 * 2
+    line.restart(np.array([1]), 2)
+    assert line.step(2, np.arange(2), fresh)[:, 0] == pytest.approx([0.9 * 1.1 + 0.3, 3.0])
+
+
+@pytest.mark.parametrize("bad", [1.0, -0.1, True, "0.5", float("nan")])
+def test_touch_smoothing_is_checked(bad):
+    with pytest.raises(ValueError, match=r"touch_smoothing must be a number in \[0, 1\)"):
+        DelayLine(1, LATENT, 1, parse_delay("0"), [0], smoothing=bad)
 
 
 def test_a_drawn_delay_acts_exactly_the_touch_of_that_many_steps_before(env, monkeypatch):
