@@ -298,7 +298,8 @@ def _open_recorder(cfg: Config, bundle, opened: OpenedHand, info, readers: dict[
         "target": "targets commanded by the policy (before the driver's rate limit)",
         "policy_touch": None if not bundle.config.adapter else {
             "adapter": bundle.config.adapter, "touch_encoder": bundle.config.touch_encoder,
-            "windows": list(getattr(bundle, "windows", ())), "touch_every": getattr(bundle, "touch_every", None)},
+            "windows": list(getattr(bundle, "windows", ())), "touch_every": getattr(bundle, "touch_every", None),
+            "touch_smoothing": getattr(bundle, "touch_smoothing", None)},
         "deploy_config": to_jsonable(cfg),
         "stated_properties": sorted(stated),
         "digit360_imu": cfg.digit360_imu,
