@@ -57,3 +57,30 @@ def test_video_frames_are_the_bundles_steps(tmp_path, slow_bundle):
     with Image.open(out) as gif:  # Pillow merges identical frames and adds up their durations
         total_ms = sum(frame.info["duration"] for frame in ImageSequence.Iterator(gif))
     assert total_ms == pytest.approx(4 * 100.0)  # the start frame and 3 steps, 100 ms each at 10 Hz
+
+
+def test_a_tactile_adapter_refreshes_and_smooths_as_in_evaluate(monkeypatch):
+    """A video of a tactile adapter acts with its corrections as evaluate does (no delay): refreshed every
+    touch_every steps, averaged by the bundle's touch_smoothing."""
+    import numpy as np
+
+    from rotation.evaluate import rollout
+
+    class Adapter:
+        touch_every, touch_smoothing = 2, 0.5
+        config = BundleConfig(latent_source="adaptation")
+        acted: list[float] = []
+
+        def act_batch(self, groups, correction=None):
+            self.acted.append(float(correction[0, 0]))
+            return np.zeros((1, 16), np.float32)
+
+    reads = iter([2.0, 4.0, 6.0])
+    monkeypatch.setattr(rollout, "touch_correction",
+                        lambda policy, obs, groups: np.full((1, policy.config.latent_dim), next(reads), np.float32))
+    policy = Adapter()
+    act = view._actor(view.Config(policy="x", seed=3), policy)
+    obs = {key: np.zeros((1, 1)) for key in policy.config.obs_groups}
+    for _ in range(6):
+        act(obs)
+    assert policy.acted == [2.0, 2.0, 3.0, 3.0, 4.5, 4.5]
