@@ -62,6 +62,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "deploy:duration": {"zero": "0 runs until Ctrl-C / SIGTERM (documented)"},
     "finetune-adapter:val_fraction": {"zero": "no held-out sessions: train on every session"},
     "ensemble-adapters:touch_every": {"zero": "0 = the first member's refresh period (the default)"},
+    "ensemble-adapters:touch_smoothing": {"zero": "0 = each refresh replaces the correction (the default)"},
     "finetune-adapter:action_weight": {"zero": "0 = the latent MSE alone (the default)"},
     "deploy:rt_priority": {"zero": "0 leaves the scheduling alone"},
     "pretrain:unimodal_layers": {"zero": "fusion layers alone (the size's 2 for tinier)"},
