@@ -392,20 +392,28 @@ def settle(worker: TouchWorker) -> None:
     assert not worker.busy
 
 
-def test_touch_worker_holds_refreshes_and_falls_back_once_per_cause(caplog):
-    """Driven step by step on a made-up clock (20 Hz, refresh every 2 steps, stale after 2 s)."""
-    caplog.set_level(logging.INFO, logger="rotation")
-    policy, adapter, thumb = fake_policy(), FakeAdapter(), FakeReader()
-    policy.correction = adapter
-    worker = TouchWorker(policy, {"index": FakeReader(), "thumb": thumb}, control_period_s=0.05)
+def stepper(worker: TouchWorker):
+    """One control step k of a loop at 20 Hz on a made-up clock: the correction it acts with (None: the student),
+    then the refresh it requests, waited for, so that step k + 1 sees what the refresh of step k gave."""
     obs = {"proprio": np.zeros((3, 32), np.float32)}
-    assert worker.max_age_s == pytest.approx(2.0)  # 3 refresh periods (0.3 s), at least 2 s
 
     def step(k: int) -> np.ndarray | None:
         corr = worker.correction(k, 0.05 * k)
         worker.refresh_if_due(k, obs, 0.05 * k)
         settle(worker)
         return corr
+
+    return step
+
+
+def test_touch_worker_holds_refreshes_and_falls_back_once_per_cause(caplog):
+    """Driven step by step on a made-up clock (20 Hz, refresh every 2 steps, stale after 2 s)."""
+    caplog.set_level(logging.INFO, logger="rotation")
+    policy, adapter, thumb = fake_policy(), FakeAdapter(), FakeReader()
+    policy.correction = adapter
+    worker = TouchWorker(policy, {"index": FakeReader(), "thumb": thumb}, control_period_s=0.05)
+    assert worker.max_age_s == pytest.approx(2.0)  # 3 refresh periods (0.3 s), at least 2 s
+    step = stepper(worker)
 
     try:
         assert step(0) is None and not touch_warnings(caplog)  # no correction yet: the student, no warning
@@ -470,13 +478,7 @@ def test_touch_worker_smooths_corrections_and_starts_over_after_a_failed_refresh
     readings = iter([1.0, 3.0, 5.0, 7.0, 9.0])
     policy.correction = lambda windows, obs: np.full((1, 8), next(readings), np.float32)
     worker = TouchWorker(policy, {"index": FakeReader(), "thumb": thumb}, control_period_s=0.05)
-    obs = {"proprio": np.zeros((3, 32), np.float32)}
-
-    def step(k: int) -> np.ndarray | None:
-        corr = worker.correction(k, 0.05 * k)
-        worker.refresh_if_due(k, obs, 0.05 * k)
-        settle(worker)
-        return corr
+    step = stepper(worker)
 
     try:
         assert step(0) is None  # each step acts with what the refreshes up to the step before gave
