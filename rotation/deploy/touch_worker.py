@@ -343,12 +343,9 @@ class TouchWorker:
                 result = _Result(seq, t_obs, None, cause=f"the touch refresh raised {type(err).__name__}: {err}",
                                  error=err)
             done = time.monotonic()
-            if result.correction is None:
-                self._smoothed = None
-            elif self._smoothed is not None:
+            if result.correction is not None and self._smoothed is not None:
                 result = replace(result, correction=smooth(self._smoothed, result.correction, self.smoothing))
-            if result.correction is not None:
-                self._smoothed = result.correction
+            self._smoothed = result.correction  # None after a failed refresh: the next one starts the average over
             with self._cv:
                 self.stats.refresh_s.append(done - start)
                 if result.correction is not None:
