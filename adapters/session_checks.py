@@ -135,9 +135,8 @@ def teacher_randomization(teacher: str | Path = "teacher") -> RandomizationConfi
     training config; the default hand's when the card does not say (a bundle from before cards kept it)."""
     import json
 
-    from rotation.configs import from_jsonable
     from rotation.policy.bundle import resolve_bundle
-    from rotation.train.teacher_config import Config as TeacherConfig
+    from rotation.train.teacher_config import recorded_config
 
     try:
         card = json.loads((resolve_bundle(teacher) / "config.json").read_text()).get("card", {})
@@ -146,7 +145,7 @@ def teacher_randomization(teacher: str | Path = "teacher") -> RandomizationConfi
     if not isinstance(card, dict) or "train_config" not in card:
         return default_randomization()
     try:
-        return from_jsonable(TeacherConfig, card["train_config"]).env_config().randomization
+        return recorded_config(card["train_config"]).env_config().randomization
     except (ValueError, KeyError, TypeError) as err:  # a card that says, but does not load: say so, not silently
         log.warning("the teacher %s's card has a training config that does not load (%s); the measured properties "
                     "are checked against the hand's default randomization instead", teacher, err)

@@ -364,3 +364,20 @@ RUN_OUTPUTS = ("config.json", "run.json", "checkpoints", "bundle", "curves.jsonl
 def run_dir_of(checkpoint: Path) -> Path | None:
     """The run folder of a checkpoint at <run>/checkpoints/<name>.zip."""
     return checkpoint.parent.parent if checkpoint.parent.name == "checkpoints" else None
+
+
+RUN_FILES = {"out": ".", "init_from": None, "resume": None, "grasp_cache": "", "student": "", "latent_mix": 0.0}
+"""Fields of a finished run's config that name files on the machine that trained it (and the fine-tune settings that
+need them): :func:`recorded_config` sets them to these values, since a clone of the repository has none of them."""
+
+
+def recorded_config(data: dict[str, Any]) -> Config:
+    """The Config a bundle's card records (``card["train_config"]``) read back as a record of what the run trained on:
+    its hand, object, randomization and reward, without the run's own files (RUN_FILES). Raises ValueError on a record
+    that does not load."""
+    from rotation.configs import from_jsonable
+
+    if not isinstance(data, dict):
+        raise ValueError(f"train_config: expected a mapping, got {type(data).__name__}")
+    kept = {k: v for k, v in data.items() if k not in RUN_FILES}
+    return from_jsonable(Config, {**kept, **{k: v for k, v in RUN_FILES.items() if k in data}})

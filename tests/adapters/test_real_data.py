@@ -306,3 +306,28 @@ def test_a_teacher_card_that_does_not_load_is_said_not_silently_replaced(tmp_pat
     with caplog.at_level(logging.WARNING, logger="adapters.session_checks"):
         assert teacher_randomization(bundle) == default_randomization()
     assert caplog.text == ""
+
+
+def test_a_teacher_card_naming_the_training_machines_files_still_gives_its_ranges(tmp_path, caplog):
+    """A card records where its run started from and wrote to (--init-from, --resume, --out, a grasp cache): files of
+    the machine that trained it, absent from a clone. The randomization is read all the same, and nothing is warned."""
+    import json
+    import logging
+    import shutil
+
+    from adapters.session_checks import teacher_randomization
+    from rotation.policy.bundle import resolve_bundle
+
+    bundle = tmp_path / "teacher"
+    shutil.copytree(resolve_bundle("teacher"), bundle)
+    meta = json.loads((bundle / "config.json").read_text())
+    gone = tmp_path / "gone"
+    meta["card"]["train_config"].update(init_from=str(gone / "bundle"), resume=str(gone / "last.zip"),
+                                        out=str(tmp_path / "file"), grasp_cache=str(gone / "grasps.npz"),
+                                        friction=[0.5, 1.1], mass=[0.03, 0.45])
+    (tmp_path / "file").write_text("not a directory")
+    (bundle / "config.json").write_text(json.dumps(meta))
+    with caplog.at_level(logging.WARNING, logger="adapters.session_checks"):
+        rc = teacher_randomization(bundle)
+    assert (rc.friction, rc.mass, rc.surface_friction) == ((0.5, 1.1), (0.03, 0.45), (0.25, 1.0))
+    assert caplog.text == ""
