@@ -8,10 +8,16 @@ interval, the time to insert (successes), the peak socket force, how many trials
 how many lost the plug from the grasp; OUT/results.json (``{"rows": [{"policy",
 "episodes", "success_rate", ...}]}``), results.md, success.png, and per policy a video of the wrist camera in one
 success and one failure (videos/<policy>_success.mp4, _failure.mp4) where there is one.
+
+Each finished trial is appended to OUT/trials.jsonl at once, with the policy's name, the sha256 of its bundle's files,
+its seed and length: running the same evaluation into the same OUT again (after a stop, a fault, Ctrl-C) takes the
+trials kept there and runs only the rest; a trial of another bundle, seed or length is not taken. The videos come
+from the trials this run plays.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -77,13 +83,25 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
     caches = {hand: load_default_cache("cup", "", hand) for hand in {p.hand for p in loaded.values()}}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    rows = []
-    bar = tqdm(total=episodes * len(loaded), unit="episode", desc="evaluate insertion", disable=not progress)
+    rows, log = [], out / TRIALS
+    kept_trials = {name: _kept_trials(log, name, bundle_digest(policies[name]), seed, episodes, episode_steps)
+                   for name in loaded}
+    done = sum(len(k) for k in kept_trials.values())
+    if done:
+        print(f"evaluate: {done} of {episodes * len(loaded)} trials kept in {log}; running the rest")
+    bar = tqdm(total=episodes * len(loaded), initial=done, unit="episode", desc="evaluate insertion",
+               disable=not progress)
     for name, policy in loaded.items():
-        trials, kept = [], {}
+        trials, kept, digest = [], {}, bundle_digest(policies[name])
         for j in range(episodes):
+            if j in kept_trials[name]:
+                trials.append(kept_trials[name][j])
+                continue
             want = video and len(kept) < 2
             result, frames = run_trial(policy, seed + j, caches[policy.hand], want, episode_steps)
+            with log.open("a") as f:  # kept at once: a stop loses at most the trial it interrupts
+                f.write(json.dumps({"policy": name, "bundle_sha256": digest, "seed": seed + j,
+                                    "episode_steps": episode_steps, "result": result}) + "\n")
             trials.append(result)
             kind = "success" if result["success"] else "failure"
             if want and kind not in kept:
@@ -105,6 +123,40 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
     bar.close()
     _report(rows, out)
     return rows
+
+
+TRIALS = "trials.jsonl"
+"""The evaluation's finished trials, one JSON object a line (module docstring)."""
+
+
+def bundle_digest(path: str | Path) -> str:
+    """sha256 over an imitation bundle's files (names and bytes, in name order): which weights a kept trial used."""
+    h = hashlib.sha256()
+    root = Path(path)
+    for f in sorted(p for p in root.rglob("*") if p.is_file()):
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()
+
+
+def _kept_trials(log: Path, name: str, digest: str, seed: int, episodes: int, episode_steps: int | None
+                 ) -> dict[int, dict[str, float]]:
+    """{j: outcome} of the trials of policy ``name`` (bundle ``digest``) that ``log`` keeps for this evaluation:
+    seeds seed .. seed + episodes - 1, the same length; a line cut short by a stop is passed over."""
+    if not log.is_file():
+        return {}
+    kept = {}
+    for line in log.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            continue
+        if not isinstance(rec, dict) or not isinstance(rec.get("seed"), int) or not isinstance(rec.get("result"), dict):
+            continue
+        j = rec["seed"] - seed
+        if (rec.get("policy"), rec.get("bundle_sha256"), rec.get("episode_steps")) == (name, digest, episode_steps) \
+                and 0 <= j < episodes:
+            kept[j] = rec["result"]
+    return kept
 
 
 def _report(rows: list[dict[str, Any]], out: Path) -> None:

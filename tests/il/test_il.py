@@ -113,6 +113,33 @@ def test_a_touch_policy_runs_in_closed_loop_and_is_reported(demo_dir, small_enco
     assert any((out / "videos").glob("touch_*.mp4")) and (out / "success.png").is_file()
 
 
+def test_a_stopped_insertion_evaluation_continues_from_its_kept_trials(demo_dir, tmp_path):
+    """Every finished trial is kept in trials.jsonl at once; the same evaluation run again into the same folder takes
+    those and plays only the rest (a line cut by the stop is passed over), giving what one uninterrupted run gives;
+    a trial another bundle played is not taken."""
+    from rotation.cli import main
+
+    bundle = _train(demo_dir, tmp_path / "camera", steps=2)["bundle"]
+    other = _train(demo_dir, tmp_path / "other", steps=3)["bundle"]
+    args = ["evaluate", "--task", "insertion", "--episodes", "2", "--seed", "900", "--episode-steps", "8",
+            "--no-progress"]
+    whole = tmp_path / "whole"
+    assert main([*args, "--policy", f"cam={bundle}", "--out", str(whole)]) == 0
+    lines = (whole / "trials.jsonl").read_text().splitlines()
+    assert [json.loads(x)["seed"] for x in lines] == [900, 901]
+    first = json.loads(lines[0])
+    first["result"]["steps"] = 10_000  # marked, to see that the kept trial is taken rather than played again
+    stopped = tmp_path / "stopped"
+    stopped.mkdir()
+    (stopped / "trials.jsonl").write_text(json.dumps(first) + "\n" + lines[1][: len(lines[1]) // 2])
+    assert main([*args, "--policy", f"cam={bundle}", "--out", str(stopped)]) == 0
+    kept = json.loads((stopped / "results.json").read_text())["rows"][0]["trials"]
+    played = json.loads((whole / "results.json").read_text())["rows"][0]["trials"]
+    assert kept[0]["steps"] == 10_000 and kept[1] == played[1]
+    assert main([*args, "--policy", f"cam={other}", "--out", str(stopped)]) == 0  # same name, other weights
+    assert json.loads((stopped / "results.json").read_text())["rows"][0]["trials"][0]["steps"] <= 8
+
+
 def test_an_end_to_end_touch_policy_trains_its_own_encoder_resumes_and_reloads_it(demo_dir, small_encoder, tmp_path):
     """--touch e2e: an encoder of the named one's structure, from random weights, trained with the policy on windows
     rendered per batch; the checkpoint and the bundle keep its weights, a resumed run matches an uninterrupted one."""
