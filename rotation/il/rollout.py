@@ -131,8 +131,12 @@ TRIALS = "trials.jsonl"
 
 def bundle_digest(path: str | Path) -> str:
     """sha256 over an imitation bundle's files (names and bytes, in name order): which weights a kept trial used."""
+    from rotation.il.bundle import SHIPPED_IL
+
     h = hashlib.sha256()
     root = Path(path)
+    if not root.exists() and (SHIPPED_IL / str(path)).is_dir():  # a shipped name, resolved as load_il does
+        root = SHIPPED_IL / str(path)
     for f in sorted(p for p in root.rglob("*") if p.is_file()):
         h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes())
     return h.hexdigest()
