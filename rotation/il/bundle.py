@@ -101,11 +101,17 @@ def save_il(path: Path, model: ChunkPolicy, meta: dict[str, Any], touch_encoder:
     return path
 
 
-def load_il(name_or_path: str | Path) -> ILPolicy:
-    """An imitation policy bundle by directory or shipped name; ValueError naming what is wrong."""
+def resolve_il(name_or_path: str | Path) -> Path:
+    """The folder of an imitation policy bundle given by directory or shipped name (a path that exists wins)."""
     path = Path(name_or_path)
     if not path.exists() and (SHIPPED_IL / str(name_or_path)).is_dir():
-        path = SHIPPED_IL / str(name_or_path)
+        return SHIPPED_IL / str(name_or_path)
+    return path
+
+
+def load_il(name_or_path: str | Path) -> ILPolicy:
+    """An imitation policy bundle by directory or shipped name; ValueError naming what is wrong."""
+    path = resolve_il(name_or_path)
     try:
         meta = json.loads((path / "config.json").read_text())
     except (OSError, ValueError) as err:

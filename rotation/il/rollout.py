@@ -26,6 +26,8 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from rotation.runs import CurveLog
+
 Z95 = 1.959964
 """Two-sided 95% normal quantile."""
 
@@ -83,25 +85,25 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
     caches = {hand: load_default_cache("cup", "", hand) for hand in {p.hand for p in loaded.values()}}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    rows, log = [], out / TRIALS
-    kept_trials = {name: _kept_trials(log, name, bundle_digest(policies[name]), seed, episodes, episode_steps)
-                   for name in loaded}
+    rows, log = [], CurveLog(out / TRIALS)
+    digests = {name: bundle_digest(policies[name]) for name in loaded}
+    logged = log.rows()
+    kept_trials = {name: _kept_trials(logged, name, digests[name], seed, episodes, episode_steps) for name in loaded}
     done = sum(len(k) for k in kept_trials.values())
     if done:
-        print(f"evaluate: {done} of {episodes * len(loaded)} trials kept in {log}; running the rest")
+        print(f"evaluate: {done} of {episodes * len(loaded)} trials kept in {log.path}; running the rest")
     bar = tqdm(total=episodes * len(loaded), initial=done, unit="episode", desc="evaluate insertion",
                disable=not progress)
     for name, policy in loaded.items():
-        trials, kept, digest = [], {}, bundle_digest(policies[name])
+        trials, kept = [], {}
         for j in range(episodes):
             if j in kept_trials[name]:
                 trials.append(kept_trials[name][j])
                 continue
             want = video and len(kept) < 2
             result, frames = run_trial(policy, seed + j, caches[policy.hand], want, episode_steps)
-            with log.open("a") as f:  # kept at once: a stop loses at most the trial it interrupts
-                f.write(json.dumps({"policy": name, "bundle_sha256": digest, "seed": seed + j,
-                                    "episode_steps": episode_steps, "result": result}) + "\n")
+            log.append([{"policy": name, "bundle_sha256": digests[name], "seed": seed + j,  # kept at once: a stop
+                         "episode_steps": episode_steps, "result": result}])  # loses the trial it interrupts
             trials.append(result)
             kind = "success" if result["success"] else "failure"
             if want and kind not in kept:
@@ -131,29 +133,21 @@ TRIALS = "trials.jsonl"
 
 def bundle_digest(path: str | Path) -> str:
     """sha256 over an imitation bundle's files (names and bytes, in name order): which weights a kept trial used."""
-    from rotation.il.bundle import SHIPPED_IL
+    from rotation.il.bundle import resolve_il
 
     h = hashlib.sha256()
-    root = Path(path)
-    if not root.exists() and (SHIPPED_IL / str(path)).is_dir():  # a shipped name, resolved as load_il does
-        root = SHIPPED_IL / str(path)
+    root = resolve_il(path)
     for f in sorted(p for p in root.rglob("*") if p.is_file()):
         h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes())
     return h.hexdigest()
 
 
-def _kept_trials(log: Path, name: str, digest: str, seed: int, episodes: int, episode_steps: int | None
-                 ) -> dict[int, dict[str, float]]:
-    """{j: outcome} of the trials of policy ``name`` (bundle ``digest``) that ``log`` keeps for this evaluation:
-    seeds seed .. seed + episodes - 1, the same length; a line cut short by a stop is passed over."""
-    if not log.is_file():
-        return {}
+def _kept_trials(logged: list[dict[str, Any]], name: str, digest: str, seed: int, episodes: int,
+                 episode_steps: int | None) -> dict[int, dict[str, float]]:
+    """{j: outcome} of the trials of policy ``name`` (bundle ``digest``) among the ``logged`` rows that belong to this
+    evaluation: seeds seed .. seed + episodes - 1, the same length (CurveLog.rows passes over a line cut by a stop)."""
     kept = {}
-    for line in log.read_text().splitlines():
-        try:
-            rec = json.loads(line)
-        except ValueError:
-            continue
+    for rec in logged:
         if not isinstance(rec, dict) or not isinstance(rec.get("seed"), int) or not isinstance(rec.get("result"), dict):
             continue
         j = rec["seed"] - seed
