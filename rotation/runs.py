@@ -154,7 +154,14 @@ class CurveLog:
     def append(self, rows: Sequence[dict[str, Any]]) -> None:
         if not rows:
             return
+        cut = False
+        if self.path.is_file() and self.path.stat().st_size > 0:
+            with self.path.open("rb") as f:
+                f.seek(-1, os.SEEK_END)
+                cut = f.read(1) != b"\n"
         with self.path.open("a") as f:
+            if cut:  # a line cut short by a stop: end it, so the first new row is not glued onto it
+                f.write("\n")
             for row in rows:
                 f.write(json.dumps(row) + "\n")
             f.flush()
