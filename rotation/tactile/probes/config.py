@@ -146,6 +146,10 @@ class Config:
     """Slip speed (m/s) above which a fingertip counts as slipping."""
     num_workers: int = 4
     """DataLoader worker processes."""
+    token_cache_gb: float = 8.0
+    """Frozen variants: compute the encoder's tokens of every window once and train the probes on them, when they
+    take at most this many GB of memory (float32; 0: run the encoder in every step). Exact: a frozen encoder gives
+    a window the same tokens each time."""
     device: str = "auto"
     """torch device: auto, cpu, cuda, cuda:1, ..."""
     precision: Literal["auto", "bf16", "fp32"] = "auto"
@@ -188,6 +192,7 @@ class Config:
                            ("head_hidden", 65536), ("sequence_windows", 1000)):
             check_int(name, getattr(self, name), 1, high)
         check_int("num_workers", self.num_workers, 0, 1024)
+        check_number("token_cache_gb", self.token_cache_gb, 0.0, 1e6, unit="GB")
         if self.torch_threads is not None:
             check_int("torch_threads", self.torch_threads, 1, 4096)
         check_seed("seed", self.seed)

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import Subset
+from torch.utils.data import Dataset, Subset
 from tqdm import tqdm
 
 from envs.errors import RequestRefused
@@ -68,6 +68,7 @@ from rotation.tactile.probes.data import (
     target_stats,
 )
 from rotation.tactile.probes.report import write_confusions, write_report, write_traces
+from rotation.tactile.probes.tokens import fits, frozen_tokens, token_bytes
 from rotation.tactile.probes.train import Probes, evaluate, train_probes, variant_encoder
 from rotation.tactile.runtime import (
     resolve_device,
@@ -128,6 +129,28 @@ def _prepare(cfg: Config) -> tuple[dict[str, Task], dict[bool, ProbeData]]:
     return all_tasks, groups
 
 
+def _frozen_splits(encoder: torch.nn.Module, variant: str, groups: dict[bool, ProbeData],
+                   all_tasks: dict[str, Task], cfg: Config, device: torch.device, bf16: bool
+                   ) -> dict[bool, tuple[Dataset, Dataset]]:
+    """For a frozen variant, the single-window group's train and test windows as the encoder's tokens, computed
+    once for every budget (rotation.tactile.probes.tokens), when they fit in ``cfg.token_cache_gb``; {} otherwise
+    (the encoder then runs in every step)."""
+    data = groups.get(False)
+    if variant == "e2e" or data is None or cfg.token_cache_gb <= 0:
+        return {}
+    windows = len(data.train) + len(data.test)
+    nbytes = token_bytes(encoder, data.train, windows, device)
+    if not fits(nbytes, cfg.token_cache_gb):
+        print(f"probe: the {variant} tokens of {windows} windows would take {nbytes / 1e9:.1f} GB, more than "
+              f"--token-cache-gb {cfg.token_cache_gb:g}: the encoder runs in every step instead")
+        return {}
+    labels = tuple(sorted({t.label for t in all_tasks.values() if not t.temporal}))
+    with tqdm(total=windows, unit="window", desc=f"probe: {variant} tokens", disable=not cfg.progress,
+              dynamic_ncols=True, leave=False) as bar:
+        return {False: tuple(frozen_tokens(encoder, split, labels, cfg.batch_size, cfg.num_workers, device, bf16,
+                                           bar) for split in (data.train, data.test))}
+
+
 def run(cfg: Config) -> dict[str, Any]:
     """Train and score every (variant, budget, task) probe; writes the report and returns it."""
     threads = torch.get_num_threads()
@@ -179,18 +202,20 @@ def _run(cfg: Config) -> dict[str, Any]:
         with StopSignals() as stop:
             for variant in variants:
                 encoder = variant_encoder(variant, pretrained, cfg, device)
+                splits = _frozen_splits(encoder, variant, groups, all_tasks, cfg, device, bf16)
                 for budget in sorted(cfg.budgets):
                     for temporal, data in groups.items():
                         tasks = {n: t for n, t in all_tasks.items() if t.temporal == temporal}
+                        train_set, test_set = splits.get(temporal, (data.train, data.test))
                         rows_b, n_sessions = budget_rows(data, budget, cfg.seed)
                         sessions_used[str(budget)] = n_sessions
                         stats, pos_weight = target_stats(data, rows_b, tasks, cfg.slip_threshold, device)
                         torch.manual_seed(cfg.seed)
                         probes = Probes(encoder, variant != "e2e", tasks, cfg).to(device)
                         bar.set_postfix(variant=variant, budget=budget)
-                        train_probes(probes, Subset(data.train, rows_b.tolist()), tasks, cfg, stats, pos_weight,
+                        train_probes(probes, Subset(train_set, rows_b.tolist()), tasks, cfg, stats, pos_weight,
                                       device, bf16, bar, writer, f"{variant}/budget_{budget}")
-                        scores, task_traces = evaluate(probes, data.test, tasks, cfg, stats, device, bf16)
+                        scores, task_traces = evaluate(probes, test_set, tasks, cfg, stats, device, bf16)
                         for task, metrics in scores.items():
                             rows += [{"task": task, "variant": variant, "budget": float(budget), "metric": m,
                                       "value": v} for m, v in metrics.items()]

@@ -25,6 +25,7 @@ from rotation.tactile.probes.data import (
 from rotation.tactile.probes.skin import (
     TemporalProbeHead,
 )
+from rotation.tactile.probes.tokens import TOKENS
 from rotation.tactile.runtime import (
     Processes,
     autocast,
@@ -68,8 +69,11 @@ class Probes(nn.Module):
             return self.heads[name](flat, seq) if seq is not None else self.heads[name](flat)
 
         if self.frozen:
-            with torch.no_grad():
-                flat = interface.concat(self.encoder(inputs))  # (B [S], N, D)
+            if TOKENS in inputs:  # computed once beforehand (rotation.tactile.probes.tokens)
+                flat = inputs[TOKENS]
+            else:
+                with torch.no_grad():
+                    flat = interface.concat(self.encoder(inputs))  # (B [S], N, D)
             return {t: head(t, flat) for t in self.tasks}
         return {t: head(t, interface.concat(self.encoders[t](inputs))) for t in self.tasks}
 
@@ -105,6 +109,11 @@ def variant_encoder(variant: str, pretrained: nn.Module, cfg: Config, device: to
 
 
 # ------------------------------------------------------------------------------------------------ training
+def _inputs(probes: Probes, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """The probes' inputs of a batch: its precomputed tokens as they are, or its windows preprocessed."""
+    return batch if TOKENS in batch else probes.reference.preprocess(batch)
+
+
 def _targets(batch: dict[str, Tensor], task: Task, cfg: Config) -> Tensor:
     return task.target(batch[task.label].float(), cfg.slip_threshold)
 
@@ -119,7 +128,7 @@ def train_probes(probes: Probes, data: Dataset, tasks: dict[str, Task], cfg: Con
     pw = torch.tensor([pos_weight], device=device)
     for step, batch in enumerate(loader):
         batch = to_device(batch, device)
-        inputs = probes.reference.preprocess(batch)
+        inputs = _inputs(probes, batch)
         with autocast(device, bf16):
             preds = probes(inputs)
         losses = {}
@@ -160,7 +169,7 @@ def evaluate(probes: Probes, data: Dataset, tasks: dict[str, Task], cfg: Config,
     for batch in loader:
         batch = to_device(batch, device)
         with autocast(device, bf16):
-            out = probes(probes.reference.preprocess(batch))
+            out = probes(_inputs(probes, batch))
         for name, task in tasks.items():
             p = out[name].float()
             if task.classes:

@@ -76,3 +76,51 @@ def test_a_tiny_oas_probe_through_the_command_line(tmp_path, checkpoint, capsys)
     assert {r["task"] for r in data["rows"]} == {"oas_object", "oas_action", "oas_surface"}
     assert {r["variant"] for r in data["rows"]} == {"all", "e2e"}
     assert np.asarray(data["confusion"]["oas_surface"]["all"]).shape == (3, 3)
+
+
+
+def test_frozen_tokens_computed_once_train_the_heads_the_encoder_in_every_step_trains(tmp_path, shake_sessions,
+                                                                                      checkpoint, capsys):
+    """The token cache changes the cost, not the result: heads trained on tokens computed once end with the
+    parameters of heads trained with the encoder run in every step (same batches, same tokens), and a report made
+    with the cache equals one without it; a limit too small falls back to the encoder in the step."""
+    from tqdm import tqdm
+
+    from rotation.tactile.probes.tokens import frozen_tokens
+    from rotation.tactile.probes.train import Probes, train_probes
+
+    base = dict(checkpoint=checkpoint, sessions=(shake_sessions,), tasks=("shake_content",), budgets=(0.5, 1.0),
+                variants=("all", "image"), test_fraction=0.25, stride=4, fingers=("index", "thumb"), steps=6,
+                batch_size=4, head_hidden=8, num_workers=0, device="cpu", progress=False, torch_threads=1,
+                lr=1e-2)
+    cfg = probe.Config(out=tmp_path / "cached", **base)
+    tasks, groups = probe._prepare(cfg)
+    data, encoder, device = groups[False], probe.load_encoder(checkpoint), torch.device("cpu")
+    stats = {"shake_content": (torch.zeros(1), torch.ones(1))}
+    heads = []
+    for train_set in (data.train, frozen_tokens(encoder, data.train, ("content",), 4, 0, device, False)):
+        torch.manual_seed(0)
+        probes = Probes(encoder, True, tasks, cfg)
+        train_probes(probes, train_set, tasks, cfg, stats, 1.0, device, False, tqdm(disable=True), None, "t")
+        heads.append(probes.heads.state_dict())
+    assert any(not torch.equal(v, Probes(encoder, True, tasks, cfg).heads.state_dict()[k])
+               for k, v in heads[0].items())  # the heads did train
+    for k, v in heads[0].items():
+        torch.testing.assert_close(heads[1][k], v, rtol=1e-5, atol=1e-6)
+
+    cached = probe.run(cfg)
+    in_step = probe.run(probe.Config(out=tmp_path / "in_step", token_cache_gb=0.0, **base))
+    tiny = probe.run(probe.Config(out=tmp_path / "tiny", token_cache_gb=1e-9, **base))
+    assert capsys.readouterr().out.count("the encoder runs in every step instead") == 2  # the tiny run's variants
+
+    def values(report):
+        return {(r["variant"], r["budget"], r["metric"]): r["value"] for r in report["rows"]}
+
+    assert values(cached).keys() == values(in_step).keys() and len(values(cached)) == 8
+    assert values(cached) == pytest.approx(values(in_step), abs=1e-6) and values(tiny) == values(in_step)
+    assert cached["confusion"] == in_step["confusion"]
+
+
+def test_token_cache_limit_is_checked():
+    with pytest.raises(ValueError, match="token_cache_gb"):
+        probe.Config(token_cache_gb=-1.0)
