@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rotation.configs import script_main
-from rotation.jobs.recipe import pretrained, progress_args, run_steps
+from rotation.jobs.recipe import pretrained, progress_args, report_complete, run_steps
 
 PROBE_SEED = 300
 """Seed of the probe's sessions (the pretraining collection uses 0)."""
@@ -88,7 +88,7 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
             (pretrain / "encoder.safetensors").stat().st_mtime > encoder.stat().st_mtime:
         todo.append(("export the encoder", ["python", str(Path(__file__).resolve().parent / "export_encoder.py"),
                                             "--checkpoint", str(pretrain), "--out", str(out / "encoder")]))
-    if not (out / "probe" / "results.md").is_file():
+    if not report_complete(out / "probe"):
         todo.append(("probe: pretrained against end to end", [
             "probe", "--encoder", "skin", "--checkpoint", str(out / "encoder"), "--sessions",
             str(out / "probe_sessions"), "--steps", str(cfg.probe_steps), "--num-workers", str(cfg.num_workers),

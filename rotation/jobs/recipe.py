@@ -3,6 +3,7 @@ given as ``["python", path, ...]``), stopping at the first that fails, and wheth
 
 from __future__ import annotations
 
+import json
 import shlex
 import subprocess
 import sys
@@ -20,6 +21,15 @@ def pretrained(run: Path, steps: int) -> bool:
     try:
         return bool(ckpts) and int(ckpts[-1].stem.split("_")[1]) >= steps
     except (IndexError, ValueError):
+        return False
+
+
+def report_complete(folder: Path) -> bool:
+    """Whether ``folder`` holds a finished report: results.json without ``"complete": false`` (a stopped
+    `rotate probe` writes one after every variant and budget, and the same command continues it)."""
+    try:
+        return json.loads((Path(folder) / "results.json").read_text()).get("complete", True) is not False
+    except (OSError, ValueError, AttributeError):
         return False
 
 

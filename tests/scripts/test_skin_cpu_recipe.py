@@ -46,6 +46,13 @@ def test_every_step_is_listed_and_parses(recipe, tmp_path):
     assert "--resume" in pre
     (run / "ckpt_00002000.safetensors").write_bytes(b"")
     assert not any(w.startswith("pretrain") for w, _ in recipe.commands(recipe.Config(out=out)))
+    # a stopped probe (its report says complete: false) is run again, and continues; a finished one is skipped
+    (out / "probe").mkdir()
+    (out / "probe" / "results.md").write_text("| task |\n")
+    (out / "probe" / "results.json").write_text('{"rows": [], "complete": false}')
+    assert any(w.startswith("probe") for w, _ in recipe.commands(recipe.Config(out=out)))
+    (out / "probe" / "results.json").write_text('{"rows": [], "complete": true}')
+    assert not any(w.startswith("probe") for w, _ in recipe.commands(recipe.Config(out=out)))
 
 
 def test_dry_run_runs_nothing(recipe, tmp_path, capsys):

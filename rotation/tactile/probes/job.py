@@ -37,7 +37,10 @@ OUT: results.json ``{"rows": [{"task", "variant", "budget", "metric", "value"}, 
 probe.png (metric vs label budget per variant), <task>_over_time.png for temporal tasks (predicted vs true on a
 test session, largest budget), config.json, tb/.
 The report is rewritten after every (variant, budget) with ``"complete": false`` until the last one; Ctrl-C or
-SIGTERM stop after the probe being trained and keep the finished rows.
+SIGTERM stop after the probe being trained and keep the finished rows. The same command continues a stopped report
+(rotation.tactile.probes.resume: only the missing (variant, budget) pairs are trained), and a finished one takes more
+variants into the same table (``--variants e2e`` after the frozen ones); a report of other options or another
+encoder in OUT is refused, never overwritten.
 """
 
 from __future__ import annotations
@@ -68,6 +71,7 @@ from rotation.tactile.probes.data import (
     target_stats,
 )
 from rotation.tactile.probes.report import write_confusions, write_report, write_traces
+from rotation.tactile.probes.resume import earlier_report, weights_digest, write_traces_file
 from rotation.tactile.probes.tokens import fits, frozen_tokens, token_bytes
 from rotation.tactile.probes.train import Probes, evaluate, train_probes, variant_encoder
 from rotation.tactile.runtime import (
@@ -171,19 +175,28 @@ def _run(cfg: Config) -> dict[str, Any]:
                          f"--encoder {kind_of(pretrained)}")
     all_tasks, groups = _prepare(cfg)
     out = Path(cfg.out)
+    digest = weights_digest(pretrained)
+    earlier = earlier_report(cfg, digest)
+    done = earlier.done
     save_config(cfg, out / "config.json")
     writer = summary_writer(out / "tb", 0)
-    rows: list[dict[str, Any]] = []
+    rows: list[dict[str, Any]] = list(earlier.rows)
     variants = cfg.variant_names
-    runs = len(variants) * len(cfg.budgets) * len(groups)
-    bar = tqdm(total=runs * cfg.steps, unit="step", desc="probe", disable=not cfg.progress, dynamic_ncols=True)
-    sessions_used: dict[str, int] = {}
-    traces: dict[str, dict[str, dict[str, np.ndarray]]] = {}  # task -> variant -> trace (largest budget)
-    confusions: dict[str, dict[str, np.ndarray]] = {}  # task -> variant -> confusion matrix (largest budget)
+    todo = [(v, b) for v in variants for b in sorted(cfg.budgets) if (v, float(b)) not in done]
+    if done:
+        print(f"probe: {out} holds {len(done)} finished (variant, budget) pair(s) of these options: kept; "
+              f"{len(todo)} to train")
+    bar = tqdm(total=len(todo) * len(groups) * cfg.steps, unit="step", desc="probe", disable=not cfg.progress,
+               dynamic_ncols=True)
     first = next(iter(groups.values()))
+    sessions_used = {str(b): budget_rows(first, b, cfg.seed)[1] for b in sorted(cfg.budgets)}
+    # task -> variant -> trace (temporal tasks) or confusion matrix (multi-class tasks), at the largest budget
+    traces: dict[str, dict[str, dict[str, np.ndarray]]] = earlier.traces
+    confusions: dict[str, dict[str, np.ndarray]] = earlier.confusions
     fixed = {"baselines": [b for temporal, data in groups.items() for b in baselines(
                  data, {n: t for n, t in all_tasks.items() if t.temporal == temporal}, cfg.slip_threshold)],
              "encoder": encoder_kind(kind_of(pretrained)).describe(pretrained), "checkpoint": str(cfg.checkpoint),
+             "encoder_sha256": digest,
              "train_sessions": len(first.train_sessions), "test_sessions": len(first.test_sessions),
              "train_windows": len(first.train), "test_windows": len(first.test), "config": to_jsonable(cfg)}
 
@@ -191,6 +204,7 @@ def _run(cfg: Config) -> dict[str, Any]:
         """The report so far, written after every (variant, budget): a stopped run keeps what it finished."""
         out_report = {"rows": rows, "complete": complete, **fixed, "sessions_per_budget": sessions_used}
         if traces:
+            write_traces_file(traces, out)
             out_report["trace_plots"] = write_traces(traces, out, budget=max(cfg.budgets))
         if confusions:
             out_report["confusion"] = {t: {v: m.tolist() for v, m in by.items()} for t, by in confusions.items()}
@@ -201,14 +215,16 @@ def _run(cfg: Config) -> dict[str, Any]:
     try:
         with StopSignals() as stop:
             for variant in variants:
+                budgets = [b for b in sorted(cfg.budgets) if (variant, b) in todo]
+                if not budgets:
+                    continue
                 encoder = variant_encoder(variant, pretrained, cfg, device)
                 splits = _frozen_splits(encoder, variant, groups, all_tasks, cfg, device, bf16)
-                for budget in sorted(cfg.budgets):
+                for budget in budgets:
                     for temporal, data in groups.items():
                         tasks = {n: t for n, t in all_tasks.items() if t.temporal == temporal}
                         train_set, test_set = splits.get(temporal, (data.train, data.test))
-                        rows_b, n_sessions = budget_rows(data, budget, cfg.seed)
-                        sessions_used[str(budget)] = n_sessions
+                        rows_b, _ = budget_rows(data, budget, cfg.seed)
                         stats, pos_weight = target_stats(data, rows_b, tasks, cfg.slip_threshold, device)
                         torch.manual_seed(cfg.seed)
                         probes = Probes(encoder, variant != "e2e", tasks, cfg).to(device)
@@ -228,7 +244,8 @@ def _run(cfg: Config) -> dict[str, Any]:
                         del probes
                     report(complete=False)
                     stop.raise_if_requested(f"probe: stopped after {variant} at budget {budget:g}; the finished "
-                                            f"rows are in {out / 'results.md'}")
+                                            f"rows are in {out / 'results.md'}, and the same command continues "
+                                            "from them")
     finally:
         bar.close()
         writer.close()

@@ -8,6 +8,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from rotation.runs import save_atomically
+
 HIGHER_IS_BETTER = {"balanced_accuracy", "accuracy"}
 """Metrics where a larger value is better (all others are errors)."""
 
@@ -15,7 +17,8 @@ HIGHER_IS_BETTER = {"balanced_accuracy", "accuracy"}
 def write_report(report: dict[str, Any], out: Path) -> None:
     """results.json, results.md (one table: task / metric / budget x variant) and probe.png."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(report, indent=2) + "\n")
+    text = json.dumps(report, indent=2) + "\n"
+    save_atomically(lambda tmp: tmp.write_text(text), out / "results.json")  # a stop never leaves half a report
     rows = report["rows"]
     variants = list(dict.fromkeys(r["variant"] for r in rows))
     keys = list(dict.fromkeys((r["task"], r["metric"]) for r in rows))
