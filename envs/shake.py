@@ -160,25 +160,43 @@ def _add_bottle(spec: mujoco.MjSpec, radius: float, height: float, pos: np.ndarr
 
 
 def _grain_slots(grain: Grain, inner_r: float, inner_h: float, count: int, rng: np.random.Generator
-                 ) -> np.ndarray:
-    """(count, 3) start positions (bottle frame, from the bottom up) of grains lying along x in a lattice."""
+                 ) -> np.ndarray | None:
+    """(count, 3) start positions (bottle frame, from the bottom up) of grains lying along x, in rows along y whose
+    layers are stacked like hexagonal rows in the y-z plane (every other layer shifted half a row, layers
+    sqrt(3)/2 rows apart: neighbouring grains' axes one grain width plus a gap apart); None when fewer fit."""
     gap = 0.0005
     dx, dyz = 2 * (grain.half_length + grain.radius) + gap, 2 * grain.radius + gap
     reach = inner_r - gap
     slots = []
-    z = -inner_h / 2 + grain.radius + gap
+    z, layer_index = -inner_h / 2 + grain.radius + gap, 0
     while z < inner_h / 2 - grain.radius and len(slots) < count:
         layer = []
-        for y in np.arange(-reach + grain.radius, reach - grain.radius + 1e-9, dyz):
+        shift = dyz / 2 if layer_index % 2 else 0.0
+        for y in np.arange(-reach + grain.radius + shift, reach - grain.radius + 1e-9, dyz):
             half = math.sqrt(max(reach**2 - (abs(y) + grain.radius) ** 2, 0.0)) - grain.half_length - grain.radius
             layer += [(x, y, z) for x in np.arange(-half, half + 1e-9, dx)]
         rng.shuffle(layer)
         slots += layer
-        z += dyz
-    if len(slots) < count:
-        raise ValueError(f"shake: {count} grains do not fit in a bottle of inner radius {inner_r * 1e3:.0f} mm and "
-                         f"height {inner_h * 1e3:.0f} mm")
-    return np.asarray(slots[:count])
+        z, layer_index = z + dyz * math.sqrt(3) / 2, layer_index + 1
+    return np.asarray(slots[:count]) if len(slots) >= count else None
+
+
+def parcels(content: Grain, inner_r: float, inner_h: float, level: int, rng: np.random.Generator
+            ) -> tuple[Grain, np.ndarray]:
+    """The parcels of a granular fill (envs.shake_contents) and their start positions: ``content.parcels[level]``
+    of them, fewer where that many would be smaller than a real grain, more (up to four times) where their
+    start lattice has no room for them (smaller parcels fit a round bottle better); together they carry the
+    fill's mass."""
+    mass = content.fill_mass(inner_r, inner_h, level)
+    count = max(1, min(content.parcels[level], int(round(mass / content.mass))))
+    for n in range(count, 4 * count + 1):
+        k = max(1.0, (mass / n / content.mass) ** (1 / 3))
+        parcel = Grain(content.radius * k, content.half_length * k, content.density, content.friction)
+        slots = _grain_slots(parcel, inner_r, inner_h, n, rng)
+        if slots is not None:
+            return parcel, slots
+    raise ValueError(f"shake: a {mass * 1e3:.0f} g fill of {4 * count} parcels does not fit in a bottle of inner "
+                     f"radius {inner_r * 1e3:.0f} mm and height {inner_h * 1e3:.0f} mm")
 
 
 def _add_contents(spec: mujoco.MjSpec, bottle: mujoco.MjsBody, episode: ShakeEpisode, pos: np.ndarray,
@@ -199,21 +217,20 @@ def _add_contents(spec: mujoco.MjSpec, bottle: mujoco.MjsBody, episode: ShakeEpi
                        pos=[0, 0, -slosh.length], mass=slosh.moving_mass, contype=0, conaffinity=0,
                        rgba=[0.3, 0.6, 1.0, 0.5])
         return slosh.mass
-    count = content.counts[episode.fill]
+    parcel, slots = parcels(content, inner_r, inner_h, episode.fill, rng)
     rot = np.zeros(9)
     mujoco.mju_quat2Mat(rot, quat)
-    slots = _grain_slots(content, inner_r, inner_h, count, rng)
     for i, local in enumerate(slots):
         grain = spec.worldbody.add_body(name=f"grain{i}", pos=(pos + rot.reshape(3, 3) @ local).tolist(),
                                         quat=quat.tolist())
         grain.add_freejoint()
         along_x = [math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0]  # the capsule's axis z -> x
         kind = mujoco.mjtGeom.mjGEOM_CAPSULE if content.half_length > 0 else mujoco.mjtGeom.mjGEOM_SPHERE
-        grain.add_geom(type=kind, size=[content.radius, content.half_length, 0], quat=along_x,
+        grain.add_geom(type=kind, size=[parcel.radius, parcel.half_length, 0], quat=along_x,
                        density=content.density, friction=[content.friction, 0.005, 0.0001], condim=3,
                        contype=GRAIN_BIT, conaffinity=GRAIN_BIT, solref=[2 * TIMESTEP, 1.0],
                        rgba=[0.9, 0.85, 0.6, 1.0])
-    return count * content.mass
+    return len(slots) * parcel.mass
 
 
 class ShakeSim:

@@ -1,10 +1,18 @@
 """What a shaken bottle holds, as MuJoCo can simulate it honestly: grains as rigid bodies of their real size, density
 and friction; a liquid as the equivalent mechanical model of its first sloshing mode.
 
-Granular contents (pills, rice, lentils) are free bodies inside the bottle, a few tens of them: at their real size a
-bottle filled to any height would hold hundreds to thousands (rice), which 2 CPU cores cannot step at the rate the
-fingertips' IMU needs, so the fill levels are counts of pieces (few, some, many), the same for every bottle size.
-Sizes, densities and friction (typical values; each figure's source beside it):
+Granular contents (pills, rice, lentils) fill the bottle like the liquids, to a fraction of its inner height, at the
+mass a real pour has there: the grain's true density times a packing fraction of 0.6 (the solid share of a poured
+granular bed: random loose packing of spheres is about 0.55, random close packing 0.64; taken for capsules and
+lenses as well, an assumption). At their real size such a fill is hundreds to thousands of grains (rice), which 2 CPU
+cores cannot step at the rate the fingertips' IMU needs, so the fill is **coarse-grained** (the scaled-particle
+practice of discrete element models): it is simulated as a fixed number of parcels per level (8, 16, 32), each the
+real grain scaled up in every dimension by the same factor, of the grain's true density, so that the parcels
+together carry the fill's mass. What the hand feels then has the real content's mass and the grain's shape, density
+and friction; the size of one impact is a parcel's, not a grain's (a rattle of few heavy pieces rather than a hiss of
+many light ones). Before this, the fills were 3 to 50 grains at their real size: 1-8 g of rice, lentils or pills
+against 30-150 g of liquid, and neither a probe nor the fingertips' contact forces could tell the contents apart.
+Sizes, densities and friction of one grain (typical values; each figure's source beside it):
 
 - pills: a size-0 hard capsule, 21.7 mm long and 7.6 mm across (the standard capsule size table: size 0 is
   21.7 mm closed length, 7.64 mm body diameter), filled to about 0.5 g: a capsule geom of that length and radius,
@@ -43,9 +51,17 @@ FILL_LEVELS = ("few", "some", "many")
 """Fill level labels, lowest first (class ids 0, 1, 2)."""
 
 
+PACKING = 0.6
+"""Solid fraction of a poured granular content (module docstring)."""
+FILLS = (0.1, 0.25, 0.45)
+"""Fill depth per level (FILL_LEVELS), as a fraction of the bottle's inner height: liquids and grains alike."""
+PARCELS = (8, 16, 32)
+"""Simulated parcels per fill level of a granular content (module docstring)."""
+
+
 @dataclass(frozen=True)
 class Grain:
-    """One kind of granular content: a capsule (``half_length`` > 0) or a sphere."""
+    """One kind of granular content: a capsule (``half_length`` > 0) or a sphere, the size of one real grain."""
 
     radius: float
     """m."""
@@ -54,8 +70,10 @@ class Grain:
     density: float
     """kg/m^3."""
     friction: float
-    counts: tuple[int, int, int]
-    """Pieces per fill level (FILL_LEVELS)."""
+    fills: tuple[float, float, float] = FILLS
+    """Fill depth per level, as a fraction of the bottle's inner height."""
+    parcels: tuple[int, int, int] = PARCELS
+    """Simulated parcels per fill level."""
 
     @property
     def volume(self) -> float:
@@ -63,7 +81,13 @@ class Grain:
 
     @property
     def mass(self) -> float:
+        """One real grain's mass (kg)."""
         return self.density * self.volume
+
+    def fill_mass(self, inner_r: float, inner_h: float, level: int) -> float:
+        """The mass (kg) of a pour filling an upright cylinder of inner radius and height (m) to ``level``."""
+        return self.density * PACKING * math.pi * inner_r**2 * self.fills[level] * inner_h
+
 
 
 @dataclass(frozen=True)
@@ -74,16 +98,16 @@ class Liquid:
     """kg/m^3."""
     viscosity: float
     """Kinematic viscosity (m^2/s)."""
-    fills: tuple[float, float, float] = (0.1, 0.25, 0.45)
+    fills: tuple[float, float, float] = FILLS
     """Depth per fill level, as a fraction of the bottle's inner height."""
 
 
 _CAPSULE_R, _CAPSULE_HALF = 0.00382, (0.0217 - 2 * 0.00382) / 2
 CONTENTS: dict[str, Grain | Liquid] = {
     "pills": Grain(_CAPSULE_R, _CAPSULE_HALF, 0.0005 / (math.pi * _CAPSULE_R**2 * 2 * _CAPSULE_HALF
-                                                       + 4 / 3 * math.pi * _CAPSULE_R**3), 0.3, (3, 8, 16)),
-    "rice": Grain(0.001, (0.0068 - 0.002) / 2, 1450.0, 0.35, (10, 25, 50)),
-    "lentils": Grain(0.0017, 0.0, 1350.0, 0.35, (10, 25, 50)),
+                                                       + 4 / 3 * math.pi * _CAPSULE_R**3), 0.3),
+    "rice": Grain(0.001, (0.0068 - 0.002) / 2, 1450.0, 0.35),
+    "lentils": Grain(0.0017, 0.0, 1350.0, 0.35),
     "water": Liquid(998.0, 1.0e-6),
     "oil": Liquid(915.0, 9.2e-5),
 }
