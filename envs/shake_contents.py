@@ -11,7 +11,7 @@ real grain scaled up in every dimension by the same factor, of the grain's true 
 together carry the fill's mass. What the hand feels then has the real content's mass and the grain's shape, density
 and friction; the size of one impact is a parcel's, not a grain's (a rattle of few heavy pieces rather than a hiss of
 many light ones). Before this, the fills were 3 to 50 grains at their real size: 1-8 g of rice, lentils or pills
-against 30-150 g of liquid, and neither a probe nor the fingertips' contact forces could tell the contents apart.
+against 11-231 g of liquid, and neither a probe nor the fingertips' contact forces could tell the contents apart.
 Sizes, densities and friction of one grain (typical values; each figure's source beside it):
 
 - pills: a size-0 hard capsule, 21.7 mm long and 7.6 mm across (the standard capsule size table: size 0 is
@@ -87,7 +87,6 @@ class Grain:
     def fill_mass(self, inner_r: float, inner_h: float, level: int) -> float:
         """The mass (kg) of a pour filling an upright cylinder of inner radius and height (m) to ``level``."""
         return self.density * PACKING * math.pi * inner_r**2 * self.fills[level] * inner_h
-
 
 
 @dataclass(frozen=True)
