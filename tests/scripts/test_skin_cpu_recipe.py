@@ -37,14 +37,14 @@ def test_every_step_is_listed_and_parses(recipe, tmp_path):
         if args[0] == "collect":
             assert cfg.skin and cfg.hand == "xela_v4" and cfg.policy == "play"
         else:
-            assert cfg.encoder == "skin" and cfg.steps == 2000
+            assert cfg.encoder == "skin" and cfg.steps == 8000
     # a pretraining run with its last checkpoint is done; one with an earlier checkpoint resumes
     run = out / "pretrain"
     run.mkdir()
     (run / "ckpt_00000100.safetensors").write_bytes(b"")
     pre = next(a for w, a in recipe.commands(recipe.Config(out=out)) if w.startswith("pretrain"))
     assert "--resume" in pre
-    (run / "ckpt_00002000.safetensors").write_bytes(b"")
+    (run / "ckpt_00008000.safetensors").write_bytes(b"")
     assert not any(w.startswith("pretrain") for w, _ in recipe.commands(recipe.Config(out=out)))
     # a stopped probe (its report says complete: false) is run again, and continues; a finished one is skipped
     (out / "probe").mkdir()
