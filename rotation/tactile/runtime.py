@@ -4,6 +4,7 @@ distributed run, per-step seeds, TensorBoard."""
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 from dataclasses import dataclass
 
@@ -105,3 +106,13 @@ def step_seed(seed: int, step: int, rank: int = 0, stream: int = 0) -> int:
     that a resumed run reproduces exactly."""
     return int(np.random.SeedSequence([int(seed), int(step), int(rank), int(stream)]).generate_state(2, np.uint64)[0]
                >> np.uint64(1))
+
+
+def state_digest(module: torch.nn.Module) -> str:
+    """SHA-256 of a module's state dict (names and raw bytes, in its order): the same weights give the same digest
+    (the pretraining's ranks compare theirs; a probe report records its encoder's)."""
+    h = hashlib.sha256()
+    for name, value in module.state_dict().items():
+        h.update(name.encode())
+        h.update(value.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import hashlib
 import json
 import os
 import subprocess
@@ -58,6 +57,7 @@ from rotation.tactile.runtime import (
     autocast,
     init_processes,
     resolve_device,
+    state_digest,
     step_seed,
     use_bf16,
 )
@@ -144,14 +144,6 @@ def _check_resumable(cfg: Config, out: Path) -> None:
     if diff:
         raise ValueError(f"--resume: the config differs from the one saved in {out / 'config.json'} in {diff}; "
                          f"only {sorted(RESUMABLE_CHANGES)} may change on resume")
-
-
-def _state_digest(module: torch.nn.Module) -> str:
-    h = hashlib.sha256()
-    for name, value in module.state_dict().items():
-        h.update(name.encode())
-        h.update(value.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
-    return h.hexdigest()
 
 
 def objective(cfg: Config) -> Objective:
@@ -323,7 +315,7 @@ def _train(cfg: Config, procs: Processes) -> dict[str, Any]:
         result.update(final_loss=history[-1]["loss"], samples_per_s=history[-1]["samples_per_s"])
     if procs.distributed:
         digests: list[str] = [""] * procs.world
-        dist.all_gather_object(digests, _state_digest(student))
+        dist.all_gather_object(digests, state_digest(student))
         result["identical_ranks"] = len(set(digests)) == 1
         if procs.main:
             (out / "ranks.json").write_text(json.dumps({"world_size": procs.world, "student_sha256": digests,

@@ -71,11 +71,12 @@ from rotation.tactile.probes.data import (
     target_stats,
 )
 from rotation.tactile.probes.report import write_confusions, write_report, write_traces
-from rotation.tactile.probes.resume import earlier_report, weights_digest, write_traces_file
-from rotation.tactile.probes.tokens import fits, frozen_tokens, token_bytes
+from rotation.tactile.probes.resume import earlier_report, write_traces_file
+from rotation.tactile.probes.tokens import fits, frozen_tokens
 from rotation.tactile.probes.train import Probes, evaluate, train_probes, variant_encoder
 from rotation.tactile.runtime import (
     resolve_device,
+    state_digest,
     use_bf16,
 )
 
@@ -143,7 +144,7 @@ def _frozen_splits(encoder: torch.nn.Module, variant: str, groups: dict[bool, Pr
     if variant == "e2e" or data is None or cfg.token_cache_gb <= 0:
         return {}
     windows = len(data.train) + len(data.test)
-    nbytes = token_bytes(encoder, data.train, windows, device)
+    nbytes = windows * encoder.token_interface.total * encoder.token_interface.width * 4  # float32
     if not fits(nbytes, cfg.token_cache_gb):
         print(f"probe: the {variant} tokens of {windows} windows would take {nbytes / 1e9:.1f} GB, more than "
               f"--token-cache-gb {cfg.token_cache_gb:g}: the encoder runs in every step instead")
@@ -175,7 +176,7 @@ def _run(cfg: Config) -> dict[str, Any]:
                          f"--encoder {kind_of(pretrained)}")
     all_tasks, groups = _prepare(cfg)
     out = Path(cfg.out)
-    digest = weights_digest(pretrained)
+    digest = state_digest(pretrained)
     earlier = earlier_report(cfg, digest)
     done = earlier.done
     save_config(cfg, out / "config.json")

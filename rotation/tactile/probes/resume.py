@@ -4,21 +4,19 @@ finished (variant, budget) rows and trains only the rest.
 A stopped run (Ctrl-C, SIGTERM, a closed session) is continued by the same command; a finished one can be extended
 with more variants (e.g. the frozen variants first, then ``--variants e2e`` into the same ``--out``): the rows
 compare because everything that decides them is the same, which is checked: the options (all but the variants and
-the run-time ones, :data:`MAY_DIFFER`) and the encoder's weights (a SHA-256 of its tensors). A report of other
-options is refused, never overwritten. The confusion matrices come back from results.json, the temporal tasks'
-traces from traces.npz.
+the run-time ones, :data:`MAY_DIFFER`) and the encoder's weights (rotation.tactile.runtime.state_digest). A report
+of other options is refused, never overwritten. The confusion matrices come back from results.json, the temporal
+tasks' traces from traces.npz.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from envs.errors import RequestRefused
 from rotation.configs import to_jsonable
@@ -29,16 +27,6 @@ MAY_DIFFER = frozenset({"out", "variants", "progress", "num_workers", "device", 
 different device gives rows that agree to float precision, not bit for bit)."""
 TRACES = "traces.npz"
 """The temporal tasks' traces at the largest budget (task|variant|field -> array), for a continued run's plots."""
-
-
-def weights_digest(model: torch.nn.Module) -> str:
-    """SHA-256 of a model's parameters and buffers (names, shapes, float32 values) in name order."""
-    h = hashlib.sha256()
-    for name, tensor in sorted(model.state_dict().items()):
-        values = tensor.detach().to("cpu", torch.float32).contiguous().numpy()
-        h.update(f"{name}:{tuple(values.shape)};".encode())
-        h.update(values.tobytes())
-    return h.hexdigest()
 
 
 @dataclass

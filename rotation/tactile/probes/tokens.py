@@ -3,9 +3,9 @@ running the encoder on every batch of every step.
 
 A frozen encoder in eval mode maps a window to the same tokens each time it reads it (the probe's windows carry no
 augmentation), so computing them once is exact: the heads see the same tokens in the same batch order as when the
-encoder runs inside the step. On 2 CPU cores the encoder's forward pass is about 95% of a frozen probe's step
-(Sparsh-X tinier: 0.19 s of a batch of 32; the attentive head's step a few ms), so a frozen variant of 2,000 steps at
-three label budgets costs one pass over the windows instead of 6,000 batches.
+encoder runs inside the step. On 2 CPU cores the encoder's forward pass is most of a frozen probe's step (Sparsh-X
+tinier: 0.19 s for a batch of 32; the attentive heads' step 25-75 ms, three tasks over 532 tokens), so a frozen
+variant of 2,000 steps at three label budgets costs one pass over the windows instead of 6,000.
 
 The tokens are held in memory, float32, (windows, tokens, width): Sparsh-X tinier's 532 tokens of width 96 take
 204 kB a window, 3.4 GB for 16,500 windows. Past ``Config.token_cache_gb`` the probes fall back to the encoder in
@@ -43,18 +43,6 @@ class FrozenTokens(Dataset):
         return {TOKENS: self.tokens[i], **{k: v[i] for k, v in self.fields.items()}}
 
 
-def token_bytes(encoder: nn.Module, data: Dataset, windows: int, device: torch.device) -> int:
-    """Bytes the tokens of ``windows`` windows take (float32), from the encoder's output on ``data``'s first."""
-    with torch.no_grad():
-        sample = to_device(_collate([data[0]]), device)
-        tokens = encoder.token_interface.concat(encoder(encoder.preprocess(sample)))
-    return int(windows * tokens.shape[1] * tokens.shape[2] * 4)
-
-
-def _collate(items: list[dict]) -> dict:
-    return torch.utils.data.default_collate(items)
-
-
 @torch.no_grad()
 def frozen_tokens(encoder: nn.Module, data: Dataset, labels: tuple[str, ...], batch_size: int, num_workers: int,
                   device: torch.device, bf16: bool, bar=None) -> FrozenTokens:
@@ -82,4 +70,4 @@ def fits(nbytes: int, limit_gb: float) -> bool:
     return limit_gb > 0 and nbytes <= limit_gb * 1e9
 
 
-__all__ = ["TOKENS", "FrozenTokens", "fits", "frozen_tokens", "token_bytes"]
+__all__ = ["TOKENS", "FrozenTokens", "fits", "frozen_tokens"]

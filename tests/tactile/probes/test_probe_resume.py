@@ -15,7 +15,8 @@ from rotation.jobs import collect
 from rotation.tactile.models.encoders import ENCODERS
 from rotation.tactile.models.sparshx import SparshX, SparshXConfig
 from rotation.tactile.probes import job as probe
-from rotation.tactile.probes.resume import TRACES, _read_traces, weights_digest, write_traces_file
+from rotation.tactile.probes.resume import TRACES, _read_traces, write_traces_file
+from rotation.tactile.runtime import state_digest
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +98,7 @@ def test_a_report_of_other_options_or_another_encoder_is_refused_and_kept(tmp_pa
         probe.run(_cfg(sessions, checkpoint, tmp_path / "elsewhere"))
 
 
-def test_traces_and_the_weights_digest(tmp_path, checkpoint):
+def test_traces_and_the_state_digest(tmp_path, checkpoint):
     traces = {"pose": {"pretrained": {"pred": np.arange(6.0).reshape(3, 2), "true": np.ones((3, 2)),
                                       "time": np.array([0.1, 0.2, 0.3]), "session": np.array([0, 0, 1])}}}
     write_traces_file(traces, tmp_path)
@@ -106,7 +107,7 @@ def test_traces_and_the_weights_digest(tmp_path, checkpoint):
     for name, value in traces["pose"]["pretrained"].items():
         np.testing.assert_array_equal(back["pose"]["pretrained"][name], value)
     a = probe.load_encoder(checkpoint)
-    assert weights_digest(a) == weights_digest(probe.load_encoder(checkpoint))
+    assert state_digest(a) == state_digest(probe.load_encoder(checkpoint))
     with torch.no_grad():
         next(a.parameters()).view(-1)[0] += 1e-3
-    assert weights_digest(a) != weights_digest(probe.load_encoder(checkpoint))
+    assert state_digest(a) != state_digest(probe.load_encoder(checkpoint))
