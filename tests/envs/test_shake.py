@@ -91,9 +91,15 @@ def _ring(grasps, content: str, kick: float = 0.3) -> tuple[float, float, object
     freq = (len(up) - 1) / ((up[-1] - up[0]) * sim.model.opt.timestep)
     peaks = [a[i:j].max() for i, j in zip(up[:-1], up[1:], strict=True)]
     zeta = math.log(peaks[0] / peaks[-1]) / (len(peaks) - 1) / (2 * math.pi)
-    inner_r = 0.040 * float(grasps.scales[ep.bucket]) - 0.0015
-    inner_h = 0.085 * float(grasps.scales[ep.bucket]) - 0.003
+    inner_r, inner_h = _inside(grasps, ep.bucket)
     return freq, zeta, slosh_model(CONTENTS[content], inner_r, CONTENTS[content].fills[1] * inner_h)
+
+
+def _inside(grasps, bucket: int) -> tuple[float, float]:
+    """The inner radius and height (m) of the bottle of a grasp bucket: the cup's 40 x 85 mm at its scale, less the
+    1.5 mm wall (the bottom and cap at both ends)."""
+    scale = float(grasps.scales[bucket])
+    return 0.040 * scale - 0.0015, 0.085 * scale - 0.003
 
 
 def test_the_simulated_liquid_rings_at_its_sloshing_frequency_and_oil_damps_it_faster(grasps):
@@ -112,8 +118,7 @@ def test_an_episode_is_deterministic_per_seed_and_the_hand_holds_the_bottle(gras
     a, b = ShakeSim(cfg, ep, grasps).run(), ShakeSim(cfg, ep, grasps).run()
     assert np.array_equal(a.contact, b.contact) and np.array_equal(a.times, b.times)
     assert a.contact.shape == (4, 600, a.contact.shape[2]) and np.all(np.isfinite(a.contact))
-    inner_r = 0.040 * float(grasps.scales[ep.bucket]) - 0.0015
-    inner_h = 0.085 * float(grasps.scales[ep.bucket]) - 0.003
+    inner_r, inner_h = _inside(grasps, ep.bucket)
     assert a.held and a.content_mass == pytest.approx(CONTENTS["pills"].fill_mass(inner_r, inner_h, 1), rel=1e-6)
     assert a.contact[:, :, 0].max() > 0.05  # some fingertip presses on the bottle
     # the wrist moved: once the shake is on (after 0.6 s) the fingertips' accelerometers leave gravity's 9.81 m/s^2
