@@ -8,10 +8,12 @@ Each measurement is one function registered in ``MEASUREMENTS``; it returns a di
   skin off: its pads are collision geoms, so the physics differs slightly) and ``skin`` (the Xela hand with the
   skin on: pad sensors, the reading model of 368 x 3 taxels at every 100 Hz substep, the `skin` window).
   ``skin_over_plain`` = skin / plain; ``skin_over_xela_off`` = skin / xela_off, the cost of the sensor alone.
-- ``encoder``: the Sparsh-skin encoder (size ``encoder_size``, tiny by default) on one hand window on the CPU
-  (``threads`` intra-op threads), from the raw window as the env, a session or the Xela reader gives it (baseline
-  subtraction included), under ``torch.inference_mode``: ``skin_tiny_ms``, the median over ``iters`` calls after 2
-  untimed ones; ``skin_tiny_params``.
+- ``encoder``: the Sparsh-skin encoder (size ``encoder_size``, tiny by default, random weights; or ``checkpoint``,
+  e.g. the shipped ``sparshskin-tiny-sim``) on one hand window on the CPU (``threads`` intra-op threads), from the
+  raw window as the env, a session or the Xela reader gives it (baseline subtraction included), under
+  ``torch.inference_mode``: ``skin_<size>_ms``, the median over ``iters`` calls after 2 untimed ones, its 95th
+  percentile ``skin_<size>_p95_ms``, the rate one hand's windows can be encoded at ``skin_<size>_hz`` (1000 / the
+  median; the skin streams at 100 Hz) and ``skin_<size>_params``.
 
 The last line printed is a JSON object with every measurement's figures.
 
@@ -19,6 +21,7 @@ The last line printed is a JSON object with every measurement's figures.
     python scripts/bench_skin.py --num-envs 64 --steps 8192 --rounds 3
     python scripts/bench_skin.py --only env
     python scripts/bench_skin.py --only encoder --threads 2
+    python scripts/bench_skin.py --only encoder --checkpoint sparshskin-tiny-sim
 """
 
 from __future__ import annotations
@@ -53,7 +56,10 @@ class Config:
     only: tuple[str, ...] = ()
     """Measurements to run (names in MEASUREMENTS); empty = all."""
     encoder_size: str = "tiny"
-    """Sparsh-skin size of the encoder measurement (tiny: the released size)."""
+    """Sparsh-skin size of the encoder measurement (tiny: the released size), with random weights."""
+    checkpoint: str = ""
+    """A skin encoder to time instead (a path or a shipped name: rotation.tactile.models.encoders.load_encoder);
+    empty: a random one of ``encoder_size``."""
     iters: int = 20
     """Timed encoder calls (the median is reported)."""
     threads: int = 0
@@ -102,6 +108,7 @@ def measure_encoder(cfg: Config) -> dict:
     import torch
 
     from envs.sensors.xela import NUM_TAXELS, REST, WINDOW
+    from rotation.tactile.models.encoders import load_encoder
     from rotation.tactile.models.sparsh_skin import SIZES, SparshSkin, SparshSkinConfig
 
     if cfg.encoder_size not in SIZES or cfg.iters < 1 or cfg.threads < 0:
@@ -112,7 +119,13 @@ def measure_encoder(cfg: Config) -> dict:
         torch.set_num_threads(cfg.threads)
     try:
         torch.manual_seed(cfg.seed)
-        model = SparshSkin(SparshSkinConfig(size=cfg.encoder_size)).eval()
+        if cfg.checkpoint:
+            model = load_encoder(cfg.checkpoint).eval()
+            if not isinstance(model, SparshSkin):
+                raise ValueError(f"checkpoint: {cfg.checkpoint} is not a Sparsh-skin encoder")
+        else:
+            model = SparshSkin(SparshSkinConfig(size=cfg.encoder_size)).eval()
+        size = model.cfg.size
         rng = np.random.default_rng(cfg.seed)
         counts = REST + 300.0 * rng.standard_normal((1, WINDOW, NUM_TAXELS, 3))
         window = {"skin": torch.as_tensor(np.concatenate([counts, 0.1 * rng.random((1, WINDOW, NUM_TAXELS, 3))],
@@ -125,13 +138,15 @@ def measure_encoder(cfg: Config) -> dict:
                 model.encode(window)
                 if k >= 2:  # the first calls allocate
                     times.append(1e3 * (time.perf_counter() - start))
-        ms = statistics.median(times)
+        ms, p95 = statistics.median(times), float(np.percentile(times, 95))
         used = torch.get_num_threads()
     finally:
         torch.set_num_threads(threads)
-    print(f"encoder: Sparsh-skin {cfg.encoder_size}, one hand window (368 taxels x 10 frames), CPU, {used} "
-          f"thread(s): {ms:.1f} ms (median of {cfg.iters})")
-    return {f"skin_{cfg.encoder_size}_ms": round(ms, 2), f"skin_{cfg.encoder_size}_params": model.num_parameters(),
+    print(f"encoder: Sparsh-skin {size}{f' ({cfg.checkpoint})' if cfg.checkpoint else ''}, one hand window "
+          f"(368 taxels x 10 frames), CPU, {used} thread(s): {ms:.1f} ms median, {p95:.1f} ms p95 over {cfg.iters}: "
+          f"{1e3 / ms:.0f} windows/s (the skin streams at 100 Hz)")
+    return {f"skin_{size}_ms": round(ms, 2), f"skin_{size}_p95_ms": round(p95, 2),
+            f"skin_{size}_hz": round(1e3 / ms, 1), f"skin_{size}_params": model.num_parameters(),
             "encoder_threads": used}
 
 

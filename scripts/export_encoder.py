@@ -1,4 +1,5 @@
-"""Export a pretrained Sparsh-X encoder for shipping: its weights in float16 (half the file), buffers kept.
+"""Export a pretrained touch encoder (Sparsh-X or Sparsh-skin) for shipping: its weights in float16 (half the
+file), buffers kept.
 
     python scripts/export_encoder.py --checkpoint runs/pretrain_tinier --out rotation/tactile/pretrained/NAME
 
@@ -14,8 +15,10 @@ from pathlib import Path
 
 import torch
 
+from envs.sensors.xela import NUM_TAXELS, WINDOW
 from rotation.configs import script_main
 from rotation.tactile.models.encoders import kind_of, load_encoder
+from rotation.tactile.models.sparsh_skin import CHANNELS, GROUP, save_skin
 from rotation.tactile.models.sparshx_checkpoint import save_checkpoint
 from rotation.tactile.models.sparshx_inputs import INPUT_SHAPES
 
@@ -23,7 +26,7 @@ from rotation.tactile.models.sparshx_inputs import INPUT_SHAPES
 @dataclass
 class Config:
     checkpoint: Path = Path("runs/pretrain")
-    """A `rotate pretrain` run directory or an encoder.safetensors (Sparsh-X)."""
+    """A `rotate pretrain` run directory or an encoder.safetensors (Sparsh-X or Sparsh-skin)."""
     out: Path = Path("runs/encoder_export")
     """Directory to write encoder.safetensors into (created)."""
     dtype: str = "float16"
@@ -35,12 +38,14 @@ def run(cfg: Config) -> dict:
     if cfg.dtype not in dtypes:
         raise ValueError(f"dtype: one of {', '.join(dtypes)}, got {cfg.dtype!r}")
     model = load_encoder(cfg.checkpoint).eval()
-    if kind_of(model) != "sparshx":
-        raise ValueError(f"{cfg.checkpoint}: export handles Sparsh-X encoders, got {kind_of(model)}")
-    path = save_checkpoint(model, Path(cfg.out) / "encoder.safetensors", weights_dtype=dtypes[cfg.dtype])
-    exported = load_encoder(path).eval()
     g = torch.Generator().manual_seed(0)
-    inputs = {m: torch.randn((2, *INPUT_SHAPES[m]), generator=g) for m in model.modalities}
+    if kind_of(model) == "skin":
+        path = save_skin(model, Path(cfg.out) / "encoder.safetensors", weights_dtype=dtypes[cfg.dtype])
+        inputs = {GROUP: torch.randn((2, WINDOW, NUM_TAXELS, CHANNELS), generator=g)}
+    else:
+        path = save_checkpoint(model, Path(cfg.out) / "encoder.safetensors", weights_dtype=dtypes[cfg.dtype])
+        inputs = {m: torch.randn((2, *INPUT_SHAPES[m]), generator=g) for m in model.modalities}
+    exported = load_encoder(path).eval()
     with torch.no_grad():
         a, b = model(inputs), exported(inputs)
     err = max(float((a[k] - b[k]).abs().max() / a[k].abs().max()) for k in a)

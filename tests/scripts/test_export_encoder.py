@@ -29,3 +29,14 @@ def test_the_shipped_encoder_loads_by_name():
     assert model.cfg.size == "tinier" and model.modalities == ("img", "mic", "imu", "pressure")
     with pytest.raises(ValueError, match="shipped encoders: .*sparshx-tinier-sim"):
         load_encoder("sparshx-nonexistent")
+
+
+def test_export_of_a_skin_encoder(load_script, tmp_path):
+    torch.manual_seed(0)
+    model = ENCODERS["skin"].build("tinier", ("skin",), "bottleneck", 0.0)
+    src = ENCODERS["skin"].save(model, tmp_path / "run" / "encoder.safetensors")
+    mod = load_script("export_encoder")
+    out = mod.run(mod.Config(checkpoint=src.parent, out=tmp_path / "ship"))
+    assert out["bytes"] < 0.6 * src.stat().st_size and 0 < out["relative_error"] < 1e-2
+    loaded = load_encoder(tmp_path / "ship")
+    assert type(loaded) is type(model) and all(p.dtype == torch.float32 for p in loaded.parameters())

@@ -1,14 +1,26 @@
-"""scripts/skin_cpu_recipe.py: collections on the vendor-kinematics Xela hand, skin pretraining, export and the
-probe; every command is one its job accepts, a finished step is skipped and a stopped pretraining resumes."""
+"""scripts/skin_cpu_recipe.py: collections on the vendor-kinematics Xela hand, skin pretraining, export, the probe
+and the card check; every command is one its job accepts, a finished step is skipped and a stopped pretraining
+resumes; the shipped skin encoder loads strictly and reproduces its card's figures."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
+import torch
 
 from rotation import cli
 from rotation.configs import dataclass_from_args
 from rotation.jobs import collect
+from rotation.jobs.recipe import run_steps
+from rotation.tactile.models.encoders import ENCODERS, SHIPPED_ENCODERS, fresh_like, load_encoder
+from rotation.tactile.models.sparsh_skin import SparshSkin
 from rotation.tactile.pretrain import job as pretrain
+from rotation.tactile.probes import config as probe
+
+SHIPPED = "sparshskin-tiny-sim"
+TOLERANCE = 0.05
+"""Relative difference allowed between the card's figures and a rerun's (float differences between machines)."""
 
 
 @pytest.fixture(scope="module")
@@ -17,7 +29,7 @@ def recipe(load_script):
 
 
 def _parsed(args):
-    module = {"collect": collect, "pretrain": pretrain}[args[0]]
+    module = {"collect": collect, "pretrain": pretrain, "probe": probe}[args[0]]
     parsed = cli.build_parser(args[0]).parse_args(args)
     if hasattr(module, "config_from_args"):
         return module.config_from_args(parsed)
@@ -28,16 +40,24 @@ def test_every_step_is_listed_and_parses(recipe, tmp_path):
     out = tmp_path / "r"
     steps = recipe.commands(recipe.Config(out=out, progress=False))
     assert [w.split(":")[0] for w, _ in steps] == ["collect the pretraining sessions", "collect the probe's sessions",
-                                                   "pretrain", "export the encoder", "probe"]
-    (out / "sessions").mkdir(parents=True)
+                                                   "pretrain", "export the encoder", "probe", "card check",
+                                                   "card check"]
+    for folder in ("sessions", "probe_sessions", "card_sessions"):
+        (out / folder).mkdir(parents=True)
     for _what, args in steps:
-        if args[0] in ("python", "probe"):  # the probe's checkpoint exists only after the export
+        if args[0] == "python":
             continue
         cfg = _parsed(args)
         if args[0] == "collect":
             assert cfg.skin and cfg.hand == "xela_v4" and cfg.policy == "play"
-        else:
-            assert cfg.encoder == "skin" and cfg.steps == 8000
+        elif args[0] == "pretrain":
+            assert cfg.encoder == "skin" and cfg.steps == 4000
+        else:  # both probes: the same settings for every variant
+            assert cfg.encoder == "skin" and str(cfg.checkpoint) == str(out / "encoder")
+    main = next(a for w, a in steps if w.startswith("probe"))
+    cfg = _parsed(main)
+    assert (cfg.steps, cfg.batch_size, cfg.sequence_windows, cfg.lr, cfg.variant_names) == (
+        250, 8, 3, 1e-3, ("pretrained", "e2e"))
     # a pretraining run with its last checkpoint is done; one with an earlier checkpoint resumes
     run = out / "pretrain"
     run.mkdir()
@@ -53,8 +73,35 @@ def test_every_step_is_listed_and_parses(recipe, tmp_path):
     assert any(w.startswith("probe") for w, _ in recipe.commands(recipe.Config(out=out)))
     (out / "probe" / "results.json").write_text('{"rows": [], "complete": true}')
     assert not any(w.startswith("probe") for w, _ in recipe.commands(recipe.Config(out=out)))
+    (out / "card_check").mkdir()
+    (out / "card_check" / "results.json").write_text('{"rows": [], "complete": true}')
+    assert not any(w.startswith("card") for w, _ in recipe.commands(recipe.Config(out=out)))
 
 
 def test_dry_run_runs_nothing(recipe, tmp_path, capsys):
     assert recipe.main(["--out", str(tmp_path / "r"), "--dry-run"]) == 0
     assert "rotate collect --skin --hand xela_v4" in capsys.readouterr().out and not (tmp_path / "r").exists()
+
+
+def test_the_shipped_skin_encoder_reproduces_its_card(recipe, tmp_path):
+    """The shipped weights load strictly (load_skin refuses a missing, unexpected or mis-shaped tensor); on the card
+    check's sessions their tokens have the card's statistics, which a random start of the same structure does not,
+    and the card check's frozen force probe on them gives the card's figures."""
+    model = load_encoder(SHIPPED)
+    assert isinstance(model, SparshSkin) and model.cfg.size == "tinier"
+    card = json.loads((SHIPPED_ENCODERS / SHIPPED / recipe.CARD_FILE).read_text())
+    assert card["command"] == recipe.card_lines(SHIPPED)
+    steps = recipe.card_commands(SHIPPED, tmp_path)
+    assert run_steps("card check", steps[:1], dry_run=False) == 0  # the sessions
+    sessions = tmp_path / "card_sessions"
+    assert len(card["tokens"]) == model.cfg.embed_dim
+    assert recipe.token_summary(SHIPPED, sessions) == pytest.approx(card["tokens"], abs=1e-3)
+    torch.manual_seed(0)
+    ENCODERS["skin"].save(fresh_like(model), tmp_path / "random" / "encoder.safetensors")
+    other = recipe.token_summary(tmp_path / "random", sessions)
+    assert max(abs(a - b) for a, b in zip(other, card["tokens"], strict=True)) > 0.1
+    assert run_steps("card check", steps[1:], dry_run=False) == 0  # the probe
+    got = recipe.card_figures(tmp_path / "card_check")
+    assert set(got) == set(card["figures"]) == {"rmse_x_N", "rmse_y_N", "rmse_z_N"}
+    for metric, value in card["figures"].items():
+        assert got[metric] == pytest.approx(value, rel=TOLERANCE), metric

@@ -286,13 +286,17 @@ def skin_inputs(batch: Mapping[str, Any], device: torch.device | str = "cpu") ->
 
 
 # ------------------------------------------------------------------------------------------------- files
-def save_skin(model: SparshSkin, path: str | Path) -> Path:
-    """Write the encoder's state dict as safetensors with its config in the metadata."""
+def save_skin(model: SparshSkin, path: str | Path, weights_dtype: torch.dtype | None = None) -> Path:
+    """Write the encoder's state dict as safetensors with its config in the metadata; ``weights_dtype`` (e.g.
+    torch.float16, for a shipped file) stores the parameters in that type, the buffers (input statistics) as they
+    are. Loading casts back to float32."""
     from safetensors.torch import save_file
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    params = {name for name, _ in model.named_parameters()}
+    tensors = {k: (v.to(weights_dtype) if weights_dtype is not None and k in params else v).detach().contiguous().cpu()
+               for k, v in model.state_dict().items()}
     save_file(tensors, str(path), metadata={"format": FILE_FORMAT, "config": json.dumps(to_jsonable(model.cfg))})
     return path
 
