@@ -17,9 +17,8 @@ import torch
 
 from envs.sensors.xela import NUM_TAXELS, WINDOW
 from rotation.configs import script_main
-from rotation.tactile.models.encoders import kind_of, load_encoder
-from rotation.tactile.models.sparsh_skin import CHANNELS, GROUP, save_skin
-from rotation.tactile.models.sparshx_checkpoint import save_checkpoint
+from rotation.tactile.models.encoders import ENCODERS, kind_of, load_encoder
+from rotation.tactile.models.sparsh_skin import CHANNELS, GROUP
 from rotation.tactile.models.sparshx_inputs import INPUT_SHAPES
 
 
@@ -38,14 +37,13 @@ def run(cfg: Config) -> dict:
     if cfg.dtype not in dtypes:
         raise ValueError(f"dtype: one of {', '.join(dtypes)}, got {cfg.dtype!r}")
     model = load_encoder(cfg.checkpoint).eval()
-    g = torch.Generator().manual_seed(0)
-    if kind_of(model) == "skin":
-        path = save_skin(model, Path(cfg.out) / "encoder.safetensors", weights_dtype=dtypes[cfg.dtype])
-        inputs = {GROUP: torch.randn((2, WINDOW, NUM_TAXELS, CHANNELS), generator=g)}
-    else:
-        path = save_checkpoint(model, Path(cfg.out) / "encoder.safetensors", weights_dtype=dtypes[cfg.dtype])
-        inputs = {m: torch.randn((2, *INPUT_SHAPES[m]), generator=g) for m in model.modalities}
+    kind = kind_of(model)
+    path = ENCODERS[kind].save(model, Path(cfg.out) / "encoder.safetensors", dtypes[cfg.dtype])
     exported = load_encoder(path).eval()
+    g = torch.Generator().manual_seed(0)
+    shapes = ({GROUP: (WINDOW, NUM_TAXELS, CHANNELS)} if kind == "skin"
+              else {m: INPUT_SHAPES[m] for m in model.modalities})
+    inputs = {m: torch.randn((2, *shape), generator=g) for m, shape in shapes.items()}
     with torch.no_grad():
         a, b = model(inputs), exported(inputs)
     err = max(float((a[k] - b[k]).abs().max() / a[k].abs().max()) for k in a)

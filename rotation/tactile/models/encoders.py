@@ -34,8 +34,9 @@ class EncoderKind:
     """(size, groups, fusion, drop_path[, (unimodal, fusion) layers]) -> a freshly initialized encoder."""
     grids: Callable[[nn.Module], dict[str, tuple[int, ...]]]
     """Token layout per group: (h, w) grids get 2-D block masks, (n,) sequences 1-D segments."""
-    save: Callable[[nn.Module, Path], Path]
-    """Write the weights and structure to one file."""
+    save: Callable[..., Path]
+    """(encoder, file[, weights_dtype]) -> the file: write the weights and structure to one file, the parameters in
+    ``weights_dtype`` if given (sparshx_checkpoint.stored_tensors)."""
     load: Callable[[Path, float | None], nn.Module]
     """(file, drop_path override) -> the encoder it holds (strict)."""
     restrict: Callable[[nn.Module, tuple[str, ...]], nn.Module]
@@ -96,7 +97,7 @@ ENCODERS: dict[str, EncoderKind] = {
     "sparshx": EncoderKind(
         build=_sparshx_build,
         grids=lambda m: {g: TOKEN_GRIDS[g] for g in m.modalities},  # type: ignore[union-attr]
-        save=lambda m, path: save_checkpoint(m, path),  # type: ignore[arg-type]
+        save=lambda m, path, weights_dtype=None: save_checkpoint(m, path, weights_dtype),  # type: ignore[arg-type]
         load=lambda path, drop_path: load_pretrained(path, drop_path=drop_path),
         restrict=_sparshx_restrict,
         describe=lambda m: m.cfg.describe(),  # type: ignore[union-attr]
@@ -108,7 +109,7 @@ ENCODERS: dict[str, EncoderKind] = {
     "skin": EncoderKind(
         build=_skin_build,
         grids=lambda m: {SKIN_GROUP: (NUM_TAXELS,)},  # blocks over the taxel order
-        save=lambda m, path: save_skin(m, path),  # type: ignore[arg-type]
+        save=lambda m, path, weights_dtype=None: save_skin(m, path, weights_dtype),  # type: ignore[arg-type]
         load=lambda path, drop_path: load_skin(path, drop_path=drop_path),
         restrict=_skin_restrict,
         describe=lambda m: m.cfg.describe(),  # type: ignore[union-attr]

@@ -38,7 +38,13 @@ from envs.sensors.xela import NUM_TAXELS, REST, TAXEL_TYPE, TAXEL_TYPES, VALID_R
 from rotation.configs import from_jsonable, to_jsonable
 from rotation.interrupt import ignore_stop_signals
 from rotation.tactile.models.blocks import LN_EPS, Block, Float32Buffers
-from rotation.tactile.models.sparshx_checkpoint import SHOW, CheckpointMismatch, mismatch_report, read_safetensors
+from rotation.tactile.models.sparshx_checkpoint import (
+    SHOW,
+    CheckpointMismatch,
+    mismatch_report,
+    read_safetensors,
+    stored_tensors,
+)
 from rotation.tactile.models.tokens import TokenInterface
 
 GROUP = "skin"
@@ -288,15 +294,12 @@ def skin_inputs(batch: Mapping[str, Any], device: torch.device | str = "cpu") ->
 # ------------------------------------------------------------------------------------------------- files
 def save_skin(model: SparshSkin, path: str | Path, weights_dtype: torch.dtype | None = None) -> Path:
     """Write the encoder's state dict as safetensors with its config in the metadata; ``weights_dtype`` (e.g.
-    torch.float16, for a shipped file) stores the parameters in that type, the buffers (input statistics) as they
-    are. Loading casts back to float32."""
+    torch.float16, for a shipped file): rotation.tactile.models.sparshx_checkpoint.stored_tensors."""
     from safetensors.torch import save_file
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    params = {name for name, _ in model.named_parameters()}
-    tensors = {k: (v.to(weights_dtype) if weights_dtype is not None and k in params else v).detach().contiguous().cpu()
-               for k, v in model.state_dict().items()}
+    tensors = stored_tensors(model, weights_dtype)
     save_file(tensors, str(path), metadata={"format": FILE_FORMAT, "config": json.dumps(to_jsonable(model.cfg))})
     return path
 

@@ -206,19 +206,23 @@ def check_checkpoint(path: str | Path, config: SparshXConfig) -> tuple[SparshXCo
     return cfg, len(state)
 
 
-def save_checkpoint(model: SparshX, path: str | Path, weights_dtype: torch.dtype | None = None) -> Path:
-    """Write the model's state dict (released names) as safetensors with its config in the metadata.
+def stored_tensors(model: torch.nn.Module, weights_dtype: torch.dtype | None = None) -> dict[str, torch.Tensor]:
+    """The model's state dict as a file stores it (contiguous, on the CPU): with ``weights_dtype`` (e.g.
+    torch.float16, for a small shipped file) the parameters in that type, the buffers (input statistics, positional
+    tables) as they are; loading casts back to the model's float32."""
+    params = {name for name, _ in model.named_parameters()}
+    return {k: (v.to(weights_dtype) if weights_dtype is not None and k in params else v).detach().contiguous().cpu()
+            for k, v in model.state_dict().items()}
 
-    ``weights_dtype`` (e.g. torch.float16, for a small shipped file) stores the parameters in that type; buffers
-    (input statistics, positional tables) stay as they are. Loading casts back to the model's float32.
-    """
+
+def save_checkpoint(model: SparshX, path: str | Path, weights_dtype: torch.dtype | None = None) -> Path:
+    """Write the model's state dict (released names) as safetensors with its config in the metadata;
+    ``weights_dtype``: see :func:`stored_tensors`."""
     from safetensors.torch import save_file
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    params = {name for name, _ in model.named_parameters()}
-    tensors = {k: (v.to(weights_dtype) if weights_dtype is not None and k in params else v).detach().contiguous().cpu()
-               for k, v in model.state_dict().items()}
+    tensors = stored_tensors(model, weights_dtype)
     meta = {"format": _META_FORMAT, "config": json.dumps(to_jsonable(model.cfg))}
     save_file(tensors, str(path), metadata=meta)
     return path
