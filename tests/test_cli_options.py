@@ -43,6 +43,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "*:workers": {"zero": "0 = load in the main process"},
     "*:num_workers": {"zero": "0 = load in the main process"},
     "probe:token_cache_gb": {"zero": "0 = no token cache: the frozen encoder runs in every step"},
+    "touch-report:history": {"zero": "0 = the object's properties from the moment's window alone"},
     "*:node_rank": {"zero": "the first node of a multi-node run is rank 0"},
     "*:ent_coef": {"zero": "no entropy bonus is Hora's setting"},
     "*:log_std_init": {"negative": "a log standard deviation: negative = std below 1", "zero": "std 1 (Hora)"},

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rotation.data.dataset import split_sessions
 from rotation.tactile.ladder.fit import fit_and_score
-from rotation.tactile.ladder.samples import MODALITIES, open_samples, targets
+from rotation.tactile.ladder.job import prepare
+from rotation.tactile.ladder.samples import MODALITIES
 from rotation.tactile.loading import session_paths
 
 
@@ -42,14 +42,8 @@ def mlp_predict(x_train: np.ndarray, y_train: np.ndarray, x_test: np.ndarray, st
 def main(report: Path, sessions: Path) -> None:
     torch.manual_seed(0)
     torch.set_num_threads(2)
-    paths = session_paths([sessions])
-    train_paths, test_paths = split_sessions(paths, 0.25, 0)  # touch-report's defaults
-    samples = open_samples(sorted(paths), 15)
-    order = [Path(p) for p in samples.paths]
-    test_ids = np.asarray([order.index(p) for p in test_paths])
-    train_ids = np.asarray([order.index(p) for p in train_paths])
-    y = targets(samples, np.quantile(samples.friction[train_ids], [1 / 3, 2 / 3]))
-    is_test = np.isin(samples.session, test_ids)
+    split = prepare(session_paths([sessions]), 0.25, 15, 0)  # touch-report's defaults, stride 15
+    samples, y, is_test = split.samples, split.y, split.is_test
     train = ~is_test
     rendered, contact = dict(np.load(report / "features_rendered.npz")), dict(np.load(report / "features_contact.npz"))
     feats = {"contact": contact["fields"],

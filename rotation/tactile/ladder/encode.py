@@ -1,6 +1,6 @@
 """The ladder's rungs that read rendered windows: stage 2 (simple stream features), stage 3 (a frozen encoder's
-tokens, mean-pooled per modality) and stage 4 (the same encoder structure trained end to end from random weights
-on the samples' targets, the baseline frozen tokens must beat at small label budgets).
+tokens, pooled per modality by their mean and their maximum) and stage 4 (the same encoder structure trained end to
+end from random weights on the samples' targets, the baseline frozen tokens must beat at small label budgets).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from torch.utils.data import default_collate
 from envs.constants import FINGERS
 from envs.sensors.digit360 import NUM_FIELDS
 from envs.sensors.digit360_image import render_frame
-from rotation.tactile.ladder.samples import MODALITIES, HandSamples, stream_features
+from rotation.tactile.ladder.samples import MODALITIES, SESSION_TARGETS, HandSamples, history_mean, stream_features
 from rotation.tactile.models.encoders import fresh_like
 
 GROUP_MODALITY = {"img": "image", "mic": "audio", "imu": "imu", "pressure": "pressure"}
@@ -59,28 +59,36 @@ def rendered_features(samples: HandSamples, encoder: nn.Module | None, batch: in
     return {k: np.asarray(v, np.float64) for k, v in feats.items()}
 
 
+def pool(tokens: torch.Tensor) -> torch.Tensor:
+    """(B, N, D) tokens of one group -> (B, 2 D): layer-normed (the token interface's view), then their mean and
+    their maximum over the N tokens. The mean alone dilutes what a few tokens carry (an imprint covers a handful of
+    the image's 196 patches); the maximum keeps it, as an attentive probe's query would."""
+    t = F.layer_norm(tokens.float(), tokens.shape[-1:])
+    return torch.cat([t.mean(1), t.amax(1)], -1)
+
+
 @torch.no_grad()
 def pooled_tokens(encoder: nn.Module, windows: Sequence[dict]) -> dict[str, np.ndarray]:
-    """Group -> (B, D): each token group layer-normed (the token interface's view) and averaged over its tokens."""
+    """Group -> (B, 2 D): each token group pooled by :func:`pool`."""
     encoder.eval()
     tokens = encoder.encode(default_collate(list(windows)))
-    return {g: F.layer_norm(t.float(), t.shape[-1:]).mean(1).cpu().numpy() for g, t in tokens.items()}
+    return {g: pool(t).cpu().numpy() for g, t in tokens.items()}
 
 
 # ------------------------------------------------------------------------------------------ stage 4: end to end
 class HandHead(nn.Module):
-    """An encoder (trained) over the four fingertips' windows, its pooled tokens concatenated, one linear output
-    per target."""
+    """An encoder (trained) over the four fingertips' windows, its tokens pooled as the frozen rung's (:func:`pool`)
+    and concatenated, one linear output per target."""
 
     def __init__(self, encoder: nn.Module, outputs: dict[str, int]):
         super().__init__()
         self.encoder = encoder
-        width = encoder.token_interface.width * len(encoder.token_interface.names) * len(FINGERS)
+        width = 2 * encoder.token_interface.width * len(encoder.token_interface.names) * len(FINGERS)
         self.heads = nn.ModuleDict({k: nn.Linear(width, n) for k, n in outputs.items()})
 
     def forward(self, windows: Sequence[dict]) -> dict[str, torch.Tensor]:
         tokens = self.encoder.encode(default_collate(list(windows)))
-        pooled = torch.cat([F.layer_norm(t.float(), t.shape[-1:]).mean(1) for t in tokens.values()], -1)
+        pooled = torch.cat([pool(t) for t in tokens.values()], -1)
         pooled = pooled.reshape(len(windows) // len(FINGERS), -1)
         return {k: h(pooled) for k, h in self.heads.items()}
 
@@ -124,20 +132,27 @@ def train_end_to_end(reference: nn.Module, samples: HandSamples, rows: np.ndarra
 
 @torch.no_grad()
 def predict_end_to_end(model: HandHead, samples: HandSamples, rows: np.ndarray, kinds: dict[str, str],
-                       batch: int = 8) -> dict[str, np.ndarray]:
-    """Predictions of every target on samples ``rows`` in the targets' units (classes as integers, slip 0/1)."""
-    out: dict[str, list[np.ndarray]] = {}
+                       batch: int = 8, history: float = 0.0) -> dict[str, np.ndarray]:
+    """Predictions of every target on samples ``rows`` in the targets' units (classes as integers, slip 0/1); the
+    object's properties from the outputs averaged over ``history`` seconds (:func:`history_mean`; ``rows`` should
+    hold whole sessions)."""
+    raw: dict[str, list[np.ndarray]] = {}
     for lo in range(0, len(rows), batch):
         pick = rows[lo:lo + batch]
         windows = [samples.windows[int(samples.items[m, f])] for m in pick for f in range(len(FINGERS))]
         for k, pred in model(windows).items():
-            p = pred.numpy().astype(np.float64)
-            if kinds[k] == "accuracy":
-                p = p.argmax(1)[:, None].astype(np.float64)
-            elif kinds[k] == "f1":
-                p = (p > 0).astype(np.float64)
-            else:
-                mean, std = model.stats[k]  # type: ignore[attr-defined]
-                p = p * std + mean
-            out.setdefault(k, []).append(p)
-    return {k: np.concatenate(v) for k, v in out.items()}
+            raw.setdefault(k, []).append(pred.numpy().astype(np.float64))
+    out = {}
+    for k, parts in raw.items():
+        p = np.concatenate(parts)
+        if k in SESSION_TARGETS:
+            p = history_mean(p, samples.session[rows], samples.frame[rows], history)
+        if kinds[k] == "accuracy":
+            p = p.argmax(1)[:, None].astype(np.float64)
+        elif kinds[k] == "f1":
+            p = (p > 0).astype(np.float64)
+        else:
+            mean, std = model.stats[k]  # type: ignore[attr-defined]
+            p = p * std + mean
+        out[k] = p
+    return out

@@ -12,16 +12,21 @@ first max(1, round(b n)) of the n training sessions in a seeded order. Every run
 1. ``contact``: the simulated contact fields over the window (forces, slip, contact points, accelerometer: the
    physics' ceiling);
 2. ``streams``: the rendered streams through simple fixed features, each modality alone and all together;
-3. ``tokens``: the frozen encoder's tokens, mean-pooled per modality, each alone and all together (``--checkpoint``);
+3. ``tokens``: the frozen encoder's tokens, pooled per modality (mean and maximum), each alone and all together
+   (``--checkpoint``);
 4. ``e2e``: the encoder's structure trained from random weights on the same targets end to end (all modalities),
    the baseline frozen tokens should beat with few labels.
 
 Targets (rotation.tactile.ladder.samples): friction_tercile (accuracy), friction, mass, com, normal_force (R^2)
-and slip (F1). OUT: results.json (rows of stage, features, target, budget, metric, value; the chance rows; the
-checks), results.md, ladder.png (each target's score per rung at the largest budget), budgets.png (scores against
-the label budget), frames.png (one test session's four streams at moments across it beside the contact force),
-features_*.npz (reused by a rerun with the same sessions, stride and checkpoint; an OUT holding the report of
-others is refused unless --overwrite). Ctrl-C stops after the current piece and keeps what is done.
+and slip (F1). The object's properties (friction, mass, centre of mass) are read from the mean of each rung's
+features over the windows of the last ``history`` seconds (causal), as a policy that keeps a history of touch could;
+normal force and slip from the moment's own window.
+
+OUT: results.json (rows of stage, features, target, budget, metric, value; the chance rows; the checks), results.md,
+ladder.png (each target's score per rung at the largest budget), budgets.png (scores against the label budget),
+frames.png (one test session's four streams at moments across it beside the contact force), features_*.npz (reused
+by a rerun with the same sessions, stride and checkpoint; an OUT holding the report of others, or of another
+history, is refused unless --overwrite). Ctrl-C stops after the current piece and keeps what is done.
 """
 
 from __future__ import annotations
@@ -46,8 +51,11 @@ from rotation.tactile.ladder.samples import (
     CLASSIFY,
     FEATURE_VERSION,
     MODALITIES,
+    SESSION_TARGETS,
     TARGETS,
+    HandSamples,
     contact_features,
+    history_mean,
     open_samples,
     targets,
 )
@@ -80,6 +88,10 @@ class Config:
     """Samples (each four fingertip windows) per end-to-end step."""
     e2e_lr: float = 3e-4
     """Learning rate of the end-to-end training."""
+    history: float = 5.0
+    """Seconds of windows (ending at the moment, none later) whose features are averaged to read the object's
+    friction, mass and centre of mass (end to end: its outputs averaged); 0 reads them from the moment's window
+    alone."""
     seed: int = 0
     """Seed of the session split, the budgets' order and the end-to-end training."""
     overwrite: bool = False
@@ -102,6 +114,7 @@ class Config:
         check_int("e2e_steps", self.e2e_steps, 1, 10**6)
         check_int("e2e_batch", self.e2e_batch, 1, 1024)
         check_number("e2e_lr", self.e2e_lr, 0.0, 1.0, low_open=True)
+        check_number("history", self.history, 0.0, 600.0)
         check_seed("seed", self.seed)
         check_output_dir("out", self.out)
 
@@ -113,17 +126,18 @@ def _digest(cfg: Config, paths: list[Path]) -> str:
 
 
 def _check_out(cfg: Config, digest: str) -> None:
-    """Refuse an OUT that holds the report of other sessions, stride or encoder, unless --overwrite."""
+    """Refuse an OUT that holds the report of other sessions, stride, encoder or history, unless --overwrite."""
     old = cfg.out / "results.json"
     if not old.exists() or cfg.overwrite:
         return
     try:
-        theirs = json.loads(old.read_text()).get("digest")
-    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        theirs = json.loads(old.read_text())
+        theirs = (theirs.get("digest"), float(theirs.get("history", 0.0)))
+    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError, TypeError, ValueError):
         theirs = None
-    if theirs != digest:
-        raise RequestRefused(f"touch-report: {cfg.out} holds the report of other sessions, stride or encoder; use "
-                             "another --out, or --overwrite to replace it")
+    if theirs != (digest, float(cfg.history)):
+        raise RequestRefused(f"touch-report: {cfg.out} holds the report of other sessions, stride, encoder or "
+                             "history; use another --out, or --overwrite to replace it")
 
 
 def _cached(path: Path, digest: str, compute, need: str = "") -> dict[str, np.ndarray]:
@@ -153,17 +167,38 @@ def run(cfg: Config) -> dict[str, Any]:
         return _run(cfg, paths, digest, stop)
 
 
-def _run(cfg: Config, paths: list[Path], digest: str, stop: StopSignals) -> dict[str, Any]:
-    train_paths, test_paths = split_sessions(paths, cfg.test_fraction, cfg.seed)
-    samples = open_samples(sorted(paths), cfg.stride)
+@dataclass
+class Split:
+    """The ladder's samples of a set of sessions, their targets and the split into training and test sessions."""
+
+    samples: HandSamples
+    y: dict[str, np.ndarray]
+    kinds: dict[str, str]
+    train_paths: list[Path]
+    test_paths: list[Path]
+    train_ids: np.ndarray
+    test_ids: np.ndarray
+    is_test: np.ndarray
+    edges: np.ndarray
+
+
+def prepare(paths: list[Path], test_fraction: float, stride: int, seed: int) -> Split:
+    """Samples every ``stride``-th frame, split the sessions by file, and compute the targets (the friction
+    terciles' edges from the training sessions alone): what every reading of a report starts from."""
+    train_paths, test_paths = split_sessions(paths, test_fraction, seed)
+    samples = open_samples(sorted(paths), stride)
     order = [Path(p) for p in samples.paths]
     test_ids = np.asarray([order.index(p) for p in test_paths])
     train_ids = np.asarray([order.index(p) for p in train_paths])
-    train_friction = samples.friction[train_ids]
-    edges = np.quantile(train_friction, [1 / 3, 2 / 3])
-    y = targets(samples, edges)
-    kinds = {t: CLASSIFY.get(t, "r2") for t in TARGETS}
-    is_test = np.isin(samples.session, test_ids)
+    edges = np.quantile(samples.friction[train_ids], [1 / 3, 2 / 3])
+    return Split(samples, targets(samples, edges), {t: CLASSIFY.get(t, "r2") for t in TARGETS}, train_paths,
+                 test_paths, train_ids, test_ids, np.isin(samples.session, test_ids), edges)
+
+
+def _run(cfg: Config, paths: list[Path], digest: str, stop: StopSignals) -> dict[str, Any]:
+    split = prepare(paths, cfg.test_fraction, cfg.stride, cfg.seed)
+    samples, y, kinds, is_test, edges = split.samples, split.y, split.kinds, split.is_test, split.edges
+    train_ids, test_ids, train_paths, test_paths = split.train_ids, split.test_ids, split.train_paths, split.test_paths
     if not is_test.any() or is_test.all():
         raise RequestRefused("touch-report: the test or the training sessions hold no whole window (each session "
                              "needs 1.12 s of touch); give more or longer sessions")
@@ -193,6 +228,7 @@ def _run(cfg: Config, paths: list[Path], digest: str, stop: StopSignals) -> dict
         if len(parts) > 1:
             feats[f"{stage}/all"] = np.concatenate(parts, 1)
     feats = {k.replace("stream/", "streams/"): v for k, v in feats.items()}
+    held = {k: history_mean(v, samples.session, samples.frame, cfg.history) for k, v in feats.items()}
 
     rows: list[dict[str, Any]] = []
     chance_rows = []
@@ -205,8 +241,9 @@ def _run(cfg: Config, paths: list[Path], digest: str, stop: StopSignals) -> dict
                 break
             chosen = budget_sessions(train_ids, b, cfg.seed)
             tr = np.isin(samples.session, chosen)
-            value, lam = fit_and_score(kinds[t], feats[name][tr], y[t][tr], samples.session[tr], feats[name][is_test],
-                                       y[t][is_test], classes=3)
+            x = held[name] if t in SESSION_TARGETS else feats[name]
+            value, lam = fit_and_score(kinds[t], x[tr], y[t][tr], samples.session[tr], x[is_test], y[t][is_test],
+                                       classes=3)
             stage, fset = name.split("/")
             rows.append({"stage": stage, "features": fset, "target": t, "budget": b, "metric": kinds[t],
                          "value": value, "ridge": lam, "train_sessions": int(len(chosen))})
@@ -216,7 +253,7 @@ def _run(cfg: Config, paths: list[Path], digest: str, stop: StopSignals) -> dict
     result = {"rows": rows, "chance": chance_rows, "samples": len(samples), "sessions": len(paths),
               "train_sessions": [str(p) for p in train_paths], "test_sessions": [str(p) for p in test_paths],
               "friction_tercile_edges": edges.tolist(), "checkpoint": str(cfg.checkpoint) if cfg.checkpoint else None,
-              "complete": not stop.requested, "digest": digest}
+              "history": float(cfg.history), "complete": not stop.requested, "digest": digest}
     result["checks"] = checks(result, max(cfg.budgets), min(cfg.budgets))
     write_report(cfg.out, result, samples, test_ids[0] if len(test_ids) else 0)
     print(f"touch-report: {cfg.out / 'results.md'}")
@@ -238,7 +275,7 @@ def _end_to_end(cfg: Config, encoder, samples, y, kinds, train_ids, is_test, sto
             train_rows = np.flatnonzero(np.isin(samples.session, chosen))
             model = train_end_to_end(encoder, samples, train_rows, y, kinds, 3, cfg.e2e_steps, cfg.e2e_batch,
                                      cfg.e2e_lr, cfg.seed, progress=bar.update)
-            pred = predict_end_to_end(model, samples, test_rows, kinds)
+            pred = predict_end_to_end(model, samples, test_rows, kinds, history=cfg.history)
             for t in TARGETS:
                 rows.append({"stage": "e2e", "features": "all", "target": t, "budget": b, "metric": kinds[t],
                              "value": score(kinds[t], pred[t], y[t][test_rows]), "train_sessions": int(len(chosen))})

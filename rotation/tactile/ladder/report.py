@@ -94,7 +94,8 @@ def _markdown(result: dict[str, Any]) -> str:
     base = {c["target"]: c["value"] for c in result["chance"]}
     lines = [f"# Information ladder ({result['samples']} samples, {result['sessions']} sessions: "
              f"{len(result['train_sessions'])} training, {len(result['test_sessions'])} test)", "",
-             "Scores on the test sessions: accuracy (friction tercile), F1 (slip), R^2 (the others).", ""]
+             "Scores on the test sessions: accuracy (friction tercile), F1 (slip), R^2 (the others).", "",
+             _reading(float(result.get("history", 0.0))), ""]
     for b in budgets:
         lines += [f"## {b:.0%} of the training sessions' labels", "",
                   "| stage | features | " + " | ".join(TARGETS) + " |", "|---|---|" + "---|" * len(TARGETS)]
@@ -110,6 +111,14 @@ def _markdown(result: dict[str, Any]) -> str:
     if not result.get("complete", True):
         lines += ["", "Stopped before the end: rows are missing."]
     return "\n".join(lines) + "\n"
+
+
+def _reading(history: float) -> str:
+    if history <= 0:
+        return "Every target is read from the moment's window alone."
+    return (f"The object's friction, mass and centre of mass are read from the mean of the features over the windows "
+            f"of the last {history:g} s (nothing later than the moment; end to end: its outputs averaged); normal "
+            "force and slip from the moment's window.")
 
 
 def _ladder_plot(path: Path, result: dict[str, Any]) -> None:

@@ -38,14 +38,17 @@ SLIP_THRESHOLD = 0.005
 """Slip speed (m/s) above which a fingertip counts as sliding (the probes' default)."""
 TARGETS = ("friction_tercile", "friction", "mass", "com", "normal_force", "slip")
 """What the ladder reads, in report order."""
+SESSION_TARGETS = ("friction_tercile", "friction", "mass", "com")
+"""Properties of the session's object, constant over it: read from a history of windows (:func:`history_mean`)
+when the report is given one; the others (normal force, slip) are the moment's own and read from its window."""
 CLASSIFY = {"friction_tercile": "accuracy", "slip": "f1"}
 """Classification targets and their metric; the others are regressions scored by R^2."""
 MODALITIES = ("image", "audio", "imu", "pressure")
-FEATURE_VERSION = 3
+FEATURE_VERSION = 4
+"""Version of the feature definitions of stages 1-3: a report's saved features are reused only when it matches
+(raise it when a feature changes)."""
 END_AUDIO, END_SERIAL = 20, 20
 """Audio feature frames (2.5 ms each) and IMU samples (400 Hz) in the window's last 50 ms."""
-"""Version of the stage-1 and stage-2 feature definitions: a report's saved features are reused only when it
-matches (raise it when a feature changes)."""
 
 
 @dataclass
@@ -95,6 +98,27 @@ def open_samples(paths: Sequence[Path], stride: int) -> HandSamples:
         raise RequestRefused("touch-report: the sessions hold no whole window (each needs 1.12 s of touch)")
     fr, ma, co = (np.asarray([p[i] for p in props]) for i in range(3))
     return HandSamples(ds, np.asarray(items, np.int64), np.asarray(sessions), np.asarray(frames), fr, ma, co)
+
+
+def history_mean(values: np.ndarray, session: np.ndarray, frame: np.ndarray, seconds: float) -> np.ndarray:
+    """(M, F) -> (M, F): each sample's ``values`` averaged over the samples of its session whose window ends within
+    the ``seconds`` before its own, its own included (causal: nothing later; 0 returns the values unchanged). What
+    a reader that keeps a running mean of the features over the last ``seconds`` sees, as a policy with a history
+    of touch could."""
+    values = np.asarray(values, np.float64)
+    if seconds <= 0:
+        return values
+    out = np.empty_like(values)
+    span = seconds * IMAGE_HZ
+    for s in np.unique(session):
+        mine = np.flatnonzero(session == s)
+        mine = mine[np.argsort(frame[mine], kind="stable")]
+        f = frame[mine].astype(np.float64)
+        first = np.searchsorted(f, f - span, side="right")  # the earliest sample inside the history
+        sums = np.concatenate([np.zeros((1, values.shape[1])), np.cumsum(values[mine], 0)])
+        last = np.arange(1, len(mine) + 1)
+        out[mine] = (sums[last] - sums[first]) / (last - first)[:, None]
+    return out
 
 
 def targets(samples: HandSamples, tercile_edges: np.ndarray) -> dict[str, np.ndarray]:

@@ -15,7 +15,8 @@ from rotation.cli import main
 from rotation.jobs import collect
 from rotation.tactile.ladder import fit
 from rotation.tactile.ladder import job as ladder
-from rotation.tactile.ladder.samples import CONTACT_FEATURES, _track_features
+from rotation.tactile.ladder.encode import pool
+from rotation.tactile.ladder.samples import CONTACT_FEATURES, SESSION_TARGETS, _track_features, history_mean
 from rotation.tactile.models.encoders import ENCODERS
 from rotation.tactile.models.sparshx import SparshX, SparshXConfig
 
@@ -102,6 +103,36 @@ def test_readers_read_what_is_there_and_nothing_else():
     assert len(small) == 3 and set(small) <= set(large) and len(large) == 9
 
 
+def test_history_mean_averages_a_session_s_past_and_nothing_later():
+    # two sessions, shuffled; frames 15 apart (0.5 s at 30 fps): a 1 s history holds this window and the one before
+    session = np.array([1, 0, 0, 1, 0, 0, 1])
+    frame = np.array([15, 45, 0, 0, 30, 15, 30])
+    values = np.array([[20.0], [4.0], [1.0], [10.0], [3.0], [2.0], [30.0]])
+    got = history_mean(values, session, frame, 1.0)[:, 0]
+    np.testing.assert_allclose(got, [15.0, 3.5, 1.0, 10.0, 2.5, 1.5, 25.0])
+    assert history_mean(values, session, frame, 10.0)[1, 0] == pytest.approx(2.5)  # the whole past of session 0
+    np.testing.assert_array_equal(history_mean(values, session, frame, 0.0), values)
+    later = values.copy()
+    later[1] = 100.0  # session 0's last window changes: no earlier moment's reading moves
+    np.testing.assert_array_equal(history_mean(later, session, frame, 1.0)[[2, 4, 5]],
+                                  history_mean(values, session, frame, 1.0)[[2, 4, 5]])
+    assert set(SESSION_TARGETS) == {"friction_tercile", "friction", "mass", "com"}
+
+
+def test_pooled_tokens_keep_what_a_single_token_carries():
+    torch.manual_seed(0)
+    tokens = torch.randn(2, 196, 64)
+    tokens[1, 17, 3] += 50.0  # one patch of the second window carries a strong feature
+    pooled = pool(tokens)
+    normed = torch.nn.functional.layer_norm(tokens, (64,))
+    assert pooled.shape == (2, 128)
+    torch.testing.assert_close(pooled[:, :64], normed.mean(1))
+    torch.testing.assert_close(pooled[:, 64:], normed.amax(1))
+    # the mean barely tells the two windows apart on that channel; the maximum does
+    gap_max, gap_mean = float(pooled[1, 64 + 3] - pooled[0, 64 + 3]), abs(float(pooled[1, 3] - pooled[0, 3]))
+    assert gap_max > 3.0 and gap_max > 20 * gap_mean
+
+
 @pytest.fixture(scope="module")
 def v4_sessions(tmp_path_factory):
     """Four short sessions on the vendor-kinematics hand (generation-2 touch), gentle random actions."""
@@ -135,7 +166,8 @@ def test_a_tiny_touch_report_runs_end_to_end(tmp_path, v4_sessions, encoder):
             "--stride", "10", "--e2e-steps", "1", "--e2e-batch", "1", "--test-fraction", "0.5", "--no-progress"]
     assert main(argv) == 0
     result = json.loads((out / "results.json").read_text())
-    assert result["complete"] and result["samples"] > 0
+    assert result["complete"] and result["samples"] > 0 and result["history"] == 5.0
+    assert "the last 5 s" in (out / "results.md").read_text()
     seen = {(r["stage"], r["features"]) for r in result["rows"]}
     assert {("contact", "fields"), ("streams", "all"), ("streams", "image"), ("tokens", "all"), ("tokens", "audio"),
             ("e2e", "all")} <= seen
@@ -171,5 +203,11 @@ def test_bad_input_is_a_clear_error(tmp_path, v4_sessions, capsys):
     assert main(["touch-report", "--sessions", str(v4_sessions), "--stages", "1", "--out", str(out)]) == 1
     assert "holds the report of other sessions" in capsys.readouterr().err
     assert (out / "results.json").read_bytes() == before  # kept
+    assert main(["touch-report", "--sessions", str(one), str(two), "--stages", "1", "--history", "0", "--out",
+                 str(out)]) == 1  # the same sessions read another way: not written over the first reading
+    assert "history" in capsys.readouterr().err
+    assert (out / "results.json").read_bytes() == before
     assert main(["touch-report", "--sessions", str(one), "--stages", "1", "--out", str(tmp_path / "r")]) == 1
     assert "at least 2 session files" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="history"):
+        ladder.Config(sessions=(v4_sessions,), out=tmp_path / "r", stages=(1,), history=-1.0)
