@@ -15,10 +15,9 @@ from pathlib import Path
 
 import torch
 
-from envs.sensors.xela import NUM_TAXELS, WINDOW
 from rotation.configs import script_main
 from rotation.tactile.models.encoders import ENCODERS, kind_of, load_encoder
-from rotation.tactile.models.sparsh_skin import CHANNELS, GROUP
+from rotation.tactile.models.sparsh_skin import GROUP
 from rotation.tactile.models.sparshx_inputs import INPUT_SHAPES
 
 
@@ -41,8 +40,7 @@ def run(cfg: Config) -> dict:
     path = ENCODERS[kind].save(model, Path(cfg.out) / "encoder.safetensors", dtypes[cfg.dtype])
     exported = load_encoder(path).eval()
     g = torch.Generator().manual_seed(0)
-    shapes = ({GROUP: (WINDOW, NUM_TAXELS, CHANNELS)} if kind == "skin"
-              else {m: INPUT_SHAPES[m] for m in model.modalities})
+    shapes = {GROUP: model.cfg.input_shape} if kind == "skin" else {m: INPUT_SHAPES[m] for m in model.modalities}
     inputs = {m: torch.randn((2, *shape), generator=g) for m, shape in shapes.items()}
     with torch.no_grad():
         a, b = model(inputs), exported(inputs)
