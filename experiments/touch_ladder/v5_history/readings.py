@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from envs.constants import FINGERS
 from rotation.tactile.ladder.fit import budget_sessions, fit_and_score
 from rotation.tactile.ladder.job import prepare
 from rotation.tactile.ladder.samples import MODALITIES, history_mean
@@ -25,8 +26,8 @@ CURVE = (0.0, 1.0, 2.0, 5.0, 10.0, 20.0)
 
 
 def mean_only(x: np.ndarray) -> np.ndarray:
-    """(M, 4 x 2D) tokens pooled [mean, max] per fingertip -> (M, 4 x D) their mean halves."""
-    m = x.reshape(len(x), 4, 2, -1)
+    """(M, 4 x 2D) tokens pooled [mean, max] per fingertip (ladder.encode.pool) -> (M, 4 x D) their mean halves."""
+    m = x.reshape(len(x), len(FINGERS), 2, -1)
     return m[:, :, 0, :].reshape(len(x), -1)
 
 
