@@ -16,7 +16,15 @@ from torch.utils.data import default_collate
 from envs.constants import FINGERS
 from envs.sensors.digit360 import NUM_FIELDS
 from envs.sensors.digit360_image import render_frame
-from rotation.tactile.ladder.samples import MODALITIES, SESSION_TARGETS, HandSamples, history_mean, stream_features
+from rotation.tactile.ladder.fit import tercile_of
+from rotation.tactile.ladder.samples import (
+    MODALITIES,
+    SESSION_TARGETS,
+    SLIP_FLOOR,
+    HandSamples,
+    history_mean,
+    stream_features,
+)
 from rotation.tactile.models.encoders import fresh_like
 
 GROUP_MODALITY = {"img": "image", "mic": "audio", "imu": "imu", "pressure": "pressure"}
@@ -132,21 +140,30 @@ def train_end_to_end(reference: nn.Module, samples: HandSamples, rows: np.ndarra
 
 @torch.no_grad()
 def predict_end_to_end(model: HandHead, samples: HandSamples, rows: np.ndarray, kinds: dict[str, str],
-                       batch: int = 8, history: float = 0.0) -> dict[str, np.ndarray]:
+                       batch: int = 8, history: float = 0.0,
+                       friction_edges: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Predictions of every target on samples ``rows`` in the targets' units (classes as integers, slip 0/1); the
     object's properties from the outputs averaged over ``history`` seconds (:func:`history_mean`; ``rows`` should
-    hold whole sessions)."""
+    hold whole sessions). With ``friction_edges`` friction is read as the frozen rungs read it: its outputs weighted
+    by the model's own slip probability (the mean over the fingertips, at least SLIP_FLOOR) and the tercile cut from
+    that estimate at the edges."""
     raw: dict[str, list[np.ndarray]] = {}
     for lo in range(0, len(rows), batch):
         pick = rows[lo:lo + batch]
         windows = [samples.windows[int(samples.items[m, f])] for m in pick for f in range(len(FINGERS))]
         for k, pred in model(windows).items():
             raw.setdefault(k, []).append(pred.numpy().astype(np.float64))
+    raw_all = {k: np.concatenate(parts) for k, parts in raw.items()}
+    session, frame = samples.session[rows], samples.frame[rows]
     out = {}
-    for k, parts in raw.items():
-        p = np.concatenate(parts)
+    for k, p in raw_all.items():
         if k in SESSION_TARGETS:
-            p = history_mean(p, samples.session[rows], samples.frame[rows], history)
+            if friction_edges is not None and k == "friction":
+                sliding = 1.0 / (1.0 + np.exp(-raw_all["slip"]))  # (M, 4) probabilities
+                w = np.maximum(sliding.mean(1, keepdims=True), SLIP_FLOOR)
+                p = history_mean(p * w, session, frame, history) / history_mean(w, session, frame, history)
+            else:
+                p = history_mean(p, session, frame, history)
         if kinds[k] == "accuracy":
             p = p.argmax(1)[:, None].astype(np.float64)
         elif kinds[k] == "f1":
@@ -155,4 +172,6 @@ def predict_end_to_end(model: HandHead, samples: HandSamples, rows: np.ndarray, 
             mean, std = model.stats[k]  # type: ignore[attr-defined]
             p = p * std + mean
         out[k] = p
+    if friction_edges is not None:
+        out["friction_tercile"] = tercile_of(out["friction"], friction_edges)
     return out

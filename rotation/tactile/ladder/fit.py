@@ -6,8 +6,10 @@ the training samples' statistics. Features are first squashed by ``asinh`` aroun
 of their interquartile spread (at least a twentieth of their standard deviation), so that heavy tails (a dropped
 cup's slip speed) do not decide the fit. A classification target is read by ridge on its one-hot code (argmax) or
 on its 0/1 value, cut per output where F1 is best on the training samples (a rare event needs its own cut, not
-0.5). The ridge strength is picked from a fixed grid by cross-validation over the training sessions (folds by
-session, so that no fold scores windows of a session it trained on; a binary target's folds cut the same way).
+0.5); with ``--friction-reading slip`` the ladder reads the friction tercile as the cut of its friction reading
+instead (:func:`tercile_of`). The ridge strength is picked from a fixed grid by cross-validation over the
+training sessions (folds by session, so that no fold scores windows of a session it trained on; a binary target's
+folds cut the same way).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ class Reader:
     def __init__(self, kind: str, classes: int = 0):
         self.kind, self.classes = kind, classes  # kind: 'r2' | 'accuracy' | 'f1'
         self.threshold = 0.5
+        self.lam = float("nan")
 
     def _code(self, y: np.ndarray) -> np.ndarray:
         if self.kind == "accuracy":
@@ -103,10 +106,10 @@ def _folds(groups: np.ndarray, folds: int) -> np.ndarray:
     return np.asarray([fold_of[g] for g in groups])
 
 
-def fit_and_score(kind: str, x_train: np.ndarray, y_train: np.ndarray, groups: np.ndarray, x_test: np.ndarray,
-                  y_test: np.ndarray, classes: int = 0, folds: int = 3) -> tuple[float, float]:
-    """Fit a reader on the training samples (ridge strength, and a binary target's threshold, by session-grouped
-    cross-validation) and score it on the test samples; returns (score, the chosen strength)."""
+def fit_reader(kind: str, x_train: np.ndarray, y_train: np.ndarray, groups: np.ndarray, classes: int = 0,
+               folds: int = 3) -> Reader:
+    """A reader fitted on the training samples, its ridge strength (``reader.lam``) and a binary target's threshold
+    picked by session-grouped cross-validation."""
     lam = 10.0
     if len(np.unique(groups)) >= 3:
         f = _folds(groups, folds)
@@ -125,9 +128,49 @@ def fit_and_score(kind: str, x_train: np.ndarray, y_train: np.ndarray, groups: n
             if v > best:
                 best, lam = float(v), cand
     reader = Reader(kind, classes).fit(x_train, y_train, lam)
+    reader.lam = lam
     if kind == "f1":  # the cut of the final reader's own outputs (a linear reader barely overfits its cut)
         reader.threshold = _best_threshold(reader.raw(x_train), y_train)
-    return score(kind, reader.predict(x_test), y_test), lam
+    return reader
+
+
+def fit_and_score(kind: str, x_train: np.ndarray, y_train: np.ndarray, groups: np.ndarray, x_test: np.ndarray,
+                  y_test: np.ndarray, classes: int = 0, folds: int = 3) -> tuple[float, float]:
+    """Fit a reader on the training samples (:func:`fit_reader`) and score it on the test samples; returns (score,
+    the chosen strength)."""
+    reader = fit_reader(kind, x_train, y_train, groups, classes, folds)
+    return score(kind, reader.predict(x_test), y_test), reader.lam
+
+
+BOOTSTRAP_DRAWS = 200
+"""Resamples of the test sessions behind a score's standard error (:func:`session_error`)."""
+
+
+def session_error(kind: str, pred: np.ndarray, y: np.ndarray, groups: np.ndarray, draws: int = BOOTSTRAP_DRAWS,
+                  seed: int = 0) -> float:
+    """The standard error of ``score(kind, pred, y)`` over which test sessions were drawn: its spread over
+    ``draws`` resamples of the sessions (``groups``) with replacement, each session's samples kept together (a
+    session's moments share its object, so they are not independent). NaN with fewer than two sessions."""
+    sessions = np.unique(groups)
+    if len(sessions) < 2:
+        return float("nan")
+    rows = [np.flatnonzero(groups == g) for g in sessions]
+    rng = np.random.default_rng([seed, 0x626F6F74])
+    values = []
+    for _ in range(draws):
+        pick = np.concatenate([rows[i] for i in rng.integers(0, len(rows), len(rows))])
+        values.append(score(kind, pred[pick], y[pick]))
+    values = np.asarray(values, np.float64)
+    values = values[np.isfinite(values)]
+    return float(values.std(ddof=1)) if len(values) > 1 else float("nan")
+
+
+def tercile_of(friction: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(M, 1) friction estimates -> (M, 1) terciles (0, 1, 2) by the training terciles' ``edges``: the tercile read
+    as the cut of a friction reading, which keeps the coefficient's order (a classifier of three one-hot codes
+    does not)."""
+    return np.searchsorted(np.asarray(edges, np.float64), np.asarray(friction)[:, 0], side="right")[:, None].astype(
+        np.float64)
 
 
 def _best_threshold(raw: np.ndarray, y: np.ndarray) -> np.ndarray:

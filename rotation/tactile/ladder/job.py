@@ -18,9 +18,11 @@ first max(1, round(b n)) of the n training sessions in a seeded order. Every run
    the baseline frozen tokens should beat with few labels.
 
 Targets (rotation.tactile.ladder.samples): friction_tercile (accuracy), friction, mass, com, normal_force (R^2)
-and slip (F1). The object's properties (friction, mass, centre of mass) are read from the mean of each rung's
-features over the windows of the last ``history`` seconds (causal), as a policy that keeps a history of touch could;
-normal force and slip from the moment's own window.
+and slip (F1). The object's properties (friction, mass, centre of mass) are read from each rung's features over the
+windows of the last ``history`` seconds (causal), as a policy that keeps a history of touch could: from their mean
+(``--friction-reading slip``: friction from a mean that weights each fingertip's windows by the rung's own slip
+reading, the coefficient showing only while a contact slides, and its tercile as the cut of that estimate at the
+terciles' edges); normal force and slip from the moment's own window.
 
 OUT: results.json (rows of stage, features, target, budget, metric, value; the chance rows; the checks), results.md,
 ladder.png (each target's score per rung at the largest budget), budgets.png (scores against the label budget),
@@ -45,7 +47,7 @@ from envs.validation import check_int, check_number, check_output_dir, check_see
 from rotation.configs import save_config
 from rotation.data.dataset import check_session_sources, split_sessions
 from rotation.interrupt import StopSignals
-from rotation.tactile.ladder.fit import budget_sessions, chance, fit_and_score, score
+from rotation.tactile.ladder.fit import budget_sessions, chance, fit_reader, score, session_error, tercile_of
 from rotation.tactile.ladder.report import TARGET_CHECKS, checks, write_report
 from rotation.tactile.ladder.samples import (
     CLASSIFY,
@@ -55,8 +57,10 @@ from rotation.tactile.ladder.samples import (
     TARGETS,
     HandSamples,
     contact_features,
+    finger_columns,
     history_mean,
     open_samples,
+    slip_history,
     targets,
 )
 from rotation.tactile.loading import session_paths
@@ -92,6 +96,12 @@ class Config:
     """Seconds of windows (ending at the moment, none later) whose features are averaged to read the object's
     friction, mass and centre of mass (end to end: its outputs averaged); 0 reads them from the moment's window
     alone."""
+    friction_reading: str = "mean"
+    """How friction is read over the history: ``mean``, every window alike, the tercile by a classifier of its own;
+    ``slip`` weights each fingertip's windows by how likely the rung's own slip reader finds it sliding (at least
+    0.05; the coefficient shows only while a contact slides) and reads the tercile by cutting that friction estimate
+    at the terciles' edges (experiments/touch_ladder/v6_slip_reading: higher friction R^2 on fresh sessions, the
+    fused tokens' tercile not higher, so not the default)."""
     seed: int = 0
     """Seed of the session split, the budgets' order and the end-to-end training."""
     overwrite: bool = False
@@ -115,6 +125,8 @@ class Config:
         check_int("e2e_batch", self.e2e_batch, 1, 1024)
         check_number("e2e_lr", self.e2e_lr, 0.0, 1.0, low_open=True)
         check_number("history", self.history, 0.0, 600.0)
+        if self.friction_reading not in ("slip", "mean"):
+            raise ValueError(f"friction_reading: slip or mean, got {self.friction_reading!r}")
         check_seed("seed", self.seed)
         check_output_dir("out", self.out)
 
@@ -126,18 +138,19 @@ def _digest(cfg: Config, paths: list[Path]) -> str:
 
 
 def _check_out(cfg: Config, digest: str) -> None:
-    """Refuse an OUT that holds the report of other sessions, stride, encoder or history, unless --overwrite."""
+    """Refuse an OUT that holds the report of other sessions, stride, encoder, history or friction reading, unless
+    --overwrite."""
     old = cfg.out / "results.json"
     if not old.exists() or cfg.overwrite:
         return
     try:
         theirs = json.loads(old.read_text())
-        theirs = (theirs.get("digest"), float(theirs.get("history", 0.0)))
+        theirs = (theirs.get("digest"), float(theirs.get("history", 0.0)), theirs.get("friction_reading", "mean"))
     except (json.JSONDecodeError, UnicodeDecodeError, AttributeError, TypeError, ValueError):
         theirs = None
-    if theirs != (digest, float(cfg.history)):
-        raise RequestRefused(f"touch-report: {cfg.out} holds the report of other sessions, stride, encoder or "
-                             "history; use another --out, or --overwrite to replace it")
+    if theirs != (digest, float(cfg.history), cfg.friction_reading):
+        raise RequestRefused(f"touch-report: {cfg.out} holds the report of other sessions, stride, encoder, history "
+                             "or friction reading; use another --out, or --overwrite to replace it")
 
 
 def _cached(path: Path, digest: str, compute, need: str = "") -> dict[str, np.ndarray]:
@@ -223,37 +236,40 @@ def _run(cfg: Config, paths: list[Path], digest: str, stop: StopSignals) -> dict
 
         feats.update(_cached(cfg.out / "features_rendered.npz", digest, compute,
                              need="tokens/" if 3 in cfg.stages else "stream/"))
+    finger = {k: finger_columns([v.shape[1]]) for k, v in feats.items()}
     for stage in ("stream", "tokens"):
-        parts = [feats[f"{stage}/{m}"] for m in MODALITIES if f"{stage}/{m}" in feats]
+        parts = [f"{stage}/{m}" for m in MODALITIES if f"{stage}/{m}" in feats]
         if len(parts) > 1:
-            feats[f"{stage}/all"] = np.concatenate(parts, 1)
+            feats[f"{stage}/all"] = np.concatenate([feats[k] for k in parts], 1)
+            finger[f"{stage}/all"] = np.concatenate([finger[k] for k in parts])
     feats = {k.replace("stream/", "streams/"): v for k, v in feats.items()}
+    finger = {k.replace("stream/", "streams/"): v for k, v in finger.items()}
     held = {k: history_mean(v, samples.session, samples.frame, cfg.history) for k, v in feats.items()}
 
     rows: list[dict[str, Any]] = []
     chance_rows = []
     for t in TARGETS:
         chance_rows.append({"target": t, "metric": kinds[t], "value": chance(kinds[t], y[t][is_test])})
-    pieces = [(name, t, b) for name in feats for t in TARGETS for b in cfg.budgets]
+    pieces = [(name, b) for name in feats for b in cfg.budgets]
     with tqdm(total=len(pieces), desc="readers", disable=not cfg.progress) as bar:
-        for name, t, b in pieces:
+        for name, b in pieces:
             if stop.requested:
                 break
             chosen = budget_sessions(train_ids, b, cfg.seed)
             tr = np.isin(samples.session, chosen)
-            x = held[name] if t in SESSION_TARGETS else feats[name]
-            value, lam = fit_and_score(kinds[t], x[tr], y[t][tr], samples.session[tr], x[is_test], y[t][is_test],
-                                       classes=3)
             stage, fset = name.split("/")
-            rows.append({"stage": stage, "features": fset, "target": t, "budget": b, "metric": kinds[t],
-                         "value": value, "ridge": lam, "train_sessions": int(len(chosen))})
+            base = {"stage": stage, "features": fset, "budget": b, "train_sessions": int(len(chosen))}
+            for t, value, se, lam in _read(cfg, feats[name], held[name], finger[name], samples, y, kinds, tr,
+                                           is_test, edges):
+                rows.append({**base, "target": t, "metric": kinds[t], "value": value, "se": se, "ridge": lam})
             bar.update(1)
     if 4 in cfg.stages and encoder is not None and not stop.requested:
-        rows += _end_to_end(cfg, encoder, samples, y, kinds, train_ids, is_test, stop)
+        rows += _end_to_end(cfg, encoder, samples, y, kinds, train_ids, is_test, edges, stop)
     result = {"rows": rows, "chance": chance_rows, "samples": len(samples), "sessions": len(paths),
               "train_sessions": [str(p) for p in train_paths], "test_sessions": [str(p) for p in test_paths],
               "friction_tercile_edges": edges.tolist(), "checkpoint": str(cfg.checkpoint) if cfg.checkpoint else None,
-              "history": float(cfg.history), "complete": not stop.requested, "digest": digest}
+              "history": float(cfg.history), "friction_reading": cfg.friction_reading,
+              "complete": not stop.requested, "digest": digest}
     result["checks"] = checks(result, max(cfg.budgets), min(cfg.budgets))
     write_report(cfg.out, result, samples, test_ids[0] if len(test_ids) else 0)
     print(f"touch-report: {cfg.out / 'results.md'}")
@@ -262,7 +278,36 @@ def _run(cfg: Config, paths: list[Path], digest: str, stop: StopSignals) -> dict
     return result
 
 
-def _end_to_end(cfg: Config, encoder, samples, y, kinds, train_ids, is_test, stop) -> list[dict[str, Any]]:
+def _read(cfg: Config, x: np.ndarray, held: np.ndarray, finger: np.ndarray, samples: HandSamples,
+          y: dict[str, np.ndarray], kinds: dict[str, str], tr: np.ndarray, te: np.ndarray,
+          edges: np.ndarray) -> list[tuple[str, float, float, float]]:
+    """(target, score, its standard error over the test sessions, ridge strength) of one feature set read on the
+    training samples ``tr``, scored on ``te``: the moment's targets from ``x``, mass and centre of mass from the
+    history mean ``held``, friction per ``cfg.friction_reading``."""
+    groups, test_groups = samples.session[tr], samples.session[te]
+
+    def scored(t: str, reader, pred: np.ndarray) -> tuple[str, float, float, float]:
+        return (t, score(kinds[t], pred, y[t][te]), session_error(kinds[t], pred, y[t][te], test_groups), reader.lam)
+
+    slip = fit_reader("f1", x[tr], y["slip"][tr], groups)
+    out = [scored("slip", slip, slip.predict(x[te]))]
+    for t in ("normal_force", "mass", "com"):
+        xx = held if t in SESSION_TARGETS else x
+        reader = fit_reader(kinds[t], xx[tr], y[t][tr], groups)
+        out.append(scored(t, reader, reader.predict(xx[te])))
+    if cfg.friction_reading == "mean":  # the history mean, the tercile by its own classifier
+        for t in ("friction", "friction_tercile"):
+            reader = fit_reader(kinds[t], held[tr], y[t][tr], groups, classes=3)
+            out.append(scored(t, reader, reader.predict(held[te])))
+        return out
+    weights = np.clip(slip.raw(x), 0.0, 1.0)  # each window's own slip reading, per fingertip
+    xf = slip_history(x, finger, weights, samples.session, samples.frame, cfg.history)
+    reader = fit_reader("r2", xf[tr], y["friction"][tr], groups)
+    estimate = reader.predict(xf[te])
+    return [*out, scored("friction", reader, estimate), scored("friction_tercile", reader, tercile_of(estimate, edges))]
+
+
+def _end_to_end(cfg: Config, encoder, samples, y, kinds, train_ids, is_test, edges, stop) -> list[dict[str, Any]]:
     from rotation.tactile.ladder.encode import predict_end_to_end, train_end_to_end
 
     rows = []
@@ -275,10 +320,14 @@ def _end_to_end(cfg: Config, encoder, samples, y, kinds, train_ids, is_test, sto
             train_rows = np.flatnonzero(np.isin(samples.session, chosen))
             model = train_end_to_end(encoder, samples, train_rows, y, kinds, 3, cfg.e2e_steps, cfg.e2e_batch,
                                      cfg.e2e_lr, cfg.seed, progress=bar.update)
-            pred = predict_end_to_end(model, samples, test_rows, kinds, history=cfg.history)
+            pred = predict_end_to_end(model, samples, test_rows, kinds, history=cfg.history,
+                                      friction_edges=edges if cfg.friction_reading == "slip" else None)
             for t in TARGETS:
+                truth = y[t][test_rows]
                 rows.append({"stage": "e2e", "features": "all", "target": t, "budget": b, "metric": kinds[t],
-                             "value": score(kinds[t], pred[t], y[t][test_rows]), "train_sessions": int(len(chosen))})
+                             "value": score(kinds[t], pred[t], truth),
+                             "se": session_error(kinds[t], pred[t], truth, samples.session[test_rows]),
+                             "train_sessions": int(len(chosen))})
     return rows
 
 

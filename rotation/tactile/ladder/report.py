@@ -27,11 +27,24 @@ FIVE = ("friction_tercile", "mass", "com", "normal_force", "slip")
 """The five targets frozen tokens should beat end to end on with few labels (friction counted once)."""
 
 
-def _value(rows: list[dict], stage: str, features: str, target: str, budget: float) -> float | None:
+def _row(rows: list[dict], stage: str, features: str, target: str, budget: float) -> dict | None:
     for r in rows:
         if (r["stage"], r["features"], r["target"]) == (stage, features, target) and abs(r["budget"] - budget) < 1e-9:
-            return float(r["value"])
+            return r
     return None
+
+
+def _value(rows: list[dict], stage: str, features: str, target: str, budget: float) -> float | None:
+    r = _row(rows, stage, features, target, budget)
+    return None if r is None else float(r["value"])
+
+
+def _shown(row: dict | None) -> str:
+    """A row's score with its standard error over the test sessions where the report computed one."""
+    if row is None:
+        return ""
+    se = row.get("se")
+    return f"{row['value']:.3f}" + (f" ± {se:.3f}" if se is not None and np.isfinite(se) else "")
 
 
 def _held(value: float | None, base: float) -> float | None:
@@ -46,13 +59,14 @@ def checks(result: dict[str, Any], top: float, low: float) -> list[dict[str, Any
     rows, base = result["rows"], {c["target"]: c for c in result["chance"]}
     out = []
     for text, stage, fset, target, minimum in TARGET_CHECKS:
-        v = _value(rows, stage, fset, target, top)
-        out.append({"check": text, "ok": None if v is None else v >= minimum,
-                    "detail": "not computed" if v is None else f"{v:.3f}"})
+        r = _row(rows, stage, fset, target, top)
+        out.append({"check": text, "ok": None if r is None else r["value"] >= minimum,
+                    "detail": "not computed" if r is None else _shown(r)})
     for target in ("friction_tercile", "slip"):
-        v, c = _value(rows, "tokens", "image", target, top), base[target]["value"]
-        out.append({"check": f"the image tokens alone read {target} above chance", "ok": None if v is None else v > c,
-                    "detail": "not computed" if v is None else f"{v:.3f} (chance {c:.3f})"})
+        r, c = _row(rows, "tokens", "image", target, top), base[target]["value"]
+        out.append({"check": f"the image tokens alone read {target} above chance",
+                    "ok": None if r is None else r["value"] > c,
+                    "detail": "not computed" if r is None else f"{_shown(r)}; chance {c:.3f}"})
     wins, done = [], 0
     for target in FIVE:
         a, b = _value(rows, "tokens", "all", target, low), _value(rows, "e2e", "all", target, low)
@@ -94,14 +108,16 @@ def _markdown(result: dict[str, Any]) -> str:
     base = {c["target"]: c["value"] for c in result["chance"]}
     lines = [f"# Information ladder ({result['samples']} samples, {result['sessions']} sessions: "
              f"{len(result['train_sessions'])} training, {len(result['test_sessions'])} test)", "",
-             "Scores on the test sessions: accuracy (friction tercile), F1 (slip), R^2 (the others).", "",
-             _reading(float(result.get("history", 0.0))), ""]
+             "Scores on the test sessions: accuracy (friction tercile), F1 (slip), R^2 (the others); after ± their "
+             "standard error over which test sessions were drawn (the sessions resampled with replacement, "
+             "each session's moments together).", "",
+             _reading(float(result.get("history", 0.0)), result.get("friction_reading", "mean")), ""]
     for b in budgets:
         lines += [f"## {b:.0%} of the training sessions' labels", "",
                   "| stage | features | " + " | ".join(TARGETS) + " |", "|---|---|" + "---|" * len(TARGETS)]
         for stage, fset in sets:
-            vals = [_value(rows, stage, fset, t, b) for t in TARGETS]
-            lines.append(f"| {stage} | {fset} | " + " | ".join("" if v is None else f"{v:.3f}" for v in vals) + " |")
+            cells = [_shown(_row(rows, stage, fset, t, b)) for t in TARGETS]
+            lines.append(f"| {stage} | {fset} | " + " | ".join(cells) + " |")
         lines.append("| chance | | " + " | ".join(f"{base[t]:.3f}" for t in TARGETS) + " |")
         lines.append("")
     lines += ["## Checks", ""]
@@ -113,12 +129,17 @@ def _markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _reading(history: float) -> str:
+def _reading(history: float, friction: str) -> str:
     if history <= 0:
         return "Every target is read from the moment's window alone."
-    return (f"The object's friction, mass and centre of mass are read from the mean of the features over the windows "
-            f"of the last {history:g} s (nothing later than the moment; end to end: its outputs averaged); normal "
-            "force and slip from the moment's window.")
+    text = (f"The object's mass and centre of mass are read from the mean of the features over the windows of the "
+            f"last {history:g} s (nothing later than the moment; end to end: its outputs averaged); normal force and "
+            "slip from the moment's window. ")
+    if friction == "slip":
+        return text + ("Friction from the same windows, each fingertip's weighted by how likely the rung's own slip "
+                       "reader finds it sliding (at least 0.05), its tercile as the cut of that estimate at the "
+                       "terciles' edges.")
+    return text + "Friction from the plain mean as well, its tercile by a classifier of its own."
 
 
 def _ladder_plot(path: Path, result: dict[str, Any]) -> None:
@@ -131,14 +152,16 @@ def _ladder_plot(path: Path, result: dict[str, Any]) -> None:
     fig, axes = plt.subplots(1, len(TARGETS), figsize=(3.2 * len(TARGETS), 4.2), sharey=True)
     base = {c["target"]: c["value"] for c in result["chance"]}
     for ax, t in zip(np.atleast_1d(axes), TARGETS, strict=True):
-        vals = [_value(rows, s, f, t, top) for s, f in sets]
+        picked = [_row(rows, s, f, t, top) for s, f in sets]
+        vals = [0.0 if r is None or not np.isfinite(r["value"]) else float(r["value"]) for r in picked]
+        errs = [0.0 if r is None or not np.isfinite(r.get("se", np.nan)) else float(r["se"]) for r in picked]
         colors = [STAGE_COLORS[s] for s, _ in sets]
-        ax.bar(range(len(sets)), [0 if v is None or not np.isfinite(v) else v for v in vals], color=colors)
+        ax.bar(range(len(sets)), vals, yerr=errs, color=colors, error_kw={"lw": 0.8, "capsize": 2})
         ax.axhline(base[t], color="gray", ls="--", lw=1)
         ax.set_xticks(range(len(sets)), [f"{s}:{f}" for s, f in sets], rotation=90, fontsize=7)
         ax.set_title(t, fontsize=9)
         ax.set_ylim(-0.1, 1.0)
-    np.atleast_1d(axes)[0].set_ylabel(f"score at {top:.0%} labels (dashed: chance)")
+    np.atleast_1d(axes)[0].set_ylabel(f"score at {top:.0%} labels\n(dashed: chance; bars: 1 s.e.)")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -121,6 +121,41 @@ def history_mean(values: np.ndarray, session: np.ndarray, frame: np.ndarray, sec
     return out
 
 
+SLIP_FLOOR = 0.05
+"""The least weight a window has in a slip-weighted history (:func:`slip_history`): with no slip in the history the
+reading is the plain mean."""
+
+
+def finger_columns(widths: Sequence[int]) -> np.ndarray:
+    """The fingertip (0-3) of each column of features concatenated from blocks of the given widths, each block the
+    four fingertips' equal parts side by side (the layout of every rung's features)."""
+    parts = []
+    for w in widths:
+        if w % len(FINGERS):
+            raise ValueError(f"a block of {w} columns does not split over {len(FINGERS)} fingertips")
+        parts.append(np.repeat(np.arange(len(FINGERS)), w // len(FINGERS)))
+    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+
+def slip_history(values: np.ndarray, finger: np.ndarray, weights: np.ndarray, session: np.ndarray,
+                 frame: np.ndarray, seconds: float) -> np.ndarray:
+    """(M, F) -> (M, F): :func:`history_mean` with each window weighted per fingertip, a fingertip's columns
+    (``finger``: (F,) fingertip of each column) by ``weights`` (M, 4: how likely that fingertip slides in the window,
+    at least ``SLIP_FLOOR``). The friction coefficient shows only while a contact slides (then the shear is mu times
+    the normal load; while it sticks, anything below), so a reader of friction should count the sliding windows most.
+    Causal as history_mean; 0 seconds returns the values unchanged."""
+    values, weights = np.asarray(values, np.float64), np.maximum(np.asarray(weights, np.float64), SLIP_FLOOR)
+    if seconds <= 0:
+        return values
+    out = np.empty_like(values)
+    for f in range(weights.shape[1]):
+        cols = np.flatnonzero(finger == f)
+        w = weights[:, f:f + 1]
+        num = history_mean(values[:, cols] * w, session, frame, seconds)
+        out[:, cols] = num / history_mean(w, session, frame, seconds)
+    return out
+
+
 def targets(samples: HandSamples, tercile_edges: np.ndarray) -> dict[str, np.ndarray]:
     """Target name -> (M, k) float array (classes as integers)."""
     s = samples.session

@@ -16,7 +16,15 @@ from rotation.jobs import collect
 from rotation.tactile.ladder import fit
 from rotation.tactile.ladder import job as ladder
 from rotation.tactile.ladder.encode import pool
-from rotation.tactile.ladder.samples import CONTACT_FEATURES, SESSION_TARGETS, _track_features, history_mean
+from rotation.tactile.ladder.samples import (
+    CONTACT_FEATURES,
+    SESSION_TARGETS,
+    SLIP_FLOOR,
+    _track_features,
+    finger_columns,
+    history_mean,
+    slip_history,
+)
 from rotation.tactile.models.encoders import ENCODERS
 from rotation.tactile.models.sparshx import SparshX, SparshXConfig
 
@@ -119,6 +127,44 @@ def test_history_mean_averages_a_session_s_past_and_nothing_later():
     assert set(SESSION_TARGETS) == {"friction_tercile", "friction", "mass", "com"}
 
 
+def test_slip_history_counts_each_fingertip_s_sliding_windows_most():
+    # one session, three windows 0.5 s apart; two blocks of features, each the four fingertips' columns side by side
+    finger = finger_columns([4, 8])
+    np.testing.assert_array_equal(finger, [0, 1, 2, 3, 0, 0, 1, 1, 2, 2, 3, 3])
+    session, frame = np.zeros(3, int), np.array([0, 15, 30])
+    values = np.tile(np.array([[1.0], [2.0], [4.0]]), (1, 12))
+    weights = np.zeros((3, 4))
+    weights[:, 0] = [1.0, 0.0, 1.0]  # fingertip 0 slides in the first and last window
+    weights[:, 1] = [0.0, 1.0, 0.0]  # fingertip 1 in the middle one; 2 and 3 never (the floor: a plain mean)
+    got = slip_history(values, finger, weights, session, frame, 10.0)
+    f = SLIP_FLOOR
+    np.testing.assert_allclose(got[2, finger == 0], (1 * 1 + 2 * f + 4 * 1) / (2 + f))
+    np.testing.assert_allclose(got[2, finger == 1], (1 * f + 2 * 1 + 4 * f) / (1 + 2 * f))
+    np.testing.assert_allclose(got[2, finger >= 2], 7 / 3)
+    np.testing.assert_allclose(got[1, finger == 0], (1 + 2 * f) / (1 + f))  # causal: the last window is not seen
+    np.testing.assert_array_equal(slip_history(values, finger, weights, session, frame, 0.0), values)
+    with pytest.raises(ValueError, match="fingertips"):
+        finger_columns([6])
+
+
+def test_the_tercile_is_the_cut_of_the_friction_estimate():
+    edges = np.array([0.6, 0.9])
+    got = fit.tercile_of(np.array([[0.1], [0.6], [0.75], [0.9], [2.0]]), edges)
+    np.testing.assert_array_equal(got[:, 0], [0, 1, 1, 2, 2])  # the targets' own rule: searchsorted, right
+
+
+def test_a_score_s_error_resamples_whole_sessions():
+    # two sessions of 500 moments: every moment of the first read right, every one of the second wrong
+    groups = np.repeat([3, 7], 500)
+    y = np.zeros((1000, 1))
+    pred = np.concatenate([np.zeros(500), np.ones(500)])[:, None]
+    # two sessions drawn with replacement score 1, 0.5 or 0 (chances 1/4, 1/2, 1/4): a spread of sqrt(1/8); moments
+    # resampled one by one would give about 0.016
+    assert fit.session_error("accuracy", pred, y, groups) == pytest.approx(np.sqrt(1 / 8), abs=0.05)
+    assert fit.session_error("accuracy", y, y, groups) == 0.0
+    assert np.isnan(fit.session_error("accuracy", pred, y, np.zeros(1000)))
+
+
 def test_pooled_tokens_keep_what_a_single_token_carries():
     torch.manual_seed(0)
     tokens = torch.randn(2, 196, 64)
@@ -163,23 +209,26 @@ def test_collect_on_the_vendor_hand_records_its_sensor(v4_sessions):
 def test_a_tiny_touch_report_runs_end_to_end(tmp_path, v4_sessions, encoder):
     out = tmp_path / "report"
     argv = ["touch-report", "--sessions", str(v4_sessions), "--checkpoint", str(encoder), "--out", str(out),
-            "--stride", "10", "--e2e-steps", "1", "--e2e-batch", "1", "--test-fraction", "0.5", "--no-progress"]
+            "--stride", "10", "--e2e-steps", "1", "--e2e-batch", "1", "--test-fraction", "0.5", "--friction-reading",
+            "slip", "--no-progress"]
     assert main(argv) == 0
     result = json.loads((out / "results.json").read_text())
     assert result["complete"] and result["samples"] > 0 and result["history"] == 5.0
-    assert "the last 5 s" in (out / "results.md").read_text()
+    assert result["friction_reading"] == "slip"
+    assert "the last 5 s" in (out / "results.md").read_text() and "sliding" in (out / "results.md").read_text()
     seen = {(r["stage"], r["features"]) for r in result["rows"]}
     assert {("contact", "fields"), ("streams", "all"), ("streams", "image"), ("tokens", "all"), ("tokens", "audio"),
             ("e2e", "all")} <= seen
     assert {r["target"] for r in result["rows"]} == {"friction_tercile", "friction", "mass", "com", "normal_force",
                                                       "slip"}
     assert all(np.isfinite(r["value"]) or r["metric"] == "r2" for r in result["rows"])
+    assert all("se" in r for r in result["rows"]) and " ± " in (out / "results.md").read_text()
     assert any(c["check"].startswith("friction tercile") for c in result["checks"])
     for name in ("results.md", "ladder.png", "budgets.png", "frames.png", "features_contact.npz",
                  "features_rendered.npz"):
         assert (out / name).is_file(), name
     before = (out / "features_rendered.npz").stat().st_mtime_ns
-    assert main([*argv[:-7], "--stages", "1", "2", "--no-progress"]) == 0  # reuses the rendered features
+    assert main([*argv[:-9], "--friction-reading", "slip", "--stages", "1", "2", "--no-progress"]) == 0  # reuses
     assert (out / "features_rendered.npz").stat().st_mtime_ns == before
     fresh = tmp_path / "fresh"  # features without tokens are not reused by a run that needs them
     again = ["touch-report", "--sessions", str(v4_sessions), "--checkpoint", str(encoder), "--out", str(fresh),
@@ -206,8 +255,15 @@ def test_bad_input_is_a_clear_error(tmp_path, v4_sessions, capsys):
     assert main(["touch-report", "--sessions", str(one), str(two), "--stages", "1", "--history", "0", "--out",
                  str(out)]) == 1  # the same sessions read another way: not written over the first reading
     assert "history" in capsys.readouterr().err
+    assert main(["touch-report", "--sessions", str(one), str(two), "--stages", "1", "--friction-reading", "slip",
+                 "--out", str(out)]) == 1  # nor with the other friction reading
+    assert "friction reading" in capsys.readouterr().err
     assert (out / "results.json").read_bytes() == before
+    assert json.loads(before)["friction_reading"] == "mean"  # the default
+    assert "classifier of its own" in (out / "results.md").read_text()
     assert main(["touch-report", "--sessions", str(one), "--stages", "1", "--out", str(tmp_path / "r")]) == 1
     assert "at least 2 session files" in capsys.readouterr().err
     with pytest.raises(ValueError, match="history"):
         ladder.Config(sessions=(v4_sessions,), out=tmp_path / "r", stages=(1,), history=-1.0)
+    with pytest.raises(ValueError, match="friction_reading"):
+        ladder.Config(sessions=(v4_sessions,), out=tmp_path / "r", stages=(1,), friction_reading="max")
