@@ -24,11 +24,12 @@ windows of the last ``history`` seconds (causal), as a policy that keeps a histo
 reading, the coefficient showing only while a contact slides, and its tercile as the cut of that estimate at the
 terciles' edges); normal force and slip from the moment's own window.
 
-OUT: results.json (rows of stage, features, target, budget, metric, value; the chance rows; the checks), results.md,
-ladder.png (each target's score per rung at the largest budget), budgets.png (scores against the label budget),
-frames.png (one test session's four streams at moments across it beside the contact force), features_*.npz (reused
-by a rerun with the same sessions, stride and checkpoint; an OUT holding the report of others, or of another
-history, is refused unless --overwrite). Ctrl-C stops after the current piece and keeps what is done.
+OUT: results.json (rows of stage, features, target, budget, metric, value and its standard error over the test
+sessions, se; the chance rows; the checks), results.md, ladder.png (each target's score per rung at the largest
+budget), budgets.png (scores against the label budget), frames.png (one test session's four streams at moments
+across it beside the contact force), features_*.npz (reused by a rerun with the same sessions, stride and checkpoint;
+an OUT holding the report of others, or of another history or friction reading, is refused unless --overwrite).
+Ctrl-C stops after the current piece and keeps what is done.
 """
 
 from __future__ import annotations
