@@ -10,14 +10,16 @@ Steps (each a `rotate` command; a finished one is skipped, a stopped one resumes
    cost), checkpoints every ``checkpoint_every`` steps, resumed with --resume;
 3. `scripts/export_encoder.py` of the pretraining run into OUT/encoder;
 4. the report's own sessions (other seeds: randomization draws the encoder never saw) and `rotate touch-report`
-   with all four rungs into OUT/touch_report.
+   with all four rungs into OUT/touch_report; then a second draw of them (seed 201) into OUT/touch_report_201, since
+   a figure from one draw's 40 test sessions moves by about 0.1 between draws (``--report-draws``).
 
     python scripts/touch_cpu_recipe.py --policy runs/sim_v4/teacher/stage5/bundle --out runs/touch_cpu   # 3 + 1 layers
     python scripts/touch_cpu_recipe.py --policy ... --out runs/touch_cpu --dry-run     # the commands, run nothing
 
 Budget on 2 CPU cores: the collections take minutes; pretraining runs at about 12.7 windows/s (tinier, batch 32,
 rendering on the fly: measured on v4 sessions), so the default 3,000 steps (96,000 windows, a quarter of what the
-shipped encoder saw) take about 2.1 h; the ladder's rendering, tokens and three end-to-end trainings about 40 min.
+shipped encoder saw) take about 2.1 h; each ladder (rendering, tokens, readers and three end-to-end trainings)
+about 25 min.
 On a GPU machine pass --device cuda and a larger --batch-size (the shipped encoder: 256, 1,800 steps, 7.5 min on
 one H200 from a window cache; see its model card).
 """
@@ -41,7 +43,8 @@ COLLECTIONS: tuple[tuple[str, bool, int, list[str]], ...] = (
 )
 """(folder under OUT/sessions, whether the policy acts (else the random policy), seed, options)."""
 REPORT_SEED = 200
-"""Seed of the report's sessions (the pretraining collections use 0-5)."""
+"""Seed of the report's first draw of sessions (the pretraining collections use 0-5); a draw k > 0 uses
+REPORT_SEED + k."""
 
 
 @dataclass
@@ -57,6 +60,10 @@ class Config:
     report_episodes: int = 160
     """Episodes of the report's held-out sessions (a quarter of them test sessions: 40, so that the friction
     terciles of the test split are not left to a few draws)."""
+    report_draws: int = 2
+    """Draws of the report's sessions, each its own ladder (seeds REPORT_SEED, REPORT_SEED + 1, ...): a figure from 40
+    test sessions moves by about 0.1 on mass between draws (experiments/touch_ladder/v6_slip_reading), so an encoder
+    is judged on more than one."""
     episode_steps: int = 400
     """Policy steps per episode (20 s)."""
     size: str = "tinier"
@@ -91,7 +98,8 @@ class Config:
                              "student)")
         if self.layers and (len(self.layers) != 2 or min(self.layers) < 0 or sum(self.layers) < 1):
             raise ValueError(f"layers: give two counts, unimodal and fusion (e.g. 3 1), got {list(self.layers)}")
-        for name in ("episodes", "report_episodes", "episode_steps", "steps", "batch_size", "checkpoint_every"):
+        for name in ("episodes", "report_episodes", "report_draws", "episode_steps", "steps", "batch_size",
+                     "checkpoint_every"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
 
@@ -119,14 +127,24 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
             (pretrain / "encoder.safetensors").stat().st_mtime > encoder.stat().st_mtime:
         todo.append(("export the encoder", ["python", str(Path(__file__).resolve().parent / "export_encoder.py"),
                                             "--checkpoint", str(pretrain), "--out", str(out / "encoder")]))
-    todo.append(("collect the report's sessions",
-                 ["collect", "--policy", cfg.policy, "--episodes", str(cfg.report_episodes), "--seed",
-                  str(REPORT_SEED), "--out", str(out / "report_sessions"), *common]))
-    if not (out / "touch_report" / "results.md").is_file():
-        todo.append(("the information ladder", ["touch-report", "--sessions", str(out / "report_sessions"),
-                                                "--checkpoint", str(out / "encoder"), "--stride", "15", "--out",
-                                                str(out / "touch_report"), *progress]))
+    for k in range(cfg.report_draws):
+        sessions, report = report_folders(out, k)
+        which = "" if k == 0 else f" (draw {k + 1}, seed {REPORT_SEED + k})"
+        todo.append((f"collect the report's sessions{which}",
+                     ["collect", "--policy", cfg.policy, "--episodes", str(cfg.report_episodes), "--seed",
+                      str(REPORT_SEED + k), "--out", str(sessions), *common]))
+        if not (report / "results.md").is_file():
+            todo.append((f"the information ladder{which}", ["touch-report", "--sessions", str(sessions),
+                                                            "--checkpoint", str(out / "encoder"), "--stride", "15",
+                                                            "--out", str(report), *progress]))
     return todo
+
+
+def report_folders(out: Path, draw: int) -> tuple[Path, Path]:
+    """The sessions and the ladder of the report's draw ``draw`` (0: report_sessions/ and touch_report/; k > 0: the
+    same names with _<seed>)."""
+    tail = "" if draw == 0 else f"_{REPORT_SEED + draw}"
+    return out / f"report_sessions{tail}", out / f"touch_report{tail}"
 
 
 def _layers(cfg: Config) -> list[str]:
@@ -136,8 +154,8 @@ def _layers(cfg: Config) -> list[str]:
 def run(cfg: Config) -> int:
     status = run_steps("touch_cpu_recipe", commands(cfg), cfg.dry_run)
     if status == 0 and not cfg.dry_run:
-        print(f"touch_cpu_recipe: done; the encoder is {cfg.out / 'encoder'}, the ladder "
-              f"{cfg.out / 'touch_report' / 'results.md'}")
+        ladders = ", ".join(str(report_folders(cfg.out, k)[1] / "results.md") for k in range(cfg.report_draws))
+        print(f"touch_cpu_recipe: done; the encoder is {cfg.out / 'encoder'}, the ladders {ladders}")
     return status
 
 

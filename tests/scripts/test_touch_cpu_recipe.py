@@ -32,7 +32,11 @@ def test_the_recipe_lists_every_step_and_each_command_parses(recipe, tmp_path):
     whats = [w for w, _ in steps]
     assert whats[:6] == [f"collect {name}" for name, *_ in recipe.COLLECTIONS]
     assert whats[6].startswith("pretrain") and whats[7] == "export the encoder"
-    assert whats[8:] == ["collect the report's sessions", "the information ladder"]
+    second = " (draw 2, seed 201)"
+    assert whats[8:] == ["collect the report's sessions", "the information ladder",
+                         f"collect the report's sessions{second}", f"the information ladder{second}"]
+    reports = [a[a.index("--out") + 1] for _, a in steps if a[0] == "touch-report"]
+    assert [r.split("/")[-1] for r in reports] == ["touch_report", "touch_report_201"]  # each draw its own ladder
     for _what, args in steps:
         if args[0] == "python":
             assert args[1].endswith("export_encoder.py")
@@ -41,7 +45,7 @@ def test_the_recipe_lists_every_step_and_each_command_parses(recipe, tmp_path):
         if args[0] == "collect":
             assert parsed.hand == "digit360_v4" and parsed.policy in ("teacher", "random")
     seeds = {int(a[a.index("--seed") + 1]) for _, a in steps if a[0] == "collect"}
-    assert recipe.REPORT_SEED in seeds and len(seeds) == len(recipe.COLLECTIONS) + 1  # the report's draws are new
+    assert {recipe.REPORT_SEED, recipe.REPORT_SEED + 1} <= seeds and len(seeds) == len(recipe.COLLECTIONS) + 2  # new
     parsed = _parsed(next(a for w, a in steps if w.startswith("pretrain")))  # the default: 3 + 1 layers
     assert (parsed.unimodal_layers, parsed.fusion_layers) == (3, 1)
     sized = recipe.commands(recipe.Config(policy="teacher", out=tmp_path / "r", progress=False, layers=()))
@@ -65,7 +69,13 @@ def test_finished_steps_are_skipped_and_a_stopped_pretraining_resumes(recipe, tm
     (cfg.out / "touch_report").mkdir()
     (cfg.out / "touch_report" / "results.md").write_text("done")
     whats = [w for w, _ in recipe.commands(cfg)]
-    assert not any(w.startswith("pretrain") or w.startswith("export") or w.startswith("the information") for w in whats)
+    assert not any(w.startswith("pretrain") or w.startswith("export") for w in whats)
+    assert [w for w in whats if w.startswith("the information")] == ["the information ladder (draw 2, seed 201)"]
+    (cfg.out / "touch_report_201").mkdir()
+    (cfg.out / "touch_report_201" / "results.md").write_text("done")
+    assert not any(w.startswith("the information") for w in [w for w, _ in recipe.commands(cfg)])
+    one = recipe.Config(policy="teacher", out=cfg.out, steps=300, progress=False, report_draws=1)
+    assert sum(a[0] == "collect" and "report_sessions" in a[a.index("--out") + 1] for _, a in recipe.commands(one)) == 1
     assert recipe.main(["--policy", "teacher", "--out", str(cfg.out), "--steps", "300", "--dry-run"]) == 0
 
 
