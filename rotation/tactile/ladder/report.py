@@ -175,10 +175,13 @@ def _budget_plot(path: Path, result: dict[str, Any]) -> None:
     for ax, t in zip(np.atleast_1d(axes), TARGETS, strict=True):
         for stage, fset in (("contact", "fields"), ("streams", "all"), ("tokens", "all"), ("tokens", "image"),
                             ("e2e", "all")):
-            pts = sorted((r["budget"], r["value"]) for r in rows
+            pts = sorted((r["budget"], r["value"], r.get("se", np.nan)) for r in rows
                          if (r["stage"], r["features"], r["target"]) == (stage, fset, t))
             if pts:
-                ax.plot(*zip(*pts, strict=True), marker="o", label=f"{stage}:{fset}")
+                b, v, se = (np.asarray(c, np.float64) for c in zip(*pts, strict=True))
+                line = ax.plot(b, v, marker="o", label=f"{stage}:{fset}")[0]
+                if np.isfinite(se).any():  # one standard error over the test sessions
+                    ax.fill_between(b, v - se, v + se, color=line.get_color(), alpha=0.15, lw=0)
         ax.set_xscale("log")
         ax.set_title(t, fontsize=9)
         ax.set_xlabel("label budget")
