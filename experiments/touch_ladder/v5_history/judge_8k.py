@@ -14,16 +14,17 @@ import json
 import sys
 from pathlib import Path
 
+from rotation.tactile.ladder.report import FIVE, row_value
+
 SHIPPED = {"friction_tercile": 0.546, "friction": 0.475, "mass": 0.475, "slip": 0.8735, "normal_force": 0.9205}
 """The shipped encoder's fused tokens at 100% labels, mean of seed 200 (v5 record) and seed 201 (v6, mean)."""
-FIVE = ("friction_tercile", "mass", "com", "normal_force", "slip")
 
 
 def _value(rows: list[dict], stage: str, features: str, target: str, budget: float) -> float:
-    for r in rows:
-        if (r["stage"], r["features"], r["target"]) == (stage, features, target) and abs(r["budget"] - budget) < 1e-9:
-            return float(r["value"])
-    raise SystemExit(f"judge_8k: no row {stage}/{features}/{target} at {budget:.0%}: is the report complete?")
+    v = row_value(rows, stage, features, target, budget)
+    if v is None:
+        raise SystemExit(f"judge_8k: no row {stage}/{features}/{target} at {budget:.0%}: is the report complete?")
+    return v
 
 
 def main(folders: list[str]) -> int:

@@ -20,9 +20,9 @@ from rotation.tactile.ladder.fit import tercile_of
 from rotation.tactile.ladder.samples import (
     MODALITIES,
     SESSION_TARGETS,
-    SLIP_FLOOR,
     HandSamples,
     history_mean,
+    slip_history,
     stream_features,
 )
 from rotation.tactile.models.encoders import fresh_like
@@ -160,8 +160,9 @@ def predict_end_to_end(model: HandHead, samples: HandSamples, rows: np.ndarray, 
         if k in SESSION_TARGETS:
             if friction_edges is not None and k == "friction":
                 sliding = 1.0 / (1.0 + np.exp(-raw_all["slip"]))  # (M, 4) probabilities
-                w = np.maximum(sliding.mean(1, keepdims=True), SLIP_FLOOR)
-                p = history_mean(p * w, session, frame, history) / history_mean(w, session, frame, history)
+                # one hand-level output: all its columns weighted by the fingertips' mean slip probability
+                p = slip_history(p, np.zeros(p.shape[1], np.int64), sliding.mean(1, keepdims=True), session, frame,
+                                 history)
             else:
                 p = history_mean(p, session, frame, history)
         if kinds[k] == "accuracy":

@@ -34,7 +34,8 @@ def _row(rows: list[dict], stage: str, features: str, target: str, budget: float
     return None
 
 
-def _value(rows: list[dict], stage: str, features: str, target: str, budget: float) -> float | None:
+def row_value(rows: list[dict], stage: str, features: str, target: str, budget: float) -> float | None:
+    """The score of one (stage, feature set, target, budget) among a report's rows; None when not computed."""
     r = _row(rows, stage, features, target, budget)
     return None if r is None else float(r["value"])
 
@@ -69,7 +70,7 @@ def checks(result: dict[str, Any], top: float, low: float) -> list[dict[str, Any
                     "detail": "not computed" if r is None else f"{_shown(r)}; chance {c:.3f}"})
     wins, done = [], 0
     for target in FIVE:
-        a, b = _value(rows, "tokens", "all", target, low), _value(rows, "e2e", "all", target, low)
+        a, b = row_value(rows, "tokens", "all", target, low), row_value(rows, "e2e", "all", target, low)
         if a is not None and b is not None:
             done += 1
             if a > b:
@@ -79,9 +80,9 @@ def checks(result: dict[str, Any], top: float, low: float) -> list[dict[str, Any
                 "detail": f"wins on {', '.join(wins) or 'none'} ({done} compared)"})
     for below, above in zip(RUNGS, RUNGS[1:], strict=False):
         for target in TARGETS:
-            lo = _held(_value(rows, below, "fields" if below == "contact" else "all", target, top),
+            lo = _held(row_value(rows, below, "fields" if below == "contact" else "all", target, top),
                        base[target]["value"])
-            hi = _held(_value(rows, above, "all", target, top), base[target]["value"])
+            hi = _held(row_value(rows, above, "all", target, top), base[target]["value"])
             if lo is None or hi is None or lo < 0.05:
                 continue  # nothing to lose (or not computed)
             out.append({"check": f"{above} keep at least two thirds of what {below} holds on {target}",
