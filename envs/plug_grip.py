@@ -1,4 +1,5 @@
-"""How the insertion task's hand holds the plug (envs.insertion): in its fingertips, or as it holds the cup.
+"""How the insertion task's hand holds the plug (envs.insertion): in its fingertips, or as it holds the cup; the
+shaking task (envs.shake, ``grip='fingertips'``) stands its bottle in the same fingertip grip.
 
 The benchmark this task rebuilds holds the plug in the fingertips, where the sensors carry the socket's forces. The
 hand's grasps come from its cup grasp cache, whose grasps rest the cup on the phalanges (the domes carry about a
@@ -52,9 +53,14 @@ def check_grip(where: str, grip: str) -> None:
         raise ValueError(f"{where}: grip must be one of {', '.join(GRIPS)}, got {grip!r}")
 
 
-def fingertip_grip(spec: mujoco.MjSpec, g: Grip) -> tuple[Grip, np.ndarray, float]:
+def fingertip_grip(spec: mujoco.MjSpec, g: Grip, height: float = GRIP_HEIGHT) -> tuple[Grip, np.ndarray, float]:
     """The fingertip grip at cup grasp ``g`` (module docstring), the wrist at its start. Returns the grip (the
-    start's joints and the plug's pose), the joint targets (16,) and the disc's radius (m)."""
+    start's joints and the object's pose), the joint targets (16,) and the object's radius (m).
+
+    ``height``: the held cylinder's height (m, at least GRIP_HEIGHT). A taller one (a bottle) stands on the same
+    grip band: its lowest GRIP_HEIGHT is where the plug's disc would be, the rest above the fingertips."""
+    if not height >= GRIP_HEIGHT:
+        raise ValueError(f"fingertip grip: the object must be at least {GRIP_HEIGHT} m tall, got {height}")
     model = spec.compile()
     data = mujoco.MjData(model)
     adr = [[model.jnt_qposadr[model.joint(f"{f}_{j}").id] for j in range(4)] for f in FINGERS]
@@ -89,7 +95,11 @@ def fingertip_grip(spec: mujoco.MjSpec, g: Grip) -> tuple[Grip, np.ndarray, floa
             q[4 * k: 4 * k + 4] = data.qpos[adr[k]]
         return q
 
-    return Grip(solve(0.0), np.concatenate([centre, g.pose[3:]]), g.scale), solve(SQUEEZE), radius
+    axis = np.zeros(9)
+    mujoco.mju_quat2Mat(axis, g.pose[3:])
+    up = axis.reshape(3, 3)[:, 2] * (height - GRIP_HEIGHT) / 2  # a taller object's centre, up its own axis
+    pose = np.concatenate([centre + up, g.pose[3:]])
+    return Grip(solve(0.0), pose, g.scale), solve(SQUEEZE), radius
 
 
 def holds(offsets: np.ndarray) -> bool:

@@ -23,6 +23,7 @@ import numpy as np
 
 from envs.grasp_cache import GraspCache, load_default_cache
 from envs.held_hand import OBJECT_CONTYPE, WristRun, check_touch_hand, finish, grip, tilt_quat, wrist_spec
+from envs.plug_grip import GRIP_HEIGHT, check_grip, fingertip_grip
 from envs.shake_contents import CONTENT_NAMES, CONTENTS, FILL_LEVELS, Grain, Liquid, slosh_model
 
 TIMESTEP = 0.002
@@ -63,9 +64,14 @@ class ShakeConfig:
     """Wrist tilt amplitude (rad)."""
     vertical: float = 0.3
     """Largest vertical part of the shake's direction (unit vector's z)."""
+    grip: str = "palm"
+    """How the bottle is held: 'palm' (at the cup's grasp, on the phalanges and palm) or 'fingertips' (standing on
+    the four domes' grip band, squeezed by them alone: envs.plug_grip; what the domes feel of the contents is then
+    not shared with the phalanges)."""
 
     def __post_init__(self) -> None:
         check_touch_hand("shake", self.hand)
+        check_grip("shake", self.grip)
         for name in ("amplitude", "frequency", "tilt"):
             lo, hi = getattr(self, name)
             if not (0 <= lo <= hi and math.isfinite(hi)):
@@ -240,16 +246,20 @@ class ShakeSim:
         self.cfg, self.episode = cfg, episode
         grasps = grasps if grasps is not None else load_default_cache("cup", "", cfg.hand)
         g = grip(grasps, episode.bucket, episode.grasp_u)
-        self.grasp_q = g.q
         spec, self._palm_quat0 = wrist_spec(cfg.hand, TIMESTEP)
-        bottle = _add_bottle(spec, g.radius, g.height, g.pose[:3], g.pose[3:])
+        radius, height, targets = g.radius, g.height, None
+        if cfg.grip == "fingertips":  # the bottle stands on the domes' grip band (at least GRIP_HEIGHT tall)
+            height = max(g.height, GRIP_HEIGHT)
+            g, targets, radius = fingertip_grip(spec, g, height)
+        self.grasp_q = g.q
+        bottle = _add_bottle(spec, radius, height, g.pose[:3], g.pose[3:])
         rng = np.random.default_rng([episode.seed, 0x607])
-        self.content_mass = _add_contents(spec, bottle, episode, g.pose[:3], g.pose[3:], g.radius - WALL,
-                                          g.height - 2 * WALL, rng)
+        self.content_mass = _add_contents(spec, bottle, episode, g.pose[:3], g.pose[3:], radius - WALL,
+                                          height - 2 * WALL, rng)
         # the hand's contact model without the noslip solver: with tens of grains it halved the rate, and the
         # bottle's drift in the hand over an episode was the same with and without it (3.2-3.4 mm)
         self.model = finish(spec, cfg.hand, "bottle_", noslip=False)
-        self._run = WristRun(self.model, g, self._palm_quat0, "bottle")
+        self._run = WristRun(self.model, g, self._palm_quat0, "bottle", targets)
         self.data = self._run.data
 
     def _wrist(self, t: float) -> tuple[np.ndarray, np.ndarray]:

@@ -104,6 +104,9 @@ class Config:
     perturbation options do not apply)."""
     shake_s: float = 3.0
     """Seconds per episode of --task shake or oas, the object's settling included."""
+    shake_grip: Literal["palm", "fingertips"] = "palm"
+    """How --task shake holds the bottle: 'palm' (the cup's grasps: the bottle rests on the phalanges and palm too)
+    or 'fingertips' (on the four domes alone, squeezed: envs.plug_grip; the domes carry several times the force)."""
 
     def __post_init__(self) -> None:
         check_types(self, skip=("com_shift",))  # Perturbation below checks com_shift with its own message
@@ -135,6 +138,8 @@ class Config:
             raise ValueError(f"task: the {self.task} task moves the Digit 360 hand with the vendor's kinematics by "
                              "script; leave --skin, --hand and --policy out")
         check_number("shake_s", self.shake_s, 1.2, 600.0, unit="s (a Sparsh-X window needs 1.12 s of history)")
+        if self.shake_grip != "palm" and self.task != "shake":
+            raise ValueError(f"shake_grip: only --task shake holds a bottle, got --task {self.task}")
         if self.task == "joystick" and self.policy not in ("play", "random"):
             raise ValueError(f"policy: the joystick task moves the hand by script: 'play' or 'random', got "
                              f"{self.policy!r}")
@@ -313,6 +318,8 @@ def run(cfg: Config) -> dict[str, float]:
     settings = _settings(cfg, env_cfg, policy)
     if cfg.task in ("shake", "oas"):
         settings["shake_s"] = cfg.shake_s
+    if cfg.shake_grip != "palm":  # the first collections' settings (and digests) stay as they were
+        settings["shake_grip"] = cfg.shake_grip
     check_manifest(cfg, settings)
     digest = settings_digest(settings)
     with_z = isinstance(policy, _BundlePolicy) and policy.privileged

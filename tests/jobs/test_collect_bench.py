@@ -75,6 +75,28 @@ def test_options_that_do_not_apply_are_refused(options, task, tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
+def test_the_fingertip_grip_is_recorded_and_keeps_its_own_collection(sessions, tmp_path, capsys):
+    """--shake-grip fingertips holds the bottle on the domes (envs.shake): the same episode's contact fields differ
+    from the palm grip's and the sessions say which grip; an OUT of one grip refuses the other; oas refuses it."""
+    out, _ = sessions
+    tips = tmp_path / "tips"
+    collect.run(collect.Config(task="shake", episodes=1, out=tips, seed=4, shake_s=1.3, shake_grip="fingertips",
+                               progress=False))
+    with SessionReader(find_sessions(out)[0]) as a, SessionReader(find_sessions(tips)[0]) as b:
+        assert a.meta.properties["grip"] == "palm" and b.meta.properties["grip"] == "fingertips"
+        assert a.meta.properties["content"] == b.meta.properties["content"]
+        pa, pb = a.stream("digit360/index/contact").data, b.stream("digit360/index/contact").data
+        assert pa.shape == pb.shape and not np.array_equal(pa, pb)
+    base = ["collect", "--task", "shake", "--episodes", "1", "--shake-s", "1.3", "--seed", "4"]
+    assert main([*base, "--out", str(tips)]) == 1  # the palm grip into the fingertip grip's OUT
+    err = capsys.readouterr().err
+    assert "was not written by this collection" in err and "Traceback" not in err
+    assert main(["collect", "--task", "oas", "--episodes", "1", "--out", str(tmp_path / "o"), "--shake-grip",
+                 "fingertips"]) == 2
+    err = capsys.readouterr().err
+    assert "only --task shake holds a bottle" in err and not (tmp_path / "o").exists()
+
+
 def test_oas_sessions_carry_the_object_action_and_surface_and_the_surface_force(tmp_path):
     out = tmp_path / "oas"
     collect.run(collect.Config(task="oas", episodes=2, out=out, seed=3, shake_s=1.3, progress=False))
