@@ -7,9 +7,9 @@ For each seed (envs.shake.draw_episode, content and fill drawn), the episode is 
 ``grip`` (envs.shake.ShakeConfig.grip); after the settling and the ramp, each fingertip's normal and two shear forces
 (the contact fields the Digit 360 streams are rendered from) are demodulated at the wrist's frequency and phase.
 The norm of the 12 amplitudes over the wrist's acceleration amplitude is the mass the domes feel move with the hand
-(kg). A bottle "held" moved at most 15 mm in the palm's frame after the settling (the session's own ``held`` counts
-the settling too). Prints a row per episode and, over the held ones, the correlation of that mass with the
-contents' mass, and the domes' mean summed normal force.
+(kg). A bottle "held" moved at most HELD_TOLERANCE (15 mm) in the palm's frame after the settling (the session's
+own ``held`` counts the settling too). Prints a row per episode and, over the held ones, the correlation of that
+mass with the contents' mass, and the domes' mean summed normal force.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 
 from envs.grasp_cache import load_default_cache
 from envs.sensors.digit360 import FIELD
-from envs.shake import TIMESTEP, ShakeConfig, ShakeSim, draw_episode
+from envs.shake import HELD_TOLERANCE, TIMESTEP, ShakeConfig, ShakeSim, draw_episode
 
 CHANNELS = ("force_n", "force_x", "force_y")
 
@@ -41,7 +41,7 @@ def felt_mass(cfg: ShakeConfig, seed: int, grasps) -> tuple:
             amplitudes.append(2 * np.mean(x * np.exp(-1j * (w * t[keep] + ep.phase))))
     felt = float(np.linalg.norm(np.abs(amplitudes)) / (ep.amplitude * w * w))
     settled = int(cfg.settle_s / TIMESTEP)
-    held = bool(np.linalg.norm(rec.bottle_offset[-1] - rec.bottle_offset[settled]) <= 0.015)
+    held = bool(np.linalg.norm(rec.bottle_offset[-1] - rec.bottle_offset[settled]) <= HELD_TOLERANCE)
     normal = float(sum(rec.contact[f][keep][:, FIELD["force_n"]].mean() for f in range(4)))
     return ep, rec.content_mass, felt, held, normal
 

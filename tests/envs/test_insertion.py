@@ -94,30 +94,16 @@ def test_a_prong_pressed_beside_the_hole_is_pressed_on_the_side_over_the_plate(g
     assert step[axis] * side[axis] < 0, step  # towards the hole
 
 
-def _plug_contacts(sim):
-    """{name of the geom touching the plug: its normal force (N)}."""
-    import mujoco
-
-    m, d, plug, wrench, out = sim.model, sim.data, sim.model.body("plug").id, np.zeros(6), {}
-    for i in range(d.ncon):
-        con = d.contact[i]
-        if plug in (m.geom_bodyid[con.geom1], m.geom_bodyid[con.geom2]):
-            other = con.geom2 if m.geom_bodyid[con.geom1] == plug else con.geom1
-            mujoco.mj_contactForce(m, d, i, wrench)
-            out[m.geom(other).name] = out.get(m.geom(other).name, 0.0) + wrench[0]
-    return out
-
-
 @pytest.mark.parametrize("seed", [20, 21, 22])
-def test_the_fingertip_grip_holds_the_plug_on_the_four_domes_alone(grasps, seed):
+def test_the_fingertip_grip_holds_the_plug_on_the_four_domes_alone(grasps, seed, touching):
     """After settling only the fingertips touch the plug (the domes, or a sensor's housing beside one), all four
     domes press on it, and a second of holding still moves it less than a millimetre."""
     cfg = InsertionConfig()
     sim = InsertionSim(cfg, draw_episode(cfg, seed, grasps), grasps)
     sim.reset()
-    touching = _plug_contacts(sim)
-    assert all(n.endswith(("_tip", "_digit360")) for n in touching), touching
-    assert {f for f in FINGERS if touching.get(f"{f}_tip", 0.0) > 0.05} == set(FINGERS), touching
+    on_plug = touching(sim, "plug")
+    assert all(n.endswith(("_tip", "_digit360")) for n in on_plug), on_plug
+    assert {f for f in FINGERS if on_plug.get(f"{f}_tip", 0.0) > 0.05} == set(FINGERS), on_plug
     start = sim.data.xpos[sim.model.body("plug").id].copy()
     for _ in range(20):
         sim.step(np.zeros(6))

@@ -144,23 +144,11 @@ def test_draws_cover_every_content_and_level_and_cap_the_acceleration(grasps):
         ShakeConfig(hand="xela_v4")
 
 
-def _bottle_contacts(sim) -> dict[str, float]:
-    """{name of the hand geom touching the bottle: its normal force (N)}."""
-    import mujoco
-
-    m, d, bottle, wrench, out = sim.model, sim.data, sim.model.body("bottle").id, np.zeros(6), {}
-    for i in range(d.ncon):
-        con = d.contact[i]
-        ids = (m.geom_bodyid[con.geom1], m.geom_bodyid[con.geom2])
-        if bottle in ids and not any(m.body(b).name.startswith(("grain", "bottle", "slosh")) for b in ids
-                                     if b != bottle):
-            other = con.geom2 if m.geom_bodyid[con.geom1] == bottle else con.geom1
-            mujoco.mj_contactForce(m, d, i, wrench)
-            out[m.geom(other).name] = out.get(m.geom(other).name, 0.0) + wrench[0]
-    return out
+CONTENTS_BODIES = ("grain", "slosh")
+"""The bodies inside the bottle: their contacts with its wall are not the hand's."""
 
 
-def test_the_fingertip_grip_stands_the_bottle_on_the_four_domes_alone(grasps):
+def test_the_fingertip_grip_stands_the_bottle_on_the_four_domes_alone(grasps, touching):
     """With ``grip='fingertips'`` (envs.plug_grip) only the fingertips touch the bottle, all four domes press on it,
     its lowest 30 mm stand where the plug's disc would, it is the cup grasp's size at most GRIP_RADIUS across, and it
     stays in the hand through a shake; the domes press it several times as hard as in the palm grip of the same
@@ -170,18 +158,19 @@ def test_the_fingertip_grip_stands_the_bottle_on_the_four_domes_alone(grasps):
     ep = draw_episode(cfg, 10, grasps, "water", 1)
     sim = ShakeSim(cfg, ep, grasps)
     rec = sim.run()
-    touching = _bottle_contacts(sim)
-    assert all(n.endswith(("_tip", "_digit360")) for n in touching), touching
-    assert {f for f in FINGERS if touching.get(f"{f}_tip", 0.0) > 0.05} == set(FINGERS), touching
+    on_hand = touching(sim, "bottle", CONTENTS_BODIES)
+    assert all(n.endswith(("_tip", "_digit360")) for n in on_hand), on_hand
+    assert {f for f in FINGERS if on_hand.get(f"{f}_tip", 0.0) > 0.05} == set(FINGERS), on_hand
     assert rec.held and np.all(np.isfinite(rec.contact))
     radius = min(0.040 * float(grasps.scales[ep.bucket]), GRIP_RADIUS)
     assert sim.model.geom("bottle_bottom").size[0] == pytest.approx(radius)
-    domes = sum(touching[f"{f}_tip"] for f in FINGERS)
+    domes = sum(on_hand[f"{f}_tip"] for f in FINGERS)
     palm_cfg = ShakeConfig(duration_s=1.2)
     palm = ShakeSim(palm_cfg, draw_episode(palm_cfg, 10, grasps, "water", 1), grasps)
     palm.run()
-    palm_domes = sum(_bottle_contacts(palm).get(f"{f}_tip", 0.0) for f in FINGERS)
-    assert domes > 2 * palm_domes, (touching, _bottle_contacts(palm))
+    palm_on_hand = touching(palm, "bottle", CONTENTS_BODIES)
+    palm_domes = sum(palm_on_hand.get(f"{f}_tip", 0.0) for f in FINGERS)
+    assert domes > 2 * palm_domes, (on_hand, palm_on_hand)
     with pytest.raises(ValueError, match="grip must be one of fingertips, palm"):
         ShakeConfig(grip="pinch")
     with pytest.raises(ValueError, match="at least 0.03 m tall"):
