@@ -6,6 +6,10 @@ A grasp passes where it stays under ``--max-tilt``. ``rotate grasps`` keeps only
 this script's); caches generated before that, or with ``--hold-seconds 0``, hold grasps that do not.
 
     python experiments/tools/grasp_hold_stats.py --caches cup before=old/grasps_cup.npz --out runs/grasp_hold
+    python experiments/tools/grasp_hold_stats.py --caches cup --surface 0.25 --out runs/grasp_hold_slippery
+
+``--surface`` scales the friction of the domes and of the links together, as `rotate evaluate`'s friction conditions
+do (friction_0.25: ``--surface 0.25``): which grasps still hold a slippery cup by themselves.
 
 Writes OUT/hold_tilt.png (one histogram per cache) and OUT/hold_stats.json; the last line printed is the same JSON.
 """
@@ -44,6 +48,9 @@ class Config:
     """Object mass (kg) during the hold; default: the middle of the cache's hand's range."""
     max_tilt: float = HoldRule.max_tilt
     """A grasp passes where the object's worst tilt (rad) stays under this."""
+    surface: float = 1.0
+    """The cup surface's factor on the friction of the domes (``friction``) and of the links together, as an
+    evaluation's friction condition applies it."""
     out: Path = Path("runs/grasp_hold")
     """Output directory."""
 
@@ -56,6 +63,7 @@ class Config:
         if self.mass is not None:
             check_number("mass", self.mass, 0.001, 5.0, unit="kg")
         check_number("max_tilt", self.max_tilt, 0.0, np.pi, low_open=True, unit="rad")
+        check_number("surface", self.surface, 0.01, 10.0)
         self.out = Path(self.out)
         check_output_dir("out", self.out)
 
@@ -77,13 +85,13 @@ def run(cfg: Config) -> dict:
     stats, tilts = {}, {}
     for name, cache in caches:
         rule = rules[name]
-        worst = hold_check(cache, rule)
+        worst = hold_check(cache, rule, surface=cfg.surface)
         tilts[name] = worst
         passed = worst < rule.max_tilt
         stats[name] = {"object": cache.object, "grasps": int(worst.size), "pass": round(float(passed.mean()), 4),
                        "pass_per_scale": [round(float(x), 3) for x in passed.mean(1)],
                        "sank": round(float(np.isinf(worst).mean()), 4), "cache_hold_rule": list(cache.hold),
-                       "rule": list(rule.as_array())}
+                       "rule": list(rule.as_array()), "surface": cfg.surface}
         print(f"{name}: {passed.mean():.1%} of {worst.size} grasps pass (sank: {np.isinf(worst).mean():.1%})")
     cfg.out.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -96,13 +104,14 @@ def run(cfg: Config) -> dict:
     ax.set_xlabel(f"worst tilt during a {rule.seconds:g} s hold (rad; sunk or past {top:.2f} piled at the right)")
     ax.set_ylabel("grasps")
     physics = {(r.friction, r.mass) for r in rules.values()}
+    surface = f", cup surface x{cfg.surface:g}" if cfg.surface != 1.0 else ""
     ax.set_title("hand holding still, " + (f"friction {rule.friction:g}, mass {rule.mass:g} kg" if len(physics) == 1
-                                           else "each cache at its hand's nominal friction and mass"))
+                                           else "each cache at its hand's nominal friction and mass") + surface)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(cfg.out / "hold_tilt.png", dpi=110)
     plt.close(fig)
-    result = {"rule": list(rule.as_array()) if len(physics) == 1 else None, "caches": stats}
+    result = {"rule": list(rule.as_array()) if len(physics) == 1 else None, "surface": cfg.surface, "caches": stats}
     (cfg.out / "hold_stats.json").write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result))
     return result

@@ -11,7 +11,7 @@
 6. writes OUT/README.md with the tables, plots, video and deploy summary.
 
     rotate demo --out demo_out
-    rotate demo --out demo_out --episodes 16 --conditions nominal friction_0.35 mass_+0.2kg
+    rotate demo --out demo_out --episodes 16 --conditions nominal friction_0.35 mass_+0.1kg
 """
 
 from __future__ import annotations

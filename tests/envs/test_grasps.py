@@ -12,7 +12,7 @@ import pytest
 
 from envs import EnvConfig, RotateCupVec
 from envs import constants as C
-from envs.config import default_randomization
+from envs.config import Perturbation, default_randomization
 from envs.constants import DEFAULT_HAND
 from envs.grasp_cache import GRASP_DIM, GraspCache, default_cache_path, load_default_cache
 from envs.grasps import HOLD_DROP, HoldRule, generate_grasps, hold_check
@@ -269,6 +269,38 @@ def test_hold_check_is_the_env_holding_still(tmp_path, cup_grasps):
     np.testing.assert_allclose(tilt[held], worst[row[held]], atol=1e-4)
     assert not ended[held].any() and np.all(sank[held] < HOLD_DROP)
     assert np.all(ended[~held] | (tilt[~held] >= rule.max_tilt) | (sank[~held] > HOLD_DROP))
+
+
+def test_a_slippery_surface_in_the_hold_check_is_the_evaluation_s_friction_condition(tmp_path):
+    """The hold check at ``surface`` s tilts the cup exactly as a nominal env under the evaluation's friction
+    condition x s held still (domes and links scaled together), and a quarter of the friction loses grasps that hold
+    at the nominal surface."""
+    cache = load_default_cache("cup")
+    bucket = int(np.abs(cache.scales - NOMINAL_SCALE).argmin())
+    nominal_rows = GraspCache("cup", cache.scales[bucket : bucket + 1], cache.grasps[bucket : bucket + 1, :24],
+                              hand=cache.hand)
+    nominal_rows.save(tmp_path / "g.npz")
+    saved = GraspCache.load(tmp_path / "g.npz")
+    rule = HoldRule.for_hand(DEFAULT_HAND)
+    worst = hold_check(saved, rule, batch_size=24, nthread=1, surface=0.25)[0]
+    assert np.all(hold_check(saved, rule, batch_size=24, nthread=1)[0] < rule.max_tilt)  # all hold at x1
+    assert (worst >= rule.max_tilt).sum() >= 3, worst  # and several fail at x0.25
+    nominal = default_randomization(DEFAULT_HAND, enabled=False)
+    cfg = EnvConfig(object="cup", grasp_cache=str(tmp_path / "g.npz"), randomization=nominal,
+                    perturb=Perturbation(friction_scale=0.25))
+    env = RotateCupVec(cfg, num_envs=32, seed=0, nthread=1)
+    env.reset(seed=0)
+    rows = saved.grasps[0, :, :16]
+    row = np.array([np.flatnonzero(np.all(np.abs(rows - q) < 1e-9, axis=1))[0] for q in env.grasp_q])
+    tilt, ended = np.zeros(32), np.zeros(32, dtype=bool)
+    for _ in range(round(rule.seconds * cfg.control_hz)):
+        _, _, term, _, info = env.step(np.zeros((32, 16)))
+        tilt = np.where(ended, tilt, np.maximum(tilt, info["tilt"]))
+        ended |= term
+    held = worst[row] < rule.max_tilt
+    assert held.sum() >= 3 and (~held).sum() >= 3  # the env met both kinds
+    np.testing.assert_allclose(tilt[held], worst[row[held]], atol=1e-4)
+    assert not ended[held].any()
 
 
 def test_the_hold_rule_only_removes_grasps(tmp_path, cup_grasps):

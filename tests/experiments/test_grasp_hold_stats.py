@@ -34,6 +34,14 @@ def test_pass_rate_of_a_cache_generated_without_the_rule(stats, tmp_path):
     assert result["caches"]["plain"]["grasps"] == 16 and result["caches"]["plain"]["cache_hold_rule"] == []
     assert result["rule"] == list(rule.as_array())
     assert (out / "hold_tilt.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    slippery = tmp_path / "hold_slippery"  # a quarter of the cup surface's friction, domes and links together
+    assert stats.main(["--caches", f"plain={tmp_path / 'g.npz'}", "--friction", str(rule.friction), "--mass",
+                       str(rule.mass), "--surface", "0.25", "--out", str(slippery)]) == 0
+    result = json.loads((slippery / "hold_stats.json").read_text())
+    worst = hold_check(GraspCache.load(tmp_path / "g.npz"), rule, surface=0.25)
+    assert result["surface"] == 0.25 and result["caches"]["plain"]["surface"] == 0.25
+    assert result["caches"]["plain"]["pass"] == pytest.approx((worst < rule.max_tilt).mean(), abs=1e-4)
+    assert result["caches"]["plain"]["pass"] < expected
 
 
 def test_bad_input_is_one_line(stats, tmp_path, capsys):
@@ -41,4 +49,5 @@ def test_bad_input_is_one_line(stats, tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
     assert stats.main(["--caches", "=cup", "--out", str(tmp_path / "o")]) == 2
     assert stats.main(["--seconds", "0", "--out", str(tmp_path / "o")]) == 2
+    assert stats.main(["--surface", "0", "--out", str(tmp_path / "o")]) == 2
     assert not (tmp_path / "o").exists()
