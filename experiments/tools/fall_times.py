@@ -99,8 +99,12 @@ def run(cfg: Config) -> dict:
             print(f"{cond:<28} {policy:<22} {s['episodes']:>8} {s['fell']:>5} {s['fell_early']:>6} {s['held']:>5} "
                   f"{s['ttf']:>6.3f}")
     cfg.out.mkdir(parents=True, exist_ok=True)
-    fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.4), squeeze=False, sharey=True)
-    for ax, (cond, by_policy) in zip(axes[0], curves.items(), strict=True):
+    cols = min(3, len(curves))
+    rows = -(-len(curves) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False, sharey=True)
+    for ax in axes.ravel()[len(curves):]:
+        ax.set_visible(False)
+    for ax, (cond, by_policy) in zip(axes.ravel(), curves.items(), strict=False):
         for i, (policy, (falls, duration)) in enumerate(by_policy.items()):
             t = np.linspace(0.0, duration, 201)
             ax.plot(t, (falls[None, :] > t[:, None]).mean(1), color=f"C{i}", lw=1.6, label=policy)
@@ -109,7 +113,8 @@ def run(cfg: Config) -> dict:
         ax.set_xlabel("time (s)")
         ax.set_ylim(0, 1.02)
         ax.legend(fontsize=7, loc="lower left")
-    axes[0][0].set_ylabel(f"share of cups in hand (dashed: {cfg.early:g} s)")
+    for row in axes:
+        row[0].set_ylabel(f"cups in hand (dashed: {cfg.early:g} s)")
     fig.tight_layout()
     fig.savefig(cfg.out / "survival.png", dpi=110)
     plt.close(fig)
