@@ -6,6 +6,7 @@
     rotate train-il --demos data/demos --touch e2e --encoder sparshx-tinier-sim --batch-size 8 --steps 1500 \
         --out runs/il_touch_e2e                                                         # no pretraining
     rotate train-il --demos data/demos_xela --touch skin --encoder SKIN_ENCODER --out runs/il_skin  # Xela hand
+    rotate train-il --demos data/demos data/dagger_1 --touch all --out runs/il_touch_all_r1  # with a DAgger round
 
 ``--touch`` picks what the policy reads besides the wrist camera and proprioception: nothing (``none``), the frozen
 encoder's image tokens (``image``) or all of its modalities (``all``), one embedding per fingertip, computed once
@@ -45,8 +46,9 @@ from rotation.il.model import ChunkPolicy, PolicyConfig
 
 @dataclass(frozen=True)
 class Config:
-    demos: Path = Path("data/demos")
-    """Demonstration sessions (a folder of `rotate demos`)."""
+    demos: tuple[Path, ...] = (Path("data/demos"),)
+    """Demonstration sessions: one or more folders of `rotate demos` (the expert's, and the DAgger rounds'
+    `rotate demos --policy`), read together."""
     out: Path = Path("runs/il")
     """Run folder."""
     touch: Literal["none", "image", "all", "e2e", "skin"] = "none"
@@ -71,7 +73,11 @@ class Config:
     progress: bool = True
 
     def __post_init__(self) -> None:
+        demos = self.demos if isinstance(self.demos, (tuple, list)) else (self.demos,)
+        object.__setattr__(self, "demos", tuple(Path(d) for d in demos))
         check_types(self)
+        if not self.demos:
+            raise ValueError("demos: give at least one folder of demonstrations")
         check_output_dir("out", self.out)
         for name, low, high in (("chunk", 1, 100), ("width", 16, 1024), ("steps", 1, 10**7), ("batch_size", 1, 4096),
                                 ("checkpoint_every", 1, 10**7), ("torch_threads", 1, 256)):
@@ -125,13 +131,17 @@ def _hand_and_grip(paths: list[Path], touch: str) -> tuple[str, str]:
     return hand, grips.pop()
 
 
-def _paths(demos: Path) -> list[Path]:
+def _paths(demos: tuple[Path, ...]) -> list[Path]:
+    """Every session of the folders, each file once (a folder may hold another that is also given)."""
     from rotation.data.dataset import find_sessions
 
-    paths = find_sessions(demos) if Path(demos).exists() else []
-    if not paths:
-        raise RequestRefused(f"demos: no demonstration sessions in {demos} (record them with `rotate demos`)")
-    return paths
+    paths: dict[Path, None] = {}
+    for folder in demos:
+        found = find_sessions(folder) if Path(folder).exists() else []
+        if not found:
+            raise RequestRefused(f"demos: no demonstration sessions in {folder} (record them with `rotate demos`)")
+        paths.update((Path(p).resolve(), None) for p in found)
+    return sorted(paths)
 
 
 def run(cfg: Config) -> dict:

@@ -22,6 +22,14 @@ demonstrations then hold the expert correcting the drifts, misaligned pushes and
 lead to, which a clean expert seldom shows (experiments/insertion: 3 of 100 clean demonstrations ever press past
 7.5 N). The noise of episode e is drawn from its own seed, so the same command records the same files.
 
+With ``--policy`` an imitation policy (`rotate train-il`) drives the wrist while the expert, run alongside on the same
+states, labels each of them (DAgger: Ross, Gordon and Bagnell, AISTATS 2011): a step executes the policy's action, or
+with probability ``--beta`` the expert's, and the session records the expert's action on that frame. The
+demonstrations then hold the expert's corrections in the states the policy itself reaches (a plug dragged beside the
+hole, pressed too hard), which neither a clean expert nor its noise visits; training on them beside the first
+demonstrations (`rotate train-il --demos` takes a folder holding both) is the next round's policy. Give each round a
+seed of its own; the files record the policy's bundle digest, and a rerun with other weights is refused.
+
 The expert finds the hole by feel by default (``--expert-align feel``: after touching the plate it steps away from
 where the socket presses on the prong, a moment on the held plug that the fingertips sense), so that what it does
 follows from what a policy's touch can carry; ``--expert-align state`` slides to the hole's true centre, which
@@ -78,6 +86,11 @@ class Config:
     """How the scripted expert finds the hole after touching the plate: 'feel' steps away from where the socket
     presses on the prong (a correction touch can sense); 'state' slides to the hole's true centre (which no policy
     sees). envs.insertion_expert."""
+    policy: str | None = None
+    """An imitation policy bundle (`rotate train-il`, a folder or shipped name) that drives the wrist while the expert
+    labels the states it reaches (DAgger; module docstring); None: the expert drives."""
+    beta: float = 0.0
+    """With --policy: the probability that a step executes the expert's action instead of the policy's."""
     grip: Literal["fingertips", "palm"] = "fingertips"
     """How the hand holds the plug: 'fingertips' (only the domes touch it, squeezed, so the socket's forces reach the
     sensors) or 'palm' (the cup's body on the phalanges; the first version's demonstrations). envs.plug_grip."""
@@ -97,6 +110,12 @@ class Config:
         check_number("noise_m", self.noise_m, 0.0, 0.003, unit="m")
         check_number("noise_rad", self.noise_rad, 0.0, 0.05, unit="rad")
         check_number("flush_interval_s", self.flush_interval_s, 0.0, 3600.0, low_open=True, unit="s")
+        check_number("beta", self.beta, 0.0, 1.0)
+        if self.policy is None and self.beta:
+            raise ValueError("beta mixes the expert's actions into a policy's rollouts: give --policy")
+        if self.policy is not None and (self.noise_m or self.noise_rad):
+            raise ValueError("--noise-m/--noise-rad and --policy are two ways to reach states the expert would not: "
+                             "use one")
 
 
 def episode_path(out: Path, episode: int) -> Path:
@@ -117,14 +136,16 @@ def demo_streams(image_size: tuple[int, int], control_hz: float, skin: bool = Fa
 
 
 SAME_RUN = {"task": None, "seed": None, "image_size": None, "episode_steps": None, "hand": "digit360_v4",
-            "noise_m": 0.0, "noise_rad": 0.0, "expert_align": "state", "grip": FIRST_GRIP}
+            "noise_m": 0.0, "noise_rad": 0.0, "expert_align": "state", "grip": FIRST_GRIP, "policy": None,
+            "beta": 0.0}
 """Settings an episode's file must share with this run to be kept (complete) or recorded again (incomplete), with
 the value a file recorded before the setting existed had."""
 
 
-def _kept(cfg: Config, episode: int) -> bool:
-    """Whether episode ``episode``'s file is this run's and complete (then kept); False when there is none or it is
-    this run's unfinished one (recorded again). Any other file there is refused, never overwritten."""
+def _kept(cfg: Config, episode: int, policy_sha256: str | None = None) -> bool:
+    """Whether episode ``episode``'s file is this run's (its settings and the driving policy's bundle digest) and
+    complete (then kept); False when there is none or it is this run's unfinished one (recorded again). Any other
+    file there is refused, never overwritten."""
     from envs.errors import RequestRefused
     from rotation.data.session import SessionError
     from rotation.data.session_reader import SessionReader
@@ -141,14 +162,16 @@ def _kept(cfg: Config, episode: int) -> bool:
             from None
     mine = to_jsonable(cfg)
     theirs = extra.get("demos") or {}
-    if extra.get("episode") != episode or any(theirs.get(k, old) != mine[k] for k, old in SAME_RUN.items()):
+    if (extra.get("episode") != episode or any(theirs.get(k, old) != mine[k] for k, old in SAME_RUN.items())
+            or extra.get("policy_sha256") != policy_sha256):
         raise RequestRefused(f"{path} holds another run's demonstration (episode {extra.get('episode')}, settings "
                              f"{ {k: theirs.get(k, old) for k, old in SAME_RUN.items()} }); use another --out")
     return is_complete(path)
 
 
-def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
-    """Play and write episode ``episode``; returns its outcome."""
+def record_episode(cfg: Config, episode: int, grasps: Any, policy: Any = None, policy_sha256: str | None = None
+                   ) -> dict[str, Any]:
+    """Play and write episode ``episode`` (driven by ``policy``, an ILPolicy, where given); returns its outcome."""
     from envs.insertion import TIMESTEP, InsertionConfig, InsertionSim, draw_episode
     from envs.insertion_expert import ExpertConfig, InsertionExpert
     from envs.scene import touch_model
@@ -160,10 +183,14 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
     expert = InsertionExpert(icfg, seed, ExpertConfig(align=cfg.expert_align))
     noise_rng = np.random.default_rng([seed, 0xDA27])  # the executed action's noise (DART), apart from the expert's
     noise_std = np.array([cfg.noise_m] * 3 + [cfg.noise_rad] * 3)
+    mix_rng = np.random.default_rng([seed, 0xDA66])  # which steps execute the expert's action (DAgger's beta)
+    policy_steps = 0
+    if policy is not None:
+        policy.reset()
     key = sim.touch_key
     meta_base = dict(source="sim", object="plug", control_hz=1.0 / icfg.control_dt, seed=seed)
     extra = {"episode": episode, "task": "insertion", "sim_hand": icfg.hand, "physics_dt": TIMESTEP,
-             "insertion": to_jsonable(ep), "demos": to_jsonable(cfg)}
+             "insertion": to_jsonable(ep), "demos": to_jsonable(cfg), "policy_sha256": policy_sha256}
     if sim.skin is None:
         extra |= {"touch_key": key, "touch_generation": touch_model(icfg.hand).generation}
     else:
@@ -182,6 +209,14 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
             t = sim.data.time
             frames.append((t, obs, action, info.get("force", 0.0)))
             executed = action + noise_std * noise_rng.standard_normal(6) if noise_std.any() else action
+            if policy is not None:  # it acts on every step (its chunks' ensemble), executed unless beta draws
+                windows = None
+                if policy.reads_touch:
+                    windows = ({"skin": obs["skin"], "xela_baseline": sim.skin.baseline} if sim.skin is not None
+                               else sim.touch.windows())
+                driven = policy.act(obs, windows)
+                if mix_rng.random() >= cfg.beta:
+                    executed, policy_steps = driven, policy_steps + 1
             obs, done, info = sim.step(executed)
             frames[-1] = (*frames[-1], sim.contact.copy(), t + np.arange(icfg.substeps) * TIMESTEP)
             if sim.skin is not None:
@@ -190,7 +225,7 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
         sim.close()
     outcome = {"success": bool(info["success"]), "steps": sim.steps, "max_force": float(info["max_force"]),
                "lost": bool(info["lost"]), "retries": expert.retries, "grasp_u": sim.grasp_u,
-               "regrips": sim.regrips}
+               "regrips": sim.regrips, "policy_steps": policy_steps}
     meta = SessionMeta(**meta_base, properties=outcome, extra=extra)
     with SessionWriter(path, meta, demo_streams(cfg.image_size, 1.0 / icfg.control_dt, bool(skin)),
                        flush_interval_s=cfg.flush_interval_s, overwrite=True) as w:
@@ -216,19 +251,38 @@ def record_episode(cfg: Config, episode: int, grasps: Any) -> dict[str, Any]:
     return outcome
 
 
+def _driving_policy(cfg: Config) -> tuple[Any, str | None]:
+    """The imitation policy of ``--policy`` and its bundle digest, (None, None) without one; refused where it was
+    trained on another hand, grip or camera size than this run records."""
+    if cfg.policy is None:
+        return None, None
+    from rotation.il.bundle import load_il
+    from rotation.il.rollout import bundle_digest
+
+    policy = load_il(cfg.policy)
+    size = tuple(policy.model.cfg.image_size)
+    for what, flag, theirs, mine in (("hand", "hand", policy.hand, cfg.hand), ("grip", "grip", policy.grip, cfg.grip),
+                                     ("camera size", "image-size", size, tuple(cfg.image_size))):
+        if theirs != mine:
+            raise ValueError(f"policy: {cfg.policy} was trained with the {what} {theirs}, this run records {mine}; "
+                             f"give the same --{flag}")
+    return policy, bundle_digest(cfg.policy)
+
+
 def run(cfg: Config) -> dict[str, Any]:
     """Record every episode OUT does not hold complete yet; returns the counts."""
     from envs.grasp_cache import load_default_cache
 
     grasps = load_default_cache("cup", "", cfg.hand)
-    todo = [e for e in range(cfg.episodes) if not _kept(cfg, e)]
+    policy, digest = _driving_policy(cfg)
+    todo = [e for e in range(cfg.episodes) if not _kept(cfg, e, digest)]
     if not todo:
         print(f"demos: {cfg.out} already holds {cfg.episodes} complete demonstrations")
         return {"episodes": 0, "successes": 0}
     successes, t0 = 0, time.perf_counter()
     with tqdm(todo, unit="episode", desc="demos", disable=not cfg.progress, dynamic_ncols=True) as bar:
         for e in bar:
-            successes += record_episode(cfg, e, grasps)["success"]
+            successes += record_episode(cfg, e, grasps, policy, digest)["success"]
             bar.set_postfix(success=f"{successes}/{bar.n + 1}")
     elapsed = time.perf_counter() - t0
     print(f"demos: {len(todo)} insertion demonstrations ({successes} seated) in {elapsed:.0f} s -> {cfg.out}")

@@ -201,3 +201,54 @@ def test_wilson_interval():
     lo, hi = wilson(9, 10)
     assert lo == pytest.approx(0.5958, abs=1e-3) and hi == pytest.approx(0.9821, abs=1e-3)
     assert wilson(0, 10)[0] == 0.0 and wilson(10, 10)[1] == pytest.approx(1.0)
+
+
+def test_dagger_rollouts_record_the_experts_labels_on_the_states_the_policy_reaches(demo_dir, tmp_path, capsys):
+    """`rotate demos --policy`: the policy drives (or, with probability beta, the expert), the session records what
+    the expert run alongside chose on each frame, reproduced here by a fresh expert fed the recorded states; beta 1
+    is the plain expert's demonstration; a rerun keeps the files, other weights are refused."""
+    from envs.insertion import InsertionConfig
+    from envs.insertion_expert import ExpertConfig, InsertionExpert
+    from rotation.cli import main
+    from rotation.data.session_reader import SessionReader
+
+    bundle = _train(demo_dir, tmp_path / "pol", steps=40)["bundle"]
+    base = dict(episodes=1, seed=9, image_size=(48, 36), episode_steps=30, expert_align="state", progress=False)
+    driven = tmp_path / "dagger"
+    assert demos.run(demos.Config(out=driven, policy=str(bundle), **base))["episodes"] == 1
+
+    def read(out):
+        with SessionReader(find_sessions(out)[0]) as r:
+            return (r.meta.properties, r.meta.extra, {k: r.stream(k).data.copy() for k in (
+                "actions/wrist", "wrist/pose", "labels/socket", "labels/prong", "labels/socket_force")})
+
+    props, extra, s = read(driven)
+    assert props["policy_steps"] == props["steps"] == len(s["actions/wrist"]) and extra["policy_sha256"]
+    expert = InsertionExpert(InsertionConfig(image_size=(48, 36)), 9 * 1_000_000, ExpertConfig(align="state"))
+    for i, label in enumerate(s["actions/wrist"]):
+        obs = {"socket": s["labels/socket"][i], "prong": s["labels/prong"][i]}
+        assert np.allclose(expert.act(obs, {"force": float(s["labels/socket_force"][i, 0])}), label, atol=1e-6), i
+    # the wrist moved by the policy's actions, not by the recorded labels
+    moved = np.diff(s["wrist/pose"][:, :3], axis=0)
+    assert np.abs(moved - np.clip(s["actions/wrist"][:-1, :3], -0.003, 0.003)).max() > 1e-4
+    assert demos.run(demos.Config(out=driven, policy=str(bundle), **base))["episodes"] == 0  # kept
+    plain, mixed = tmp_path / "plain", tmp_path / "mixed"
+    demos.run(demos.Config(out=plain, **base))
+    demos.run(demos.Config(out=mixed, policy=str(bundle), beta=1.0, **base))
+    assert read(mixed)[0]["policy_steps"] == 0
+    assert np.array_equal(read(mixed)[2]["actions/wrist"], read(plain)[2]["actions/wrist"])
+    other = _train(demo_dir, tmp_path / "pol2", steps=40, seed=1)["bundle"]
+    args = ["demos", "--episodes", "1", "--seed", "9", "--image-size", "48", "36", "--episode-steps", "30",
+            "--expert-align", "state", "--out", str(driven)]
+    assert main([*args, "--policy", str(other)]) == 1
+    assert "another run's demonstration" in capsys.readouterr().err
+    assert main(["demos", "--beta", "0.5", "--out", str(tmp_path / "x")]) == 2
+    assert "give --policy" in capsys.readouterr().err
+    assert main(["demos", "--policy", str(bundle), "--out", str(tmp_path / "x")]) == 2  # trained on 48 x 36
+    assert "camera size" in capsys.readouterr().err and not (tmp_path / "x").exists()
+    # the next round's policy trains on both folders (a folder given twice, or inside another, counts once)
+    _train((demo_dir, driven, driven), tmp_path / "round1", steps=2)
+    card = json.loads((tmp_path / "round1" / "bundle" / "config.json").read_text())["card"]
+    assert card["demonstrations"] == 3
+    assert main(["train-il", "--demos", str(demo_dir), str(tmp_path / "none"), "--out", str(tmp_path / "r2")]) == 1
+    assert "no demonstration sessions in" in capsys.readouterr().err
