@@ -8,11 +8,15 @@ Steps (each a `rotate` command; a finished one is skipped, a stopped one resumes
    (``touch_image``), camera + all four modalities (``touch_all``), camera + all modalities trained end to end from
    random weights (``touch_e2e``, the row without pretraining) and, with --skin-encoder, camera + a frozen
    Sparsh-skin (``skin``); a stopped training continues with --resume;
-3. `rotate evaluate --task insertion` of every row over ``trials`` closed-loop trials seeded from ``eval_seed``
-   (the demonstrations' episodes are seeded ``e`` for e < episodes: no trial shares one).
+3. with ``--dagger-rounds N``, per row and round r = 1..N: `rotate demos --policy` (the row's latest policy drives
+   ``dagger_episodes`` episodes seeded r x 1,000,000 + e while the expert labels the states it reaches, DAgger) into
+   dagger_<row>_<r>/, then `rotate train-il` on the expert's demonstrations and every round so far, il_<row>_r<r>/;
+4. `rotate evaluate --task insertion` of every row's last policy over ``trials`` closed-loop trials seeded from
+   ``eval_seed`` (the demonstrations' episodes are seeded ``e`` for e < episodes: no trial shares one).
 
     python scripts/insertion_cpu_recipe.py --out runs/insertion_cpu
     python scripts/insertion_cpu_recipe.py --out runs/insertion_cpu --rows camera touch_all --dry-run
+    python scripts/insertion_cpu_recipe.py --out runs/insertion_dagger --rows camera touch_all --dagger-rounds 2
 
 Ship the best touch row as `insertion` and the camera row as `insertion-camera` by copying their bundle folders to
 rotation/policies/<name> with a card naming this command (docs/insertion.md). Budget on 2 CPU cores: the
@@ -66,6 +70,10 @@ class Config:
     """Optimizer steps of the end-to-end row."""
     e2e_batch_size: int = 8
     """Batch of the end-to-end row (each sample renders four fingertip windows)."""
+    dagger_rounds: int = 0
+    """DAgger rounds per row (step 3; 0: the policies learn from the expert's demonstrations alone)."""
+    dagger_episodes: int = 100
+    """Episodes each DAgger round records per row."""
     trials: int = 100
     """Closed-loop trials per row."""
     eval_seed: int = 500_000
@@ -86,18 +94,26 @@ class Config:
         if "skin" in self.rows and not self.skin_encoder:
             raise ValueError("rows: the skin row needs --skin-encoder (a pretrained Sparsh-skin: "
                              "scripts/skin_cpu_recipe.py)")
-        for name in ("episodes", "steps", "e2e_steps", "e2e_batch_size", "trials"):
+        for name in ("episodes", "steps", "e2e_steps", "e2e_batch_size", "trials", "dagger_episodes"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 <= int(self.dagger_rounds) <= 20:
+            raise ValueError(f"dagger_rounds must be in [0, 20], got {self.dagger_rounds}")
         if self.eval_seed < self.episodes:
             raise ValueError(f"eval_seed must be >= episodes ({self.episodes}): trials would repeat demonstrated "
                              f"episodes, got {self.eval_seed}")
 
 
-def _train(cfg: Config, row: str) -> list[str]:
-    run = cfg.out / f"il_{row}"
-    demos = cfg.out / ("demos_xela" if row == "skin" else "demos")
-    args = ["train-il", "--demos", str(demos), "--touch", TOUCH[row], "--out", str(run),
+def _run_dir(cfg: Config, row: str, round_: int) -> Path:
+    """The training run of a row after DAgger round ``round_`` (0: on the expert's demonstrations alone)."""
+    return cfg.out / (f"il_{row}" if round_ == 0 else f"il_{row}_r{round_}")
+
+
+def _train(cfg: Config, row: str, round_: int = 0) -> list[str]:
+    run = _run_dir(cfg, row, round_)
+    demos = [cfg.out / ("demos_xela" if row == "skin" else "demos")]
+    demos += [cfg.out / f"dagger_{row}_{r}" for r in range(1, round_ + 1)]
+    args = ["train-il", "--demos", *map(str, demos), "--touch", TOUCH[row], "--out", str(run),
             *progress_args(cfg.progress)]
     if row != "camera":
         args += ["--encoder", cfg.skin_encoder if row == "skin" else cfg.encoder]
@@ -123,8 +139,17 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     for row in cfg.rows:
         if not (out / f"il_{row}" / "bundle").is_dir():
             todo.append((f"train {row}", _train(cfg, row)))
+        for r in range(1, cfg.dagger_rounds + 1):
+            hand = ["--hand", "xela_v4"] if row == "skin" else []
+            todo.append((f"DAgger round {r} of {row}", [
+                "demos", "--task", "insertion", *hand, "--policy", str(_run_dir(cfg, row, r - 1) / "bundle"),
+                "--episodes", str(cfg.dagger_episodes), "--seed", str(r), "--expert-align", cfg.expert_align,
+                "--grip", cfg.grip, "--out", str(out / f"dagger_{row}_{r}"), *progress]))
+            if not (_run_dir(cfg, row, r) / "bundle").is_dir():
+                todo.append((f"train {row} after round {r}", _train(cfg, row, r)))
     if not (out / "eval" / "results.json").is_file():
-        policies = [a for row in cfg.rows for a in ("--policy", f"{row}={out / f'il_{row}' / 'bundle'}")]
+        last = cfg.dagger_rounds
+        policies = [a for row in cfg.rows for a in ("--policy", f"{row}={_run_dir(cfg, row, last) / 'bundle'}")]
         todo.append((f"evaluate {len(cfg.rows)} rows over {cfg.trials} trials",
                      ["evaluate", "--task", "insertion", *policies, "--episodes", str(cfg.trials), "--seed",
                       str(cfg.eval_seed), "--out", str(out / "eval"), *progress]))

@@ -37,7 +37,7 @@ def test_every_step_is_listed_and_parses(recipe, tmp_path):
     camera, touch_all, e2e, skin = parsed[2:6]
     assert (camera.touch, touch_all.touch, e2e.touch, skin.touch) == ("none", "all", "e2e", "skin")
     assert touch_all.encoder == "sparshx-tinier-sim" and skin.encoder == "skin_run"
-    assert skin.demos == out / "demos_xela" and camera.demos == out / "demos"
+    assert skin.demos == (out / "demos_xela",) and camera.demos == (out / "demos",)
     assert (e2e.steps, e2e.batch_size, touch_all.steps) == (1500, 8, 3000)
     evaluate = parsed[6]
     assert evaluate.task == "insertion" and evaluate.episodes == 100 and evaluate.seed == 500_000
@@ -58,7 +58,33 @@ def test_every_step_is_listed_and_parses(recipe, tmp_path):
     assert {(d.noise_m, d.noise_rad, d.expert_align) for d in noisy} == {(0.0005, 0.01, "state")}
 
 
+def test_dagger_rounds_drive_each_row_with_its_latest_policy_and_train_on_every_round(recipe, tmp_path):
+    out = tmp_path / "r"
+    cfg = recipe.Config(out=out, rows=("camera", "skin"), skin_encoder="s", dagger_rounds=2, dagger_episodes=40,
+                        progress=False)
+    steps = recipe.commands(cfg)
+    assert [w for w, _ in steps][3:9] == ["DAgger round 1 of camera", "train camera after round 1",
+                                          "DAgger round 2 of camera", "train camera after round 2", "train skin",
+                                          "DAgger round 1 of skin"]
+    parsed = dict((w, _parsed(args)) for w, args in steps)
+    round2 = parsed["DAgger round 2 of camera"]
+    assert round2.policy == str(out / "il_camera_r1" / "bundle") and round2.seed == 2 and round2.episodes == 40
+    assert round2.out == out / "dagger_camera_2" and round2.noise_m == 0.0 and round2.hand == "digit360_v4"
+    assert parsed["DAgger round 1 of skin"].hand == "xela_v4"
+    assert parsed["train camera after round 2"].demos == (out / "demos", out / "dagger_camera_1",
+                                                         out / "dagger_camera_2")
+    assert parsed["train camera after round 2"].out == out / "il_camera_r2"
+    evaluate = parsed["evaluate 2 rows over 100 trials"]
+    assert dict(evaluate.policies) == {"camera": str(out / "il_camera_r2" / "bundle"),
+                                       "skin": str(out / "il_skin_r2" / "bundle")}
+    (out / "il_camera_r1" / "bundle").mkdir(parents=True)  # a round trained is skipped, its demos still listed
+    names = [w for w, _ in recipe.commands(cfg)]
+    assert "train camera after round 1" not in names and "DAgger round 1 of camera" in names
+
+
 @pytest.mark.parametrize("options, message", [
+    ({"dagger_rounds": -1}, "dagger_rounds must be in"),
+    ({"dagger_episodes": 0}, "dagger_episodes must be >= 1"),
     ({"rows": ("camera", "lidar")}, "rows: give distinct rows"),
     ({"rows": ("camera", "camera")}, "rows: give distinct rows"),
     ({"rows": ("skin",)}, "the skin row needs --skin-encoder"),
