@@ -9,8 +9,11 @@ An episode (:func:`draw_episode`, all from its seed): the content and fill level
 (bucket and row), then the shake: the bottle settles for ``settle_s``, the wrist's motion ramps in over ``ramp_s``
 and goes on to ``duration_s``: a sinusoid of amplitude ``amplitude`` (m) and frequency ``frequency`` (Hz) along a
 random direction (mostly horizontal), and a tilt about a random horizontal axis of ``tilt`` (rad) a quarter period
-behind it. :class:`ShakeSim` steps it and returns the fingertips' contact fields at every physics step (the rows
-the Digit 360 streams are rendered from, envs.sensors.digit360) with the labels.
+behind it. With ``motion="strokes"`` the wrist instead travels the same amplitude at a constant speed and reverses
+as sharply as ``max_accel`` allows (:func:`stroke`): the way a person shakes a bottle to hear what is inside, the
+contents flying across and striking the wall at each reversal instead of swaying with a smooth sinusoid.
+:class:`ShakeSim` steps it and returns the fingertips' contact fields at every physics step (the rows the Digit 360
+streams are rendered from, envs.sensors.digit360) with the labels.
 """
 
 from __future__ import annotations
@@ -36,6 +39,8 @@ WALL_SEGMENTS = 16
 """Boxes around the bottle's wall."""
 HELD_TOLERANCE = 0.015
 """A bottle that moved more than this (m) relative to the palm by the end was not held."""
+MOTIONS = ("sine", "strokes")
+"""The wrist's shaking motions (ShakeConfig.motion)."""
 BOTTLE_CONTYPE, GRAIN_BIT = OBJECT_CONTYPE, 4
 """Collision bits: the hand collides with the bottle (as with the rotation env's objects), grains with the bottle
 and each other, never with the hand."""
@@ -64,6 +69,9 @@ class ShakeConfig:
     """Wrist tilt amplitude (rad)."""
     vertical: float = 0.3
     """Largest vertical part of the shake's direction (unit vector's z)."""
+    motion: str = "sine"
+    """The wrist's motion along the shake's direction: 'sine' (a sinusoid) or 'strokes' (constant speed, reversals
+    at ``max_accel``: :func:`stroke`); the same amplitude, frequency and phase either way."""
     grip: str = "palm"
     """How the bottle is held: 'palm' (at the cup's grasp, on the phalanges and palm) or 'fingertips' (standing on
     the four domes' grip band, squeezed by them alone: envs.plug_grip; what the domes feel of the contents is then
@@ -72,6 +80,8 @@ class ShakeConfig:
     def __post_init__(self) -> None:
         check_touch_hand("shake", self.hand)
         check_grip("shake", self.grip)
+        if self.motion not in MOTIONS:
+            raise ValueError(f"shake: motion must be one of {', '.join(MOTIONS)}, got {self.motion!r}")
         for name in ("amplitude", "frequency", "tilt"):
             lo, hi = getattr(self, name)
             if not (0 <= lo <= hi and math.isfinite(hi)):
@@ -103,6 +113,33 @@ class ShakeEpisode:
     @property
     def content_id(self) -> int:
         return CONTENT_NAMES.index(self.content)
+
+
+def stroke(u: float, amplitude: float, frequency: float, max_accel: float) -> float:
+    """Displacement of a 'strokes' shake over its amplitude (in [-1, 1]) at cycle phase ``u`` (cycles; 0 at the
+    middle of the travel, moving up, as sin(2 pi u)): constant speed V between reversals of constant acceleration
+    ``max_accel`` lasting tau = 2 V / max_accel, V chosen so that each stroke covers 2 ``amplitude``
+    (2 A = V (T - tau) / 2 with T = 1 / ``frequency``). Needs A <= max_accel T^2 / 32 (draw_episode's cap for the
+    sinusoid, max_accel / (2 pi f)^2, is below it)."""
+    period, a = 1.0 / frequency, max_accel
+    disc = period * period - 32.0 * amplitude / a
+    if disc < 0:
+        raise ValueError(f"shake: strokes of {amplitude * 1e3:.1f} mm at {frequency:g} Hz need more than "
+                         f"{max_accel:g} m/s^2")
+    speed = (period - math.sqrt(disc)) * a / 4.0
+    h = speed / a  # half the reversal (s)
+    t = ((u + 0.25) % 1.0) * period  # from the bottom of the travel
+    sign = 1.0
+    if t >= period / 2:  # the way down mirrors the way up
+        t, sign = t - period / 2, -1.0
+    if t <= h:
+        x = -amplitude + a * t * t / 2
+    elif t <= period / 2 - h:
+        x = -amplitude + a * h * h / 2 + speed * (t - h)
+    else:
+        r = period / 2 - t
+        x = amplitude - a * r * r / 2
+    return sign * x / amplitude if amplitude > 0 else 0.0
 
 
 def draw_episode(cfg: ShakeConfig, seed: int, grasps: GraspCache, content: str | None = None,
@@ -267,20 +304,23 @@ class ShakeSim:
         cfg, ep = self.cfg, self.episode
         ramp = min(max((t - cfg.settle_s) / cfg.ramp_s, 0.0), 1.0) if cfg.ramp_s > 0 else float(t >= cfg.settle_s)
         w = 2 * math.pi * ep.frequency * t + ep.phase
-        pos = ramp * ep.amplitude * math.sin(w) * np.asarray(ep.direction)
+        along = (stroke(w / (2 * math.pi), ep.amplitude, ep.frequency, cfg.max_accel) if cfg.motion == "strokes"
+                 else math.sin(w))
+        pos = ramp * ep.amplitude * along * np.asarray(ep.direction)
         return pos, tilt_quat(self._palm_quat0, np.asarray(ep.tilt_axis), ramp * ep.tilt * math.sin(w - math.pi / 2))
 
     def reset(self) -> None:
         """The episode's start: the grasp, the bottle and contents where the model put them, all at rest."""
         self._run.reset(*self._wrist(0.0))
 
-    def run(self, reset: bool = True) -> ShakeRecording:
+    def run(self, reset: bool = True, on_step=None) -> ShakeRecording:
         """Step the episode (from its start, or with ``reset=False`` from the state :meth:`reset` left and the caller
-        may have changed); the contact fields of every physics step and the labels."""
+        may have changed); the contact fields of every physics step and the labels. ``on_step(data)`` is called
+        after every physics step (MjData: to look at what the fields do not hold)."""
         if reset:
             self.reset()
         try:
-            times, rows, offset = self._run.run(int(round(self.cfg.duration_s / TIMESTEP)), self._wrist)
+            times, rows, offset = self._run.run(int(round(self.cfg.duration_s / TIMESTEP)), self._wrist, on_step)
         except FloatingPointError as err:
             raise FloatingPointError(f"shake: episode seed {self.episode.seed}: {err}") from None
         held = bool(np.linalg.norm(offset[-1] - offset[0]) <= HELD_TOLERANCE)

@@ -397,6 +397,7 @@ CHOICE_NEEDS: dict[str, str] = {
     "deploy:--sim-transport slcan": "",
     "collect:--task joystick": "--skin",
     "collect:--shake-grip fingertips": "--task shake",  # only the shaking task holds a bottle
+    "collect:--shake-motion strokes": "--task shake",
     # the shipped teacher and student trained on the default hand: the other hands need one of theirs
     **{f"train-student:--env.hand {hand}": "teacher" for hand in HANDS if hand != DEFAULT_HAND},
     **{f"finetune-student:--hand {hand}": "student" for hand in HANDS if hand != DEFAULT_HAND},

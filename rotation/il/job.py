@@ -73,8 +73,9 @@ class Config:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        demos = self.demos if isinstance(self.demos, (tuple, list)) else (self.demos,)
-        object.__setattr__(self, "demos", tuple(Path(d) for d in demos))
+        demos = (self.demos,) if isinstance(self.demos, (str, Path)) else self.demos  # one folder, from Python
+        if isinstance(demos, (tuple, list)) and all(isinstance(d, (str, Path)) for d in demos):
+            object.__setattr__(self, "demos", tuple(Path(d) for d in demos))
         check_types(self)
         if not self.demos:
             raise ValueError("demos: give at least one folder of demonstrations")

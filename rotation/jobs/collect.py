@@ -107,6 +107,9 @@ class Config:
     shake_grip: Literal["palm", "fingertips"] = "palm"
     """How --task shake holds the bottle: 'palm' (the cup's grasps: the bottle rests on the phalanges and palm too)
     or 'fingertips' (on the four domes alone, squeezed: envs.plug_grip; the domes carry several times the force)."""
+    shake_motion: Literal["sine", "strokes"] = "sine"
+    """How --task shake moves the wrist: 'sine' or 'strokes' (constant speed, reversals at the shake's largest
+    acceleration: the contents strike the wall at each; envs.shake.stroke)."""
 
     def __post_init__(self) -> None:
         check_types(self, skip=("com_shift",))  # Perturbation below checks com_shift with its own message
@@ -138,8 +141,9 @@ class Config:
             raise ValueError(f"task: the {self.task} task moves the Digit 360 hand with the vendor's kinematics by "
                              "script; leave --skin, --hand and --policy out")
         check_number("shake_s", self.shake_s, 1.2, 600.0, unit="s (a Sparsh-X window needs 1.12 s of history)")
-        if self.shake_grip != "palm" and self.task != "shake":
-            raise ValueError(f"shake_grip: only --task shake holds a bottle, got --task {self.task}")
+        for name, first in (("shake_grip", "palm"), ("shake_motion", "sine")):
+            if getattr(self, name) != first and self.task != "shake":
+                raise ValueError(f"{name}: only --task shake holds a bottle, got --task {self.task}")
         if self.task == "joystick" and self.policy not in ("play", "random"):
             raise ValueError(f"policy: the joystick task moves the hand by script: 'play' or 'random', got "
                              f"{self.policy!r}")
@@ -320,6 +324,8 @@ def run(cfg: Config) -> dict[str, float]:
         settings["shake_s"] = cfg.shake_s
     if cfg.shake_grip != "palm":  # the first collections' settings (and digests) stay as they were
         settings["shake_grip"] = cfg.shake_grip
+    if cfg.shake_motion != "sine":
+        settings["shake_motion"] = cfg.shake_motion
     check_manifest(cfg, settings)
     digest = settings_digest(settings)
     with_z = isinstance(policy, _BundlePolicy) and policy.privileged

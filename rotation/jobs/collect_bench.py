@@ -51,20 +51,21 @@ def bench_streams(task: str) -> list[StreamSetup]:
     return streams + [StreamSetup(f"digit360/{f}/contact", rate_hz=PHYSICS_HZ) for f in FINGERS]
 
 
-def _simulate(task: str, hand: str, duration_s: float, seed: int, grasps: Any, grip: str = "palm"
-              ) -> tuple[Any, Any, dict, dict]:
-    """(episode, recording, labels {name: value}, properties) of one episode (``grip``: how a shaken bottle is
-    held, envs.shake.ShakeConfig.grip)."""
+def _simulate(task: str, hand: str, duration_s: float, seed: int, grasps: Any, grip: str = "palm",
+              motion: str = "sine") -> tuple[Any, Any, dict, dict]:
+    """(episode, recording, labels {name: value}, properties) of one episode (``grip``, ``motion``: how a shaken
+    bottle is held and moved, envs.shake.ShakeConfig)."""
     if task == "shake":
         from envs.shake import ShakeConfig, ShakeSim, draw_episode
         from envs.shake_contents import FILL_LEVELS
 
-        cfg = ShakeConfig(hand=hand, duration_s=duration_s, grip=grip)
+        cfg = ShakeConfig(hand=hand, duration_s=duration_s, grip=grip, motion=motion)
         ep = draw_episode(cfg, seed, grasps)
         rec = ShakeSim(cfg, ep, grasps).run()
         labels = {"content": ep.content_id, "fill": ep.fill, "content_mass": rec.content_mass}
         props = {"content": ep.content, "fill": FILL_LEVELS[ep.fill], "content_mass": rec.content_mass,
-                 "amplitude": ep.amplitude, "frequency": ep.frequency, "tilt": ep.tilt, "grip": grip}
+                 "amplitude": ep.amplitude, "frequency": ep.frequency, "tilt": ep.tilt, "grip": grip,
+                 "motion": motion}
         return ep, rec, labels, props
     from envs.oas import OasConfig, OasSim, draw_episode
 
@@ -79,7 +80,7 @@ def _simulate(task: str, hand: str, duration_s: float, seed: int, grasps: Any, g
 def record_episode(cfg: Any, hand: str, episode: int, path: Path, grasps: Any, tags: dict[str, Any]) -> bool:
     """Simulate and write episode ``episode`` of task ``cfg.task``; returns whether the hand held the object."""
     seed = bench_seed(cfg.seed, episode)
-    ep, rec, labels, props = _simulate(cfg.task, hand, cfg.shake_s, seed, grasps, cfg.shake_grip)
+    ep, rec, labels, props = _simulate(cfg.task, hand, cfg.shake_s, seed, grasps, cfg.shake_grip, cfg.shake_motion)
     with np.errstate(over="ignore"):
         key = int(splitmix64(np.asarray([seed], dtype=np.uint64))[0])
     meta = SessionMeta(

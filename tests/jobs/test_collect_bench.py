@@ -97,6 +97,29 @@ def test_the_fingertip_grip_is_recorded_and_keeps_its_own_collection(sessions, t
     assert "only --task shake holds a bottle" in err and not (tmp_path / "o").exists()
 
 
+def test_the_strokes_motion_is_recorded_and_keeps_its_own_collection(sessions, tmp_path, capsys):
+    """--shake-motion strokes shakes the same episode's bottle by strokes (envs.shake.stroke): its contact fields
+    differ from the sinusoid's, the sessions say which motion, an OUT of one motion refuses the other, oas refuses
+    the option."""
+    out, _ = sessions
+    strokes = tmp_path / "strokes"
+    collect.run(collect.Config(task="shake", episodes=1, out=strokes, seed=4, shake_s=1.3, shake_motion="strokes",
+                               progress=False))
+    with SessionReader(find_sessions(out)[0]) as a, SessionReader(find_sessions(strokes)[0]) as b:
+        assert a.meta.properties["motion"] == "sine" and b.meta.properties["motion"] == "strokes"
+        assert (a.meta.properties["content"], a.meta.properties["amplitude"]) == (
+            b.meta.properties["content"], b.meta.properties["amplitude"])
+        pa, pb = a.stream("digit360/index/contact").data, b.stream("digit360/index/contact").data
+        assert pa.shape == pb.shape and not np.array_equal(pa, pb)
+    base = ["collect", "--task", "shake", "--episodes", "1", "--shake-s", "1.3", "--seed", "4"]
+    assert main([*base, "--out", str(strokes)]) == 1  # the sinusoid into the strokes' OUT
+    assert "was not written by this collection" in capsys.readouterr().err
+    assert main(["collect", "--task", "oas", "--episodes", "1", "--out", str(tmp_path / "o"), "--shake-motion",
+                 "strokes"]) == 2
+    err = capsys.readouterr().err
+    assert "only --task shake holds a bottle" in err and not (tmp_path / "o").exists()
+
+
 def test_oas_sessions_carry_the_object_action_and_surface_and_the_surface_force(tmp_path):
     out = tmp_path / "oas"
     collect.run(collect.Config(task="oas", episodes=2, out=out, seed=3, shake_s=1.3, progress=False))
