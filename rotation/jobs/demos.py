@@ -27,7 +27,7 @@ states, labels each of them (DAgger: Ross, Gordon and Bagnell, AISTATS 2011): a 
 with probability ``--beta`` the expert's, and the session records the expert's action on that frame. The
 demonstrations then hold the expert's corrections in the states the policy itself reaches (a plug dragged beside the
 hole, pressed too hard), which neither a clean expert nor its noise visits; training on them beside the first
-demonstrations (`rotate train-il --demos` takes a folder holding both) is the next round's policy. Give each round a
+demonstrations (`rotate train-il --demos` takes several folders) is the next round's policy. Give each round a
 seed of its own; the files record the policy's bundle digest, and a rerun with other weights is refused.
 
 The expert finds the hole by feel by default (``--expert-align feel``: after touching the plate it steps away from
