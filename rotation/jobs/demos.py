@@ -36,9 +36,9 @@ follows from what a policy's touch can carry; ``--expert-align state`` slides to
 neither the camera nor touch shows (the first demonstrations, experiments/insertion).
 
 The session's properties record the outcome (``success``, ``steps``, ``max_force``, ``lost``: the plug left the
-grasp, ``retries``: the expert's back-offs after a jam). A run that stops keeps the
-finished episodes; running the same command again records the rest (an episode's file is complete or recorded
-again). Other tasks follow as they are added.
+grasp, ``retries``: the expert's back-offs after a jam, ``policy_steps``: the steps a --policy drove). A run that
+stops keeps the finished episodes; running the same command again records the rest (an episode's file is complete or
+recorded again). Other tasks follow as they are added.
 """
 
 from __future__ import annotations
