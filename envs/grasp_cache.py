@@ -115,9 +115,9 @@ class GraspCache:
                              f"{', '.join(sorted(OBJECTS))}")
         if hand not in HANDS:
             raise ValueError(f"grasp cache {path}: unknown hand {hand!r}; hands: {', '.join(HANDS)}")
-        if hold and (len(hold) != 4 or not all(math.isfinite(x) for x in hold)):
-            raise ValueError(f"grasp cache {path}: 'hold' must be 4 finite numbers (seconds, friction, mass, "
-                             f"max_tilt), got {list(hold)}; regenerate it with `rotate grasps`")
+        if hold and (len(hold) not in (4, 5) or not all(math.isfinite(x) for x in hold)):
+            raise ValueError(f"grasp cache {path}: 'hold' must be 4 or 5 finite numbers (seconds, friction, mass, "
+                             f"max_tilt[, surface]), got {list(hold)}; regenerate it with `rotate grasps`")
         return cls(name, scales, grasps, seed, source=str(path), hand=hand, hold=hold)
 
 

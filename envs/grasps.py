@@ -110,9 +110,16 @@ class HoldRule:
     """Default (kg): the middle of the randomization range (0.13), the nominal env's mass."""
     max_tilt: float = 0.35
     """rad (about 20 degrees)."""
+    surface: float = 1.0
+    """The cup surface's factor on the friction of the domes (``friction``) and of the links together, as an
+    evaluation's friction condition applies it (1: the hand's own materials; 0.25: grasps that hold a cup at a
+    quarter of the friction)."""
 
     def as_array(self) -> np.ndarray:
-        return np.array([self.seconds, self.friction, self.mass, self.max_tilt])
+        """What a cache records of the rule: seconds, friction, mass, max_tilt, and the surface where it is not 1
+        (so the caches checked before the surface existed keep their record)."""
+        return np.array([self.seconds, self.friction, self.mass, self.max_tilt]
+                        + ([self.surface] if self.surface != 1.0 else []))
 
     @classmethod
     def for_hand(cls, hand: str, **changes) -> HoldRule:
@@ -132,11 +139,10 @@ class HoldTest:
         self.batch = mujoco.batch.Batch(model, batch_size, nthread or 0, persistent=True)
         self.starts = EpisodeStarts(self.batch, model, obj, max_scale)  # the env's own episode start
 
-    def worst_tilt(self, rows: np.ndarray, scales: np.ndarray, rule: HoldRule, surface: float = 1.0) -> np.ndarray:
+    def worst_tilt(self, rows: np.ndarray, scales: np.ndarray, rule: HoldRule) -> np.ndarray:
         """(k,) worst tilt (rad) of each row (k, 23) at its object scale (k,) under ``rule``; inf where the object
-        sank more than HOLD_DROP or the state went non-finite. ``surface`` scales the friction of the domes
-        (``rule.friction``) and of the links together, as an evaluation's friction perturbation does (a slippery
-        cup surface, envs.task.sample_params)."""
+        sank more than HOLD_DROP or the state went non-finite. ``rule.surface`` scales the friction of the domes and
+        of the links together, as an evaluation's friction perturbation does (envs.task.sample_params)."""
         rows, scales = np.asarray(rows, dtype=np.float64), np.asarray(scales, dtype=np.float64)
         n, cfg, st = self.batch_size, self.cfg, self.starts
         o, ids = st.obj_qpos, np.arange(n)
@@ -144,9 +150,9 @@ class HoldTest:
         params = {"friction": np.full(n, rule.friction), "mass": np.full(n, rule.mass), "com": np.zeros((n, 3)),
                   "kp": np.full((n, C.NUM_JOINTS), cfg.kp), "kd": np.full((n, C.NUM_JOINTS), cfg.kd)}
         params.update(task.nominal_hardware_params(cfg, n))  # the hand's other parameters at their nominal values
-        params["friction"] = params["friction"] * surface
+        params["friction"] = params["friction"] * rule.surface
         if "link_friction" in params:
-            params["link_friction"] = params["link_friction"] * surface
+            params["link_friction"] = params["link_friction"] * rule.surface
         worst = np.zeros(len(rows))
         for first in range(0, len(rows), n):
             k = min(n, len(rows) - first)
@@ -166,15 +172,13 @@ class HoldTest:
 
 
 def hold_check(cache: GraspCache, rule: HoldRule | None = None, batch_size: int = 128,
-               nthread: int | None = None, surface: float = 1.0) -> np.ndarray:
+               nthread: int | None = None) -> np.ndarray:
     """Worst tilt (rad, (S, G)) of every cached grasp under ``rule`` (HoldRule; default: the rule at the cache's
-    hand's nominal physics, HoldRule.for_hand), the cup's surface scaling the domes' and the links' friction by
-    ``surface`` (HoldTest.worst_tilt); a grasp passes where it is below ``rule.max_tilt``."""
+    hand's nominal physics, HoldRule.for_hand); a grasp passes where it is below ``rule.max_tilt``."""
     rule = HoldRule.for_hand(cache.hand) if rule is None else rule
     s, g = cache.grasps.shape[:2]
     test = HoldTest(cache.object, cache.hand, batch_size, nthread)
-    return test.worst_tilt(cache.grasps.reshape(s * g, GRASP_DIM), np.repeat(cache.scales, g), rule,
-                           surface).reshape(s, g)
+    return test.worst_tilt(cache.grasps.reshape(s * g, GRASP_DIM), np.repeat(cache.scales, g), rule).reshape(s, g)
 
 
 def generate_grasps(object_name: str, scales: tuple[float, ...], per_scale: int, seed: int = 0,

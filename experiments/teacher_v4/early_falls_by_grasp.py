@@ -5,7 +5,7 @@
 Reads a `rotate evaluate` run (its config's seed and episode count, each policy's per-episode ttf and time in hand
 under CONDITION), finds the cached grasp each episode started from (a batch of envs reset as the evaluation resets
 them: episode j seeded seed + j), runs the hold check on those grasps with the condition's friction factor on the
-domes and the links (envs.grasps.hold_check with ``surface``, the hand's nominal mass), and prints, per policy, the
+domes and the links (envs.grasps.HoldRule's ``surface``, the hand's nominal mass), and prints, per policy, the
 falls within the first 2 s among the episodes whose grasp holds still by itself and among the others.
 """
 
@@ -38,7 +38,7 @@ def main(run: str, condition: str) -> int:
                        num_envs=n, seed=seed, nthread=1)
     env.reset(seed=seed)
     cache = load_default_cache("cup", "", hand)
-    worst = hold_check(cache, HoldRule.for_hand(hand), surface=perturb.friction_scale)
+    worst = hold_check(cache, HoldRule.for_hand(hand, surface=perturb.friction_scale))
     holds = np.zeros(n, dtype=bool)
     for i, q in enumerate(env.grasp_q):
         s, g = np.argwhere(np.all(np.abs(cache.grasps[:, :, :16] - q) < 1e-5, axis=2))[0]

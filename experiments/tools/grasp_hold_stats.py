@@ -80,12 +80,13 @@ def _load(spec: str) -> tuple[str, GraspCache]:
 def run(cfg: Config) -> dict:
     caches = [_load(spec) for spec in cfg.caches]  # every name checked before any work
     given = {k: v for k, v in (("friction", cfg.friction), ("mass", cfg.mass)) if v is not None}
-    rules = {name: HoldRule.for_hand(cache.hand, seconds=cfg.seconds, max_tilt=cfg.max_tilt, **given)
+    rules = {name: HoldRule.for_hand(cache.hand, seconds=cfg.seconds, max_tilt=cfg.max_tilt, surface=cfg.surface,
+                                     **given)
              for name, cache in caches}
     stats, tilts = {}, {}
     for name, cache in caches:
         rule = rules[name]
-        worst = hold_check(cache, rule, surface=cfg.surface)
+        worst = hold_check(cache, rule)
         tilts[name] = worst
         passed = worst < rule.max_tilt
         stats[name] = {"object": cache.object, "grasps": int(worst.size), "pass": round(float(passed.mean()), 4),

@@ -6,10 +6,14 @@ four fingertips are within 10 cm of the object, at least two touch it, it did no
 (its up axis within --max-tilt of vertical). Then the hold check: reset into the grasp as the env does (joint targets
 = the grasp's joints), hold still for --hold-seconds at the nominal friction and mass, and keep the grasp only if the
 object stays within --hold-tilt of vertical and does not sink (about a third of the grasps that pass the first rule
-fail this one; `--hold-seconds 0` turns it off).
+fail this one; `--hold-seconds 0` turns it off). `--hold-surface S` holds them on a cup surface of S times the
+friction (the domes' and the links' together, as `rotate evaluate`'s friction conditions scale it): at 0.25 only
+44% of the shipped cup grasps hold (experiments/teacher_v4, stage 11), and a cache of grasps that do starts every
+policy from a grasp that keeps a slippery cup by itself.
 
     rotate grasps --objects cup cylinder --per-scale 100 --out grasps/
     rotate grasps --objects cup --hand xela --out grasps/      # the Xela skin hand (docs/skin.md)
+    rotate grasps --objects cup --hold-surface 0.25 --out grasps_slippery/   # grasps that hold a slippery cup
     rotate view --object cup --grasp-cache grasps/grasps_cup.npz --out cup.png
 
 The files are `OUT/grasps_<object>.npz` (`OUT/grasps_<object>_xela.npz` for the Xela hand); pass one to the env as
@@ -62,6 +66,9 @@ class Config:
     """Hold check: object mass in kg; default: the middle of the hand's randomization range."""
     hold_tilt: float = HoldRule.max_tilt
     """Hold check: the largest tilt (rad) the object may reach during the hold."""
+    hold_surface: float = 1.0
+    """Hold check: the cup surface's factor on the friction of the domes and of the links together (1: the hand's
+    own materials)."""
     hand: Literal["digit360", "xela", "digit360_v4", "xela_v4"] = DEFAULT_HAND
     """Hand variant (envs.scene.HANDS): 'digit360' fingertips or the Xela skin hand; grasps are hand-specific."""
 
@@ -93,13 +100,14 @@ class Config:
         check_number("hold_friction", self.hold_friction, 0.01, 10.0)
         check_number("hold_mass", self.hold_mass, 0.001, 5.0, unit="kg")
         check_number("hold_tilt", self.hold_tilt, 0.0, math.pi, low_open=True, unit="rad")
+        check_number("hold_surface", self.hold_surface, 0.01, 10.0, low_open=True)
         check_output_dir("out", self.out)
 
     @property
     def hold(self) -> HoldRule | None:
         if self.hold_seconds == 0:
             return None
-        return HoldRule(self.hold_seconds, self.hold_friction, self.hold_mass, self.hold_tilt)
+        return HoldRule(self.hold_seconds, self.hold_friction, self.hold_mass, self.hold_tilt, self.hold_surface)
 
 
 def run(cfg: Config) -> list[Path]:

@@ -5,6 +5,7 @@ the hold check, compared with the env itself holding still."""
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 
 import mujoco
 import numpy as np
@@ -282,7 +283,7 @@ def test_a_slippery_surface_in_the_hold_check_is_the_evaluation_s_friction_condi
     nominal_rows.save(tmp_path / "g.npz")
     saved = GraspCache.load(tmp_path / "g.npz")
     rule = HoldRule.for_hand(DEFAULT_HAND)
-    worst = hold_check(saved, rule, batch_size=24, nthread=1, surface=0.25)[0]
+    worst = hold_check(saved, replace(rule, surface=0.25), batch_size=24, nthread=1)[0]
     assert np.all(hold_check(saved, rule, batch_size=24, nthread=1)[0] < rule.max_tilt)  # all hold at x1
     assert (worst >= rule.max_tilt).sum() >= 3, worst  # and several fail at x0.25
     nominal = default_randomization(DEFAULT_HAND, enabled=False)
@@ -303,6 +304,23 @@ def test_a_slippery_surface_in_the_hold_check_is_the_evaluation_s_friction_condi
     assert not ended[held].any()
 
 
+def test_grasps_generated_for_a_slippery_surface_hold_a_slippery_cup_and_say_so(tmp_path):
+    """`rotate grasps --hold-surface 0.25`: every kept grasp passes a fresh hold check at a quarter of the friction,
+    the file records the surface as the rule's fifth number (a rule at the hand's own surface keeps four), and a
+    cache loads with either."""
+    from rotation.jobs import grasps as grasps_job
+
+    rule = HoldRule.for_hand(DEFAULT_HAND, surface=0.25)
+    assert len(HoldRule.for_hand(DEFAULT_HAND).as_array()) == 4 and list(rule.as_array())[4] == 0.25
+    paths = grasps_job.run(grasps_job.Config(objects=("cup",), scales=(NOMINAL_SCALE,), per_scale=3, batch_size=16,
+                                             hold_surface=0.25, out=tmp_path))
+    cache = GraspCache.load(paths[0])
+    assert cache.hold == tuple(rule.as_array())
+    assert np.all(hold_check(cache, rule, batch_size=8, nthread=1) < rule.max_tilt)
+    with pytest.raises(ValueError, match="hold_surface"):
+        grasps_job.Config(hold_surface=0.0, out=tmp_path / "x")
+
+
 def test_the_hold_rule_only_removes_grasps(tmp_path, cup_grasps):
     """With the rule, generation keeps, in order, the grasps of the same draws that pass it, records the rule in the
     file, and every kept grasp passes a fresh check."""
@@ -319,7 +337,7 @@ def test_the_hold_rule_only_removes_grasps(tmp_path, cup_grasps):
 def test_a_damaged_hold_record_is_refused(tmp_path):
     np.savez(tmp_path / "hold.npz", object="cylinder", scales=small_cache().scales, grasps=small_cache().grasps,
              hold=np.array([3.0, np.nan]))
-    with pytest.raises(ValueError, match=r"'hold' must be 4 finite numbers"):
+    with pytest.raises(ValueError, match=r"'hold' must be 4 or 5 finite numbers"):
         GraspCache.load(tmp_path / "hold.npz")
 
 

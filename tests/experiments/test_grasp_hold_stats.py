@@ -38,8 +38,10 @@ def test_pass_rate_of_a_cache_generated_without_the_rule(stats, tmp_path):
     assert stats.main(["--caches", f"plain={tmp_path / 'g.npz'}", "--friction", str(rule.friction), "--mass",
                        str(rule.mass), "--surface", "0.25", "--out", str(slippery)]) == 0
     result = json.loads((slippery / "hold_stats.json").read_text())
-    worst = hold_check(GraspCache.load(tmp_path / "g.npz"), rule, surface=0.25)
+    slippery_rule = HoldRule.for_hand(DEFAULT_HAND, surface=0.25)
+    worst = hold_check(GraspCache.load(tmp_path / "g.npz"), slippery_rule)
     assert result["surface"] == 0.25 and result["caches"]["plain"]["surface"] == 0.25
+    assert result["rule"] == list(slippery_rule.as_array())  # five numbers: the surface is recorded
     assert result["caches"]["plain"]["pass"] == pytest.approx((worst < rule.max_tilt).mean(), abs=1e-4)
     assert result["caches"]["plain"]["pass"] < expected
 
