@@ -150,9 +150,7 @@ class HoldTest:
         params = {"friction": np.full(n, rule.friction), "mass": np.full(n, rule.mass), "com": np.zeros((n, 3)),
                   "kp": np.full((n, C.NUM_JOINTS), cfg.kp), "kd": np.full((n, C.NUM_JOINTS), cfg.kd)}
         params.update(task.nominal_hardware_params(cfg, n))  # the hand's other parameters at their nominal values
-        params["friction"] = params["friction"] * rule.surface
-        if "link_friction" in params:
-            params["link_friction"] = params["link_friction"] * rule.surface
+        task.scale_surface(params, rule.surface)
         worst = np.zeros(len(rows))
         for first in range(0, len(rows), n):
             k = min(n, len(rows) - first)

@@ -92,15 +92,20 @@ def sample_params(xp: ModuleType, cfg: EnvConfig, u: Array, u_phys: Array | None
     if u_phys is not None:
         p.update(sample_hardware_params(xp, cfg, u_phys))
     pert = cfg.perturb
-    # the cup's surface (a training draw) and the evaluation's friction scale: the domes' and the links' together
-    scale = p.pop("surface_friction", 1.0) * pert.friction_scale
-    p["friction"] = p["friction"] * scale
-    if "link_friction" in p:
-        p["link_friction"] = p["link_friction"] * scale
+    # the cup's surface (a training draw) and the evaluation's friction scale
+    scale_surface(p, p.pop("surface_friction", 1.0) * pert.friction_scale)
     p["mass"] = p["mass"] + pert.added_mass
     p["com"] = p["com"] + const(xp, pert.com_shift, u)
     p["grasp_u"] = u[:, 39]
     return p
+
+
+def scale_surface(p: dict[str, Array], scale) -> None:
+    """Scale the friction of the cup's surface in ``p`` in place: the domes' (``friction``) and the links'
+    (``link_friction``, where the hand has its own) together, as a slippery or grippy cup changes both."""
+    p["friction"] = p["friction"] * scale
+    if "link_friction" in p:
+        p["link_friction"] = p["link_friction"] * scale
 
 
 def sample_hardware_params(xp: ModuleType, cfg: EnvConfig, u: Array) -> dict[str, Array]:

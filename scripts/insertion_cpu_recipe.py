@@ -128,8 +128,9 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     """(what, command) still to run, in order (demonstrations are always listed: `rotate demos` keeps what is
     complete and records the rest)."""
     out, todo, progress = cfg.out, [], progress_args(cfg.progress)
+    expert = ["--expert-align", cfg.expert_align, "--grip", cfg.grip]  # the demonstrations' and every round's
     noise = ["--noise-m", str(cfg.noise_m), "--noise-rad", str(cfg.noise_rad)] if cfg.noise_m or cfg.noise_rad else []
-    noise += ["--expert-align", cfg.expert_align, "--grip", cfg.grip]
+    noise += expert
     todo.append(("demonstrations (Digit 360 hand)", ["demos", "--task", "insertion", "--episodes", str(cfg.episodes),
                                                     "--seed", "0", *noise, "--out", str(out / "demos"), *progress]))
     if "skin" in cfg.rows:
@@ -143,8 +144,8 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
             hand = ["--hand", "xela_v4"] if row == "skin" else []
             todo.append((f"DAgger round {r} of {row}", [
                 "demos", "--task", "insertion", *hand, "--policy", str(_run_dir(cfg, row, r - 1) / "bundle"),
-                "--episodes", str(cfg.dagger_episodes), "--seed", str(r), "--expert-align", cfg.expert_align,
-                "--grip", cfg.grip, "--out", str(out / f"dagger_{row}_{r}"), *progress]))
+                "--episodes", str(cfg.dagger_episodes), "--seed", str(r), *expert, "--out",
+                str(out / f"dagger_{row}_{r}"), *progress]))
             if not (_run_dir(cfg, row, r) / "bundle").is_dir():
                 todo.append((f"train {row} after round {r}", _train(cfg, row, r)))
     if not (out / "eval" / "results.json").is_file():

@@ -42,6 +42,16 @@ def wilson(successes: int, n: int) -> tuple[float, float]:
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def touch_windows(policy: Any, sim: Any, obs: dict[str, np.ndarray]) -> dict[str, Any] | None:
+    """What a touch-reading imitation policy reads on this step of an InsertionSim: the Xela skin's window and its
+    baseline, or the fingertips' Digit 360 windows rendered from the live contact history; None for one that reads
+    no touch."""
+    if not policy.reads_touch:
+        return None
+    return ({"skin": obs["skin"], "xela_baseline": sim.skin.baseline} if sim.skin is not None
+            else sim.touch.windows())
+
+
 def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool, episode_steps: int | None = None
               ) -> tuple[dict[str, float], list[np.ndarray]]:
     """One closed-loop episode (at most ``episode_steps`` actions; None: the task's); its outcome and
@@ -59,11 +69,7 @@ def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool, episode_st
         while not done:
             if keep_frames:
                 frames.append(obs["image"])
-            windows = None
-            if policy.reads_touch:
-                windows = ({"skin": obs["skin"], "xela_baseline": sim.skin.baseline} if sim.skin is not None
-                           else sim.touch.windows())
-            obs, done, info = sim.step(policy.act(obs, windows))
+            obs, done, info = sim.step(policy.act(obs, touch_windows(policy, sim, obs)))
     finally:
         sim.close()
     return {"success": float(info["success"]), "steps": sim.steps, "time_s": sim.steps * cfg.control_dt,

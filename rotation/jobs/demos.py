@@ -175,6 +175,7 @@ def record_episode(cfg: Config, episode: int, grasps: Any, policy: Any = None, p
     from envs.insertion import TIMESTEP, InsertionConfig, InsertionSim, draw_episode
     from envs.insertion_expert import ExpertConfig, InsertionExpert
     from envs.scene import touch_model
+    from rotation.il.rollout import touch_windows
 
     icfg = InsertionConfig(hand=cfg.hand, image_size=cfg.image_size, episode_steps=cfg.episode_steps, grip=cfg.grip)
     seed = cfg.seed * 1_000_000 + episode
@@ -210,11 +211,7 @@ def record_episode(cfg: Config, episode: int, grasps: Any, policy: Any = None, p
             frames.append((t, obs, action, info.get("force", 0.0)))
             executed = action + noise_std * noise_rng.standard_normal(6) if noise_std.any() else action
             if policy is not None:  # it acts on every step (its chunks' ensemble), executed unless beta draws
-                windows = None
-                if policy.reads_touch:
-                    windows = ({"skin": obs["skin"], "xela_baseline": sim.skin.baseline} if sim.skin is not None
-                               else sim.touch.windows())
-                driven = policy.act(obs, windows)
+                driven = policy.act(obs, touch_windows(policy, sim, obs))
                 if mix_rng.random() >= cfg.beta:
                     executed, policy_steps = driven, policy_steps + 1
             obs, done, info = sim.step(executed)
