@@ -6,6 +6,7 @@ resume and become bundles.
 from __future__ import annotations
 
 import json
+import time
 import warnings
 import zipfile
 import zlib
@@ -132,15 +133,23 @@ class EpisodeStats(BaseCallback):
 class Checkpoints(BaseCallback):
     """Saves `step_<n>.zip` every `every` steps and `last.zip` (keeps the newest two numbered ones), each written
     atomically, and appends the curve rows logged since the last one to `curves` (flushed to disk). Stops training
-    (returns False) once ``stop`` saw a signal."""
+    (returns False) once ``stop`` saw a signal.
+
+    Every checkpoint carries the run's training wall time so far (``model.train_wall_s``: ``wall_before``, the
+    earlier legs' time read from the checkpoint resumed, plus this leg's; None where an earlier leg's is unknown)."""
 
     def __init__(self, folder: Path, every: int, stats: EpisodeStats | None = None, curves: CurveLog | None = None,
-                 stop: StopSignals | None = None, owner: str | None = None) -> None:
+                 stop: StopSignals | None = None, owner: str | None = None, wall_before: float | None = 0.0) -> None:
         super().__init__()
         self.folder, self.every, self.owner = folder, every, owner
         self.stats, self.curves, self.stop = stats, curves, stop
         self.flushed = 0  # rows of stats.history already in curves
         self.next_at = 0
+        self.wall_before, self.started = wall_before, time.time()
+
+    def run_wall_s(self) -> float | None:
+        """The run's training wall time up to now, over every leg (None where an earlier leg's is unknown)."""
+        return None if self.wall_before is None else self.wall_before + time.time() - self.started
 
     def _on_training_start(self) -> None:
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -155,6 +164,7 @@ class Checkpoints(BaseCallback):
     def save(self) -> Path:
         self.folder.mkdir(parents=True, exist_ok=True)
         path = self.folder / f"step_{self.num_timesteps:010d}.zip"
+        self.model.train_wall_s = self.run_wall_s()  # saved with the model's other attributes
         save_atomically(self.model.save, path)
         write_owner(path, self.owner)  # the run that wrote it (rotation.runs)
         save_atomically(self.model.save, self.folder / "last.zip")

@@ -20,8 +20,9 @@ evaluation and deploy load). An `--out` holding another run is refused unless `-
 `--overwrite` replaces it; a resume takes the run's options the command line leaves out (and its folder as
 `--out`), and refuses options that differ from the run's (but the length and speed ones) and a grasp cache
 other than the file the run started from (config.json records its digest), and falls back from a damaged
-checkpoint to the previous intact one. Ctrl-C / SIGTERM stop at the next step, save the
-checkpoint, curves and bundle, and exit with status 130 / 143.
+checkpoint to the previous intact one. The bundle's card gives the run's training wall time over all its legs (each
+checkpoint carries it) and, after a resume, the bundle the run started from (`started_from`). Ctrl-C / SIGTERM stop
+at the next step, save the checkpoint, curves and bundle, and exit with status 130 / 143.
 """
 
 from __future__ import annotations
@@ -97,7 +98,12 @@ def run(cfg: Config) -> PolicyBundle:
             raise RequestRefused(f"--resume {cfg.resume}: no such checkpoint")
         saved = resume_dir / "config.json" if resume_dir is not None else None
         if saved is not None and saved.is_file():
-            check_resume_record(json.loads(saved.read_text()), record, str(saved), RESUMABLE_CHANGES)
+            saved_record = json.loads(saved.read_text())
+            check_resume_record(saved_record, record, str(saved), RESUMABLE_CHANGES)
+            # the bundle the run started from stays in its record across resumes (a resume has no --init-from)
+            started_from = saved_record.get(STARTED_FROM) or saved_record.get("init_from")
+            if started_from:
+                record[STARTED_FROM] = started_from
     torch.set_num_threads(cfg.torch_threads)
     torch.manual_seed(cfg.seed)
     env_cfg = cfg.env_config()
@@ -133,16 +139,25 @@ def run(cfg: Config) -> PolicyBundle:
         if resuming_here and (dropped := curves.trim(model.num_timesteps)):
             print(f"{_role(cfg)}: dropped {dropped} curve rows logged after step {model.num_timesteps} (not in the "
                   "checkpoint resumed from)")
-        return _train(cfg, model, env, env_cfg, curves, resumed_from, record[GRASPS_KEY], owner)
+        provenance = {GRASPS_KEY: record[GRASPS_KEY]} | ({STARTED_FROM: record[STARTED_FROM]}
+                                                          if STARTED_FROM in record else {})
+        return _train(cfg, model, env, env_cfg, curves, resumed_from, provenance, owner)
     finally:
         env.close()
 
 
+STARTED_FROM = "started_from"
+"""The key, in a resumed run's config.json and its bundle's card, of the bundle its first leg started from
+(``--init-from``), which the resume's own options no longer name."""
+
+
 def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: EnvConfig, curves: CurveLog,
-           resumed_from: Path | None, grasps_sha256: str, owner: str | None = None) -> PolicyBundle:
+           resumed_from: Path | None, provenance: dict[str, str], owner: str | None = None) -> PolicyBundle:
     stats = EpisodeStats()
+    # the earlier legs' training time, from the checkpoint resumed (None: one saved before checkpoints kept it)
+    wall_before = getattr(model, "train_wall_s", None) if resumed_from is not None else 0.0
     with StopSignals() as stop:
-        ckpt = Checkpoints(cfg.out / "checkpoints", cfg.checkpoint_every, stats, curves, stop, owner)
+        ckpt = Checkpoints(cfg.out / "checkpoints", cfg.checkpoint_every, stats, curves, stop, owner, wall_before)
         remaining = cfg.total_steps - model.num_timesteps
         start = time.time()
         signum = None
@@ -159,12 +174,19 @@ def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: 
         ckpt.num_timesteps = model.num_timesteps
         ckpt.save()
         steps = int(model.num_timesteps)
+        # wall_time_s: the whole run's training time over its legs, where every leg's is known (else this leg's);
         # the run's config as it loads back (a None stays null: adapters.session_checks.teacher_randomization reads it)
+        total = ckpt.model.train_wall_s
         card = {"role": _role(cfg), "object": cfg.object, "steps": steps, "seed": cfg.seed,
-                "wall_time_s": round(wall, 1), "train_config": to_jsonable(cfg)}
-        card[GRASPS_KEY] = grasps_sha256  # the cache's path alone does not show a regenerated file
+                "wall_time_s": round(wall if total is None else total, 1), "train_config": to_jsonable(cfg)}
+        card.update(provenance)  # the grasp cache's digest (its path alone does not show a regenerated file); the
+        # bundle the run started from, where a resume's own config no longer names it
         if resumed_from is not None:
             card["resumed_from"] = str(resumed_from)
+            card["wall_time_this_leg_s"] = round(wall, 1)
+            if total is None:
+                card["wall_time_note"] = ("wall_time_s is this leg's alone: the checkpoint resumed is from before "
+                                          "checkpoints kept the run's training time")
         if cfg.student:  # what the fine-tune started from: the distilled student's own card (teacher, distillation)
             card["finetuned_from"] = {"bundle": cfg.student, "card": load_policy_bundle(cfg.student).config.card}
         if signum:

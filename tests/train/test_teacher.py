@@ -431,3 +431,38 @@ def test_a_resume_into_another_folder_logs_there(tmp_path):
     teacher.run(_cfg(tmp_path / "b", total_steps=2048, resume=first.out / "checkpoints" / "last.zip"))
     assert sorted(p.name for p in (first.out / "tb").rglob("events.*")) == events
     assert list((tmp_path / "b" / "run" / "tb").rglob("events.*"))
+
+
+def test_a_resumed_run_keeps_where_it_started_and_its_whole_wall_time(tmp_path):
+    """A resume has no --init-from, yet its config.json and bundle card still name the bundle the run started from;
+    the card's wall time is the run's over both legs (each checkpoint carries the time so far), this leg's beside it;
+    a checkpoint from before wall times were kept gives this leg's alone, and says so."""
+    from rotation.policy.bundle import resolve_bundle
+
+    start = resolve_bundle("teacher")
+    cfg = _cfg(tmp_path, total_steps=1024, init_from=start, critic_warmup=1)
+    teacher.run(cfg)
+    ckpt = cfg.out / "checkpoints" / "last.zip"
+    first_leg = AdaptiveKLPPO.load(ckpt, device="cpu").train_wall_s
+    first_card = load_bundle(cfg.out / "bundle").config.card
+    assert first_leg > 0 and first_card["wall_time_s"] == pytest.approx(first_leg, abs=0.1)
+    teacher.run(_cfg(tmp_path, total_steps=2048, init_from=None, critic_warmup=1, resume=ckpt))
+    card = load_bundle(cfg.out / "bundle").config.card
+    assert card["started_from"] == str(start)
+    assert json.loads((cfg.out / "config.json").read_text())["started_from"] == str(start)
+    assert card["wall_time_this_leg_s"] > 0
+    assert card["wall_time_s"] == pytest.approx(first_leg + card["wall_time_this_leg_s"], abs=0.5)
+    assert card["wall_time_s"] == pytest.approx(AdaptiveKLPPO.load(ckpt, device="cpu").train_wall_s, abs=0.1)
+    # a third leg still names it (carried from the resumed run's own record)
+    teacher.run(_cfg(tmp_path, total_steps=3072, init_from=None, critic_warmup=1, resume=ckpt))
+    assert load_bundle(cfg.out / "bundle").config.card["started_from"] == str(start)
+    # a checkpoint saved before checkpoints kept the time: this leg's alone, with a note
+    old = AdaptiveKLPPO.load(ckpt, device="cpu")
+    del old.train_wall_s
+    old.save(ckpt)
+    from rotation.runs import run_id, write_owner
+
+    write_owner(ckpt, run_id(cfg.out, create=False))
+    teacher.run(_cfg(tmp_path, total_steps=4096, init_from=None, critic_warmup=1, resume=ckpt))
+    card = load_bundle(cfg.out / "bundle").config.card
+    assert card["wall_time_s"] == card["wall_time_this_leg_s"] and "before checkpoints kept" in card["wall_time_note"]
