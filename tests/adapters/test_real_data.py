@@ -266,16 +266,16 @@ def test_finetune_on_sessions_with_joint_tracking_normalizes_by_the_training_sam
 
 def test_measured_properties_are_checked_against_the_shipped_teachers_ranges():
     """A lab's cup is warned about against the randomization the shipped teacher trained on (its card: the hand's
-    own, with slippery cup surfaces down to x0.25 and cups to 0.5 kg), not Hora's nor the hand's default."""
+    own, with slippery cup surfaces down to x0.15 and cups to 0.5 kg), not Hora's nor the hand's default."""
     from adapters.session_checks import outside_training_ranges, teacher_randomization
     from envs.config import default_randomization
 
     rc = teacher_randomization()
-    assert rc.surface_friction == (0.25, 1.0) and rc.mass == (0.02, 0.5)
+    assert rc.surface_friction == (0.15, 1.0) and rc.mass == (0.02, 0.5)
     mug = {"scale": 1.0, "mass": 0.45, "friction": 0.2, "com": [0.0, 0.0, 0.0]}  # a slippery heavy mug it trained on
     assert outside_training_ranges(mug) == []
     notes = outside_training_ranges({**mug, "friction": 2.0, "mass": 0.55})
-    assert notes == ["mass 0.55 (0.02..0.5)", "friction 2.0 (0.1..1.2)"]
+    assert notes == ["mass 0.55 (0.02..0.5)", "friction 2.0 (0.06..1.2)"]
     # against the hand's default randomization (what a teacher trained without the slippery cups knows)
     assert outside_training_ranges(mug, default_randomization()) == ["mass 0.45 (0.02..0.4)", "friction 0.2 (0.4..1.2)"]
 
