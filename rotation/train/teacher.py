@@ -79,6 +79,11 @@ def _role(cfg: Config) -> str:
     return "student" if cfg.student else "teacher"
 
 
+STARTED_FROM = "started_from"
+"""The key, in a resumed run's config.json and its bundle's card, of the bundle its first leg started from
+(``--init-from``), which the resume's own options no longer name."""
+
+
 def run(cfg: Config) -> PolicyBundle:
     """Train (or continue) the teacher. Everything is checked before anything is written: a folder holding another
     run, a resume whose options differ from the run's, a checkpoint of another program. Ctrl-C / SIGTERM stop at the
@@ -144,11 +149,6 @@ def run(cfg: Config) -> PolicyBundle:
         return _train(cfg, model, env, env_cfg, curves, resumed_from, provenance, owner)
     finally:
         env.close()
-
-
-STARTED_FROM = "started_from"
-"""The key, in a resumed run's config.json and its bundle's card, of the bundle its first leg started from
-(``--init-from``), which the resume's own options no longer name."""
 
 
 def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: EnvConfig, curves: CurveLog,
