@@ -210,6 +210,7 @@ def run(cfg: Config) -> Result:
     total_iters = math.ceil(cfg.total_steps / n)
     interval = max(1, round(cfg.checkpoint_every / n))
     start_iter, owner = 0, None
+    wall_before: float | None = 0.0  # the earlier legs' training time (None: a checkpoint from before it was kept)
     if cfg.resume:
         ckpt_path = _latest_checkpoint(out)
         if ckpt_path is None or not (out / "config.json").is_file():
@@ -231,6 +232,7 @@ def run(cfg: Config) -> Result:
             raise ValueError(f"--resume: {ckpt_path} does not fit this student ({type(err).__name__}: "
                              f"{str(err).splitlines()[0]})") from None
         start_iter = int(ckpt["iteration"])
+        wall_before = ckpt.get("wall_time_s")
     keys = set(teacher.config.obs_groups) | set(student.config.obs_groups)
     rollout_cls = DeviceRollout if cfg.backend == "warp" else HostRollout
     env = rollout_cls(cfg, keys)  # checks the grasp cache
@@ -250,7 +252,11 @@ def run(cfg: Config) -> Result:
     mse_sum, mse_count = 0.0, 0
     bar = tqdm(total=total_iters * n, initial=start_iter * n, unit="step", disable=not cfg.progress,
                desc="train-student", dynamic_ncols=True)
-    t_log = time.perf_counter()
+    t_log = t_start = time.perf_counter()
+
+    def run_wall_s() -> float | None:  # the run's training time so far, over every leg
+        return None if wall_before is None else wall_before + time.perf_counter() - t_start
+
     t_obs: dict[str, torch.Tensor] = {}
     done_iters, flushed, signum = start_iter, 0, None
     stop = StopSignals()
@@ -286,20 +292,27 @@ def run(cfg: Config) -> Result:
                 mse_sum, mse_count, t_log = 0.0, 0, now
             done_iters = it + 1
             if (it + 1) % interval == 0 or it + 1 == total_iters or stop.requested:
-                _save_checkpoint(out, student, optim, it + 1, teacher_digest, owner)
+                _save_checkpoint(out, student, optim, it + 1, teacher_digest, owner, run_wall_s())
                 curves.append(history[flushed:])
                 flushed = len(history)
             if stop.requested:
                 break
     except KeyboardInterrupt as err:  # a second signal (stop at once), or Ctrl-C where no handler could be installed
         signum = getattr(err, "signum", signal.SIGINT)
-        _save_checkpoint(out, student, optim, done_iters, teacher_digest, owner)
+        _save_checkpoint(out, student, optim, done_iters, teacher_digest, owner, run_wall_s())
         curves.append(history[flushed:])
     finally:
         end_loop(stop, bar, writer, env)
     signum = signum or stop.signum
 
     card = _card(cfg, teacher_digest, history)
+    leg, total = time.perf_counter() - t_start, run_wall_s()
+    card["wall_time_s"] = round(leg if total is None else total, 1)  # over every leg where each one's is known
+    if cfg.resume:
+        card["wall_time_this_leg_s"] = round(leg, 1)
+        if total is None:
+            card["wall_time_note"] = ("wall_time_s is this leg's alone: the checkpoint resumed is from before "
+                                      "checkpoints kept the run's training time")
     if signum:
         card["interrupted"] = (f"stopped by {SIGNAL_NAMES.get(signum, signum)} at {done_iters * n} of "
                                f"{total_iters * n} env steps")
@@ -333,12 +346,13 @@ def _card(cfg: Config, digest: str, history: list[dict[str, float]]) -> dict[str
 
 
 def _save_checkpoint(out: Path, student: PolicyBundle, optim: torch.optim.Optimizer, iteration: int,
-                     teacher_digest: str, owner: str | None = None) -> Path:
+                     teacher_digest: str, owner: str | None = None, wall_time_s: float | None = None) -> Path:
     path = out / f"ckpt_{iteration:09d}.pt"
     state = {k: v.detach().cpu() for k, v in student.net.state_dict().items()}
     # atomic: a crash never leaves a half-written checkpoint as the latest
     save_atomically(lambda tmp: torch.save({"student": state, "optim": optim.state_dict(), "iteration": iteration,
-                                            "teacher_digest": teacher_digest, "run_id": owner}, tmp), path)
+                                            "teacher_digest": teacher_digest, "run_id": owner,
+                                            "wall_time_s": wall_time_s}, tmp), path)
     return path
 
 

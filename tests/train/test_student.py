@@ -70,6 +70,31 @@ def test_resume_is_exact(setup, tmp_path):
         assert torch.equal(a[k], b[k]), k
 
 
+def test_the_card_gives_the_whole_runs_wall_time(setup, tmp_path):
+    """Each checkpoint carries the training time so far; a resumed run's card gives the time over both legs (this
+    leg's beside it), and a checkpoint from before that was kept gives this leg's alone, saying so."""
+    out = tmp_path / "run"
+    student.run(make_cfg(setup, out, total_steps=8 * 10, checkpoint_every=8 * 10))
+    ckpt = out / "ckpt_000000010.pt"
+    first = torch.load(ckpt, weights_only=False)
+    assert 0 < first["wall_time_s"] <= load_bundle(out / "bundle").config.card["wall_time_s"] + 0.05
+    torch.save({**first, "wall_time_s": 1000.0}, ckpt)  # as if the first leg had trained for 1000 s
+    student.run(make_cfg(setup, out, total_steps=8 * 20, checkpoint_every=8 * 10, resume=True))
+    card = load_bundle(out / "bundle").config.card
+    assert card["wall_time_this_leg_s"] >= 0  # (ten tiny iterations can round to 0.0 s)
+    # the earlier leg's time is the checkpoint's exactly (both figures rounded to 0.1 s)
+    assert card["wall_time_s"] - card["wall_time_this_leg_s"] == pytest.approx(1000.0, abs=0.11)
+    last = out / "ckpt_000000020.pt"
+    assert 1000.0 <= torch.load(last, weights_only=False)["wall_time_s"] <= card["wall_time_s"] + 0.05
+    old = torch.load(last, weights_only=False)
+    del old["wall_time_s"]
+    torch.save(old, last)
+    student.run(make_cfg(setup, out, total_steps=8 * 30, checkpoint_every=8 * 10, resume=True))
+    card = load_bundle(out / "bundle").config.card
+    assert card["wall_time_s"] == card["wall_time_this_leg_s"] < 1000.0
+    assert "before checkpoints kept" in card["wall_time_note"]
+
+
 def test_bad_input(setup, tmp_path):
     with pytest.raises(ValueError, match="shipped bundles"):
         student.run(make_cfg(setup, tmp_path / "x", teacher="no_such_teacher"))
