@@ -142,4 +142,6 @@ def test_leap_late_feedback_a_stalled_fingertip_and_a_servo_overload(tmp_path, p
         t0 = r.stream("joints/position").timestamps[0]
     gaps = np.diff(ring)
     assert gaps.max() > 0.25 and np.diff(middle).max() < 0.1  # the stall in the ring's samples only
-    assert 1.0 < ring[np.argmax(gaps)] - t0 < 1.6
+    # a gap of the stall's length starts where it was injected (on a loaded machine the ring may lag elsewhere too)
+    starts = ring[:-1][gaps > 0.25] - t0
+    assert np.any((starts > 1.0) & (starts < 1.6)), (starts, gaps.max())
