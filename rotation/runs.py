@@ -104,6 +104,19 @@ def run_record(cfg: Any) -> dict[str, Any]:
     return to_jsonable(cfg) | {GRASPS_KEY: cache_digest(cfg.grasp_cache, cfg.object, cfg.hand)}
 
 
+def wall_time_fields(leg_s: float, total_s: float | None, resumed: bool) -> dict[str, Any]:
+    """A bundle card's wall-time entries: ``wall_time_s``, the run's training time over every leg (``total_s``, from
+    the checkpoints; this leg's where an earlier leg's is unknown), and after a resume this leg's beside it, with a
+    note where the total could not be known."""
+    fields: dict[str, Any] = {"wall_time_s": round(leg_s if total_s is None else total_s, 1)}
+    if resumed:
+        fields["wall_time_this_leg_s"] = round(leg_s, 1)
+        if total_s is None:
+            fields["wall_time_note"] = ("wall_time_s is this leg's alone: the checkpoint resumed is from before "
+                                        "checkpoints kept the run's training time")
+    return fields
+
+
 def check_resume_record(saved: dict[str, Any], now: dict[str, Any], where: str, may_differ: Iterable[str]) -> None:
     """Refuse a resume whose options (or grasp cache) differ from the run's record ``saved`` (read from ``where``).
     A record written before the digest was kept has none, and its cache is not compared."""

@@ -130,13 +130,14 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     out, todo, progress = cfg.out, [], progress_args(cfg.progress)
     expert = ["--expert-align", cfg.expert_align, "--grip", cfg.grip]  # the demonstrations' and every round's
     noise = ["--noise-m", str(cfg.noise_m), "--noise-rad", str(cfg.noise_rad)] if cfg.noise_m or cfg.noise_rad else []
-    noise += expert
+    demo_flags = [*noise, *expert]
     todo.append(("demonstrations (Digit 360 hand)", ["demos", "--task", "insertion", "--episodes", str(cfg.episodes),
-                                                    "--seed", "0", *noise, "--out", str(out / "demos"), *progress]))
+                                                    "--seed", "0", *demo_flags, "--out", str(out / "demos"),
+                                                    *progress]))
     if "skin" in cfg.rows:
         todo.append(("demonstrations (Xela hand)", ["demos", "--task", "insertion", "--hand", "xela_v4",
-                                                    "--episodes", str(cfg.episodes), "--seed", "0", *noise, "--out",
-                                                    str(out / "demos_xela"), *progress]))
+                                                    "--episodes", str(cfg.episodes), "--seed", "0", *demo_flags,
+                                                    "--out", str(out / "demos_xela"), *progress]))
     for row in cfg.rows:
         if not (out / f"il_{row}" / "bundle").is_dir():
             todo.append((f"train {row}", _train(cfg, row)))

@@ -11,36 +11,18 @@ in each third of the draw (on or off for the solver), and how many early falls t
 
 from __future__ import annotations
 
-import json
 import sys
-from pathlib import Path
 
 import numpy as np
+from early_falls_by_grasp import EARLY_S, evaluation_episodes  # (this folder: run as a script)
 
-from envs.config import EnvConfig, default_randomization
-from envs.core import RotateCupVec
-from rotation.evaluate.suites import get_suite
-
-EARLY_S = 2.0
 DRAWS = ("friction", "mass", "scale", "delay", "timeconst")
 
 
 def main(run: str, condition: str) -> int:
-    result = json.loads((Path(run) / "results.json").read_text())
-    rows = [r for r in result["rows"] if r["condition"] == condition]
-    if not rows:
-        raise SystemExit(f"early_falls_by_draw: no rows of {condition!r} in {run}")
-    hand = "digit360_v4"
-    perturb = next(c.perturb for c in get_suite("perturbations", (condition,), hand))
-    n, seed = int(result["config"]["episodes"]), int(result["config"]["seed"])
-    env = RotateCupVec(EnvConfig(hand=hand, randomization=default_randomization(hand), perturb=perturb),
-                       num_envs=n, seed=seed, nthread=1)
-    env.reset(seed=seed)
+    env, early = evaluation_episodes(run, condition)
+    n = env.num_envs
     params = {k: np.asarray(env.params[k], dtype=float).reshape(n) for k in (*DRAWS, "noslip")}
-    early = {}
-    for row in rows:
-        per = row["per_episode"]
-        early[row["policy"]] = (np.asarray(per["ttf"]) < 1.0) & (np.asarray(per["in_hand_time"]) <= EARLY_S)
     for name, fell in early.items():
         print(f"{condition}, {name}: {int(fell.sum())} of {n} fall within {EARLY_S:g} s")
         for k in DRAWS:

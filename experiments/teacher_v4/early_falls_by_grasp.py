@@ -26,29 +26,39 @@ from rotation.evaluate.suites import get_suite
 EARLY_S = 2.0
 
 
-def main(run: str, condition: str) -> int:
+def evaluation_episodes(run: str, condition: str) -> tuple[RotateCupVec, dict[str, np.ndarray]]:
+    """The episodes of a `rotate evaluate` run under CONDITION, reset as the evaluation reset them (a batch of envs,
+    episode j seeded seed + j), and each policy's falls within the first EARLY_S seconds ((n,) bool)."""
     result = json.loads((Path(run) / "results.json").read_text())
-    cfg, rows = result["config"], [r for r in result["rows"] if r["condition"] == condition]
+    rows = [r for r in result["rows"] if r["condition"] == condition]
     if not rows:
-        raise SystemExit(f"early_falls_by_grasp: no rows of {condition!r} in {run}")
+        raise SystemExit(f"{Path(sys.argv[0]).stem}: no rows of {condition!r} in {run}")
     hand = "digit360_v4"
     perturb = next(c.perturb for c in get_suite("perturbations", (condition,), hand))
-    n, seed = int(cfg["episodes"]), int(cfg["seed"])
+    n, seed = int(result["config"]["episodes"]), int(result["config"]["seed"])
     env = RotateCupVec(EnvConfig(hand=hand, randomization=default_randomization(hand), perturb=perturb),
                        num_envs=n, seed=seed, nthread=1)
     env.reset(seed=seed)
+    early = {}
+    for row in rows:
+        per = row["per_episode"]
+        early[row["policy"]] = (np.asarray(per["ttf"]) < 1.0) & (np.asarray(per["in_hand_time"]) <= EARLY_S)
+    return env, early
+
+
+def main(run: str, condition: str) -> int:
+    env, early = evaluation_episodes(run, condition)
+    n, hand, surface = env.num_envs, env.cfg.hand, env.cfg.perturb.friction_scale
     cache = load_default_cache("cup", "", hand)
-    worst = hold_check(cache, HoldRule.for_hand(hand, surface=perturb.friction_scale))
+    worst = hold_check(cache, HoldRule.for_hand(hand, surface=surface))
     holds = np.zeros(n, dtype=bool)
     for i, q in enumerate(env.grasp_q):
         s, g = np.argwhere(np.all(np.abs(cache.grasps[:, :, :16] - q) < 1e-5, axis=2))[0]
         holds[i] = worst[s, g] < HoldRule.max_tilt
     print(f"{condition}: {holds.sum()} of {n} episodes start from a grasp that holds the cup still by itself")
-    for row in rows:
-        ttf = np.asarray(row["per_episode"]["ttf"])
-        early = (ttf < 1.0) & (np.asarray(row["per_episode"]["in_hand_time"]) <= EARLY_S)
-        print(f"  {row['policy']}: falls in the first {EARLY_S:g} s: {int((early & holds).sum())} of "
-              f"{int(holds.sum())} holding grasps, {int((early & ~holds).sum())} of {int((~holds).sum())} others")
+    for name, fell in early.items():
+        print(f"  {name}: falls in the first {EARLY_S:g} s: {int((fell & holds).sum())} of "
+              f"{int(holds.sum())} holding grasps, {int((fell & ~holds).sum())} of {int((~holds).sum())} others")
     return 0
 
 

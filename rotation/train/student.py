@@ -53,6 +53,7 @@ from rotation.runs import (
     run_id,
     save_atomically,
     summary_writer,
+    wall_time_fields,
     with_fallback,
 )
 from rotation.sim_warp.host import make_vec
@@ -306,13 +307,7 @@ def run(cfg: Config) -> Result:
     signum = signum or stop.signum
 
     card = _card(cfg, teacher_digest, history)
-    leg, total = time.perf_counter() - t_start, run_wall_s()
-    card["wall_time_s"] = round(leg if total is None else total, 1)  # over every leg where each one's is known
-    if cfg.resume:
-        card["wall_time_this_leg_s"] = round(leg, 1)
-        if total is None:
-            card["wall_time_note"] = ("wall_time_s is this leg's alone: the checkpoint resumed is from before "
-                                      "checkpoints kept the run's training time")
+    card.update(wall_time_fields(time.perf_counter() - t_start, run_wall_s(), cfg.resume))
     if signum:
         card["interrupted"] = (f"stopped by {SIGNAL_NAMES.get(signum, signum)} at {done_iters * n} of "
                                f"{total_iters * n} env steps")

@@ -52,6 +52,7 @@ from rotation.runs import (
     refuse_differences,
     run_id,
     run_record,
+    wall_time_fields,
     with_fallback,
 )
 from rotation.train.ppo import (
@@ -144,8 +145,7 @@ def run(cfg: Config) -> PolicyBundle:
         if resuming_here and (dropped := curves.trim(model.num_timesteps)):
             print(f"{_role(cfg)}: dropped {dropped} curve rows logged after step {model.num_timesteps} (not in the "
                   "checkpoint resumed from)")
-        provenance = {GRASPS_KEY: record[GRASPS_KEY]} | ({STARTED_FROM: record[STARTED_FROM]}
-                                                          if STARTED_FROM in record else {})
+        provenance = {k: record[k] for k in (GRASPS_KEY, STARTED_FROM) if k in record}
         return _train(cfg, model, env, env_cfg, curves, resumed_from, provenance, owner)
     finally:
         env.close()
@@ -159,7 +159,6 @@ def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: 
     with StopSignals() as stop:
         ckpt = Checkpoints(cfg.out / "checkpoints", cfg.checkpoint_every, stats, curves, stop, owner, wall_before)
         remaining = cfg.total_steps - model.num_timesteps
-        start = time.time()
         signum = None
         if remaining > 0:
             try:
@@ -168,25 +167,20 @@ def _train(cfg: Config, model: AdaptiveKLPPO, env: RotateCupSB3VecEnv, env_cfg: 
             except KeyboardInterrupt as err:  # a second signal, or Ctrl-C where no handler could be installed
                 signum = getattr(err, "signum", signal.SIGINT)
         signum = signum or stop.signum
-        wall = time.time() - start
+        wall = time.time() - ckpt.started  # this leg's
         # the checkpoint, curves and bundle are written whether training finished or was stopped
         ckpt.model = model
         ckpt.num_timesteps = model.num_timesteps
         ckpt.save()
         steps = int(model.num_timesteps)
-        # wall_time_s: the whole run's training time over its legs, where every leg's is known (else this leg's);
         # the run's config as it loads back (a None stays null: adapters.session_checks.teacher_randomization reads it)
-        total = ckpt.model.train_wall_s
         card = {"role": _role(cfg), "object": cfg.object, "steps": steps, "seed": cfg.seed,
-                "wall_time_s": round(wall if total is None else total, 1), "train_config": to_jsonable(cfg)}
+                **wall_time_fields(wall, ckpt.model.train_wall_s, resumed_from is not None),
+                "train_config": to_jsonable(cfg)}
         card.update(provenance)  # the grasp cache's digest (its path alone does not show a regenerated file); the
         # bundle the run started from, where a resume's own config no longer names it
         if resumed_from is not None:
             card["resumed_from"] = str(resumed_from)
-            card["wall_time_this_leg_s"] = round(wall, 1)
-            if total is None:
-                card["wall_time_note"] = ("wall_time_s is this leg's alone: the checkpoint resumed is from before "
-                                          "checkpoints kept the run's training time")
         if cfg.student:  # what the fine-tune started from: the distilled student's own card (teacher, distillation)
             card["finetuned_from"] = {"bundle": cfg.student, "card": load_policy_bundle(cfg.student).config.card}
         if signum:
