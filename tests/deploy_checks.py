@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 
 
@@ -32,3 +33,9 @@ def again_if_loaded(run_once: Callable[[], dict], caplog=None) -> dict:
             caplog.clear()
         summary = run_once()
     return summary
+
+
+def touch_warnings(caplog) -> list[logging.LogRecord]:
+    """The touch path's fallback warnings (one per cause) among a test's log records."""
+    return [r for r in caplog.records if r.name == "rotation.deploy.touch" and r.levelno == logging.WARNING
+            and "touch unavailable" in r.getMessage()]
