@@ -223,6 +223,10 @@ class AdaptedPolicy:
         return corr.numpy()
 
     # ------------------------------------------------------------------ acting (PolicyBundle's interface)
+    def start_correction(self, step: int) -> np.ndarray | None:
+        """The student's cautious start (PolicyBundle.start_correction): added under the touch correction."""
+        return self.student.start_correction(step)
+
     @torch.no_grad()
     def act_batch(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
         """(N, 16) actions; without a correction exactly the student's."""

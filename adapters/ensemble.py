@@ -161,6 +161,9 @@ class EnsemblePolicy:
         return total.numpy()
 
     # ------------------------------------------------------------------ acting (the first member's student)
+    def start_correction(self, step: int) -> np.ndarray | None:
+        return self.members[0].start_correction(step)
+
     def act_batch(self, obs: Mapping[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
         return self.members[0].act_batch(obs, correction)
 

@@ -49,6 +49,9 @@ class OpenAtStart:
 
         env.reset = counted_reset
 
+    def start_correction(self, step: int) -> None:
+        return None  # the start is this wrapper's own doing: no bundle shift on top
+
     def act_batch(self, groups: dict[str, np.ndarray]) -> np.ndarray:
         a = np.array(self.bundle.act_batch(groups), dtype=np.float32)
         if self.k < self.steps:

@@ -129,7 +129,7 @@ class ControlLoop:
                               if reads_touch(self.bundle) else None)
         try:  # before the clock starts; the hand holds its start pose meanwhile (keep it short: the grasp slips)
             log.info("policy warm-up: first inference took %.0f ms",
-                     1e3 * worker.warm_up((policy.observation(), None)))
+                     1e3 * worker.warm_up((policy.observation(), self.bundle.start_correction(0))))  # step 0's path
             if touch is not None:  # the sensors' windows were made ready before the motors went on (job.run)
                 log.info("touch: first correction asked for at step 0, then every %d steps (dropped when older "
                          "than %.0f ms); the student acts alone until it arrives", touch.every,
@@ -171,6 +171,9 @@ class ControlLoop:
                 # 2. act within the budget, with the newest touch correction (never waited for)
                 obs = policy.observation()
                 correction = None if touch is None else touch.correction(k, now)
+                shift = self.bundle.start_correction(k)  # a cautious start's latent shift, under any touch correction
+                if shift is not None:
+                    correction = shift if correction is None else np.asarray(correction, np.float32).reshape(-1) + shift
                 action, why = None, ""
                 if worker.submit(k, (obs, correction)):
                     action = worker.wait(k, now + budget - time.monotonic())

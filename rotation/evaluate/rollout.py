@@ -58,9 +58,12 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
             idx = np.flatnonzero(active)
             actions[:] = 0.0
             groups = {key: obs[key][idx] for key in bundle.config.obs_groups}
+            start = bundle.start_correction(k)  # a cautious start's latent shift (None: none at this step)
             if line is not None:  # refreshes due read this step's touch of their envs
                 correction = line.step(k, idx, partial(envs_correction, bundle, obs))
-                actions[idx] = bundle.act_batch(groups, correction=correction)
+                actions[idx] = bundle.act_batch(groups, correction=correction if start is None else correction + start)
+            elif start is not None:
+                actions[idx] = bundle.act_batch(groups, correction=start)
             else:
                 actions[idx] = bundle.act_batch(groups)
             k += 1

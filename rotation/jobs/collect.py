@@ -197,14 +197,33 @@ class _BundlePolicy:
         self.groups = tuple(cfg.obs_groups)
         self.privileged = getattr(cfg, "latent_source", None) == "privileged" and cfg.latent_dim == LATENT_DIM
 
+        self.cautious = self.bundle.start_correction(0) is not None
+        self.steps: dict[int, int] = {}
+        """Control steps each slot's episode has taken (a cautious start shifts the latent over the first ones)."""
+
     def start(self, slot: int, episode: int) -> None:
-        pass
+        self.steps[slot] = 0
 
     def _obs(self, obs: dict) -> dict:
         return {k: obs[k] for k in self.groups}
 
+    def _start_corrections(self, n: int) -> np.ndarray | None:
+        """(n, Z) cautious-start shifts of the slots at their own steps (zero past the start), or None: none."""
+        if not self.cautious:
+            return None
+        rows = [self.bundle.start_correction(self.steps.get(i, 0)) for i in range(n)]
+        if all(r is None for r in rows):
+            return None
+        zero = np.zeros(self.bundle.config.latent_dim, np.float32)
+        return np.stack([zero if r is None else r for r in rows])
+
     def __call__(self, obs: dict, active: np.ndarray) -> np.ndarray:
         o = self._obs(obs)
+        correction = self._start_corrections(len(active))
+        for i in np.flatnonzero(active):
+            self.steps[int(i)] = self.steps.get(int(i), 0) + 1
+        if correction is not None:
+            return np.asarray(self.bundle.act_batch(o, correction=correction), dtype=np.float64)
         if hasattr(self.bundle, "act_batch"):
             return np.asarray(self.bundle.act_batch(o), dtype=np.float64)
         return np.stack([self.bundle.act({k: v[i] for k, v in o.items()}) for i in range(len(active))])

@@ -114,11 +114,19 @@ def _actor(cfg: Config, bundle):
         def act(obs):
             groups = {key: obs[key] for key in bundle.config.obs_groups}
             correction = line.step(state["k"], np.arange(1), lambda ids: touch_correction(bundle, obs, groups))
+            start = bundle.start_correction(state["k"])  # a cautious start, under the touch correction
             state["k"] += 1
-            return bundle.act_batch(groups, correction=correction)
+            return bundle.act_batch(groups, correction=correction if start is None else correction + start)
 
         return act
-    return lambda obs: bundle.act_batch(obs)
+    steps = {"k": 0}
+
+    def act_plain(obs):
+        start = bundle.start_correction(steps["k"])  # a cautious start's latent shift (None: none)
+        steps["k"] += 1
+        return bundle.act_batch(obs, correction=None if start is None else start[None])
+
+    return act_plain
 
 
 def run(cfg: Config) -> Path:

@@ -109,15 +109,31 @@ class PolicyBundle:
         return self
 
     @torch.no_grad()
-    def act(self, obs: dict[str, Any]) -> np.ndarray:
-        """One observation (groups without a batch dim) -> (action_dim,) float32 action in [-1, 1]."""
+    def act(self, obs: dict[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
+        """One observation (groups without a batch dim) -> (action_dim,) float32 action in [-1, 1]; ``correction``
+        (Z,) is added to the latent first (a cautious start's shift: :meth:`start_correction`)."""
+        if correction is not None:
+            batched = {k: np.asarray(obs[k])[None] for k in self.config.obs_groups}
+            return self.act_batch(batched, np.asarray(correction, np.float32).reshape(1, -1))[0]
         net = self.net if self.single is None else self.single
         return net(self._tensors(obs, batched=False)).numpy()[0]  # numpy's indexing keeps the interpreter's lock
 
     @torch.no_grad()
-    def act_batch(self, obs: dict[str, Any]) -> np.ndarray:
-        """Observations with a leading N on every group -> (N, action_dim) float32 actions in [-1, 1]."""
-        return self.net(self._tensors(obs, batched=True)).numpy()
+    def act_batch(self, obs: dict[str, Any], correction: np.ndarray | None = None) -> np.ndarray:
+        """Observations with a leading N on every group -> (N, action_dim) float32 actions in [-1, 1];
+        ``correction`` (N, Z) or (Z,) is added to the latent first."""
+        tensors = self._tensors(obs, batched=True)
+        if correction is None:
+            return self.net(tensors).numpy()
+        z = self.net.extractor.z(tensors) + torch.as_tensor(np.asarray(correction, np.float32))
+        return self.net.mean(tensors, z).clamp(-1.0, 1.0).numpy()
+
+    def start_correction(self, step: int) -> np.ndarray | None:
+        """The (Z,) shift the latent gets at control step ``step`` of an episode (0 = its first action): the
+        bundle's cautious start (``start_shift`` over its first ``start_steps`` steps), else None."""
+        if step < self.config.start_steps:
+            return np.asarray(self.config.start_shift, dtype=np.float32)
+        return None
 
     @torch.no_grad()
     def latent(self, obs: dict[str, Any]) -> np.ndarray:

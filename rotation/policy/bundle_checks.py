@@ -80,7 +80,24 @@ def value_problems(cfg: Any) -> list[str]:
         problems.append(f"action_dim must be {C.NUM_JOINTS} (one action per joint of the hand), got {cfg.action_dim}")
     problems += _size_problems(cfg)
     problems += joint_limit_problems(cfg.joint_lower, cfg.joint_upper)
+    problems += start_shift_problems(cfg)
     return problems
+
+
+def start_shift_problems(cfg: Any) -> list[str]:
+    """A cautious start's shift: finite, one value per latent dimension, and given exactly when start_steps > 0."""
+    shift, steps = cfg.start_shift, cfg.start_steps
+    if steps < 0:
+        return [f"start_steps must be >= 0, got {steps}"]
+    if steps == 0:
+        return [] if len(shift) == 0 else ["start_shift is given but start_steps is 0: give both or neither"]
+    net = cfg.encoder if cfg.latent_source == "privileged" else cfg.adaptation
+    dim = net.latent_dim if net is not None else None
+    if dim is not None and len(shift) != dim:
+        return [f"start_shift must have one value per latent dimension ({dim}), got {len(shift)}"]
+    if not all(math.isfinite(v) for v in shift):
+        return [f"start_shift must be finite, got {list(shift)}"]
+    return []
 
 
 def joint_limit_problems(lower: tuple[float, ...], upper: tuple[float, ...]) -> list[str]:

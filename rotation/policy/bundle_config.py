@@ -73,6 +73,11 @@ class BundleConfig:
     """Optional reference to a tactile adapter (a path or shipped name) that corrects this policy's latent."""
     touch_encoder: str | None = None
     """Optional reference to the frozen touch encoder the adapter reads."""
+    start_shift: tuple[float, ...] = ()
+    """A cautious start: added to the latent z over the first ``start_steps`` control steps of each episode (of each
+    deploy run), then nothing; (latent_dim,) values, empty with ``start_steps`` 0 (scripts/cautious_start.py)."""
+    start_steps: int = 0
+    """How many control steps from an episode's first the ``start_shift`` is added for (0: never)."""
     card: dict[str, Any] = field(default_factory=dict)
     """Free-form metadata: how it was trained, the env config, steps, scores."""
     sim: dict[str, Any] = field(default_factory=dict)

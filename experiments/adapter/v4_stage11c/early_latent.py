@@ -58,6 +58,9 @@ class FirstSteps:
 
         env.reset = counted_reset
 
+    def start_correction(self, step: int) -> None:
+        return None  # the start is this wrapper's own doing: no bundle shift on top
+
     def act_batch(self, groups: dict[str, np.ndarray]) -> np.ndarray:
         use = self.first if self.k < self.steps else self.then
         self.k += 1
@@ -81,6 +84,9 @@ class CautiousStart:
             return reset(*args, **kwargs)
 
         env.reset = counted_reset
+
+    def start_correction(self, step: int) -> None:
+        return None  # the start is this wrapper's own doing: no bundle shift on top
 
     @torch.no_grad()
     def act_batch(self, groups: dict[str, np.ndarray]) -> np.ndarray:
