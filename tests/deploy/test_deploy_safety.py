@@ -193,6 +193,9 @@ class MostlySlowPolicy:
     def __init__(self, inner):
         self.inner, self.config, self.calls, self.lock = inner, inner.config, 0, threading.Lock()
 
+    def start_correction(self, step):
+        return self.inner.start_correction(step)
+
     def act(self, obs):
         with self.lock:
             self.calls += 1

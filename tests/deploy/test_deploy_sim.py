@@ -194,6 +194,9 @@ class NaNPolicy:
     def __init__(self, inner):
         self.inner, self.config, self.calls = inner, inner.config, 0
 
+    def start_correction(self, step):
+        return self.inner.start_correction(step)
+
     def act(self, obs):
         self.calls += 1
         return self.inner.act(obs) * (np.nan if self.calls >= 10 else 1.0)
@@ -215,6 +218,9 @@ class StallingPolicy:
 
     def __init__(self, inner):
         self.inner, self.config, self.calls = inner, inner.config, 0
+
+    def start_correction(self, step):
+        return self.inner.start_correction(step)
 
     def act(self, obs):
         self.calls += 1

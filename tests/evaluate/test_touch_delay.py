@@ -27,6 +27,9 @@ class FakeAdapter:
         self.acted: list[float] = []  # env 0's correction, one per step
         self.requested: list[int] = []  # the step of each refresh
 
+    def start_correction(self, step):
+        return None  # no cautious start
+
     def act_batch(self, groups, correction):
         self.acted.append(float(correction[0, 0]))
         return np.zeros((len(correction), 16), dtype=np.float32)

@@ -71,6 +71,9 @@ def test_a_tactile_adapter_refreshes_and_smooths_as_in_evaluate(monkeypatch):
         config = BundleConfig(latent_source="adaptation")
         acted: list[float] = []
 
+        def start_correction(self, step):
+            return None  # no cautious start
+
         def act_batch(self, groups, correction=None):
             self.acted.append(float(correction[0, 0]))
             return np.zeros((1, 16), np.float32)
