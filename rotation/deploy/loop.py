@@ -43,7 +43,7 @@ from rotation.deploy.sensors import DigitDrain, SkinDrain
 from rotation.deploy.touch import reads_touch
 from rotation.deploy.touch_worker import STALE_REFRESHES, TouchWorker
 from rotation.hardware.hand import HandFault
-from rotation.policy.bundle import PolicyBundle
+from rotation.policy.bundle import PolicyBundle, combined_correction
 
 log = logging.getLogger(__name__)
 
@@ -170,10 +170,8 @@ class ControlLoop:
 
                 # 2. act within the budget, with the newest touch correction (never waited for)
                 obs = policy.observation()
-                correction = None if touch is None else touch.correction(k, now)
-                shift = self.bundle.start_correction(k)  # a cautious start's latent shift, under any touch correction
-                if shift is not None:
-                    correction = shift if correction is None else np.asarray(correction, np.float32).reshape(-1) + shift
+                correction = combined_correction(None if touch is None else touch.correction(k, now),
+                                                 self.bundle.start_correction(k))  # a cautious start under touch
                 action, why = None, ""
                 if worker.submit(k, (obs, correction)):
                     action = worker.wait(k, now + budget - time.monotonic())

@@ -15,7 +15,7 @@ import numpy as np
 from adapters.touch_delay import DelayLine, TouchDelay, parse_delay
 from envs.core import RotateCupVec
 from envs.metrics import EpisodeMetrics, EpisodeTracker
-from rotation.policy.bundle import PolicyBundle
+from rotation.policy.bundle import PolicyBundle, combined_correction
 
 FrameHook = Callable[[RotateCupVec], None]
 """Called after the reset and after every step of the first episode, e.g. to render simulation 0."""
@@ -58,14 +58,11 @@ def run_episodes(bundle: PolicyBundle, env: RotateCupVec, episodes: int, seed: i
             idx = np.flatnonzero(active)
             actions[:] = 0.0
             groups = {key: obs[key][idx] for key in bundle.config.obs_groups}
-            start = bundle.start_correction(k)  # a cautious start's latent shift (None: none at this step)
-            if line is not None:  # refreshes due read this step's touch of their envs
-                correction = line.step(k, idx, partial(envs_correction, bundle, obs))
-                actions[idx] = bundle.act_batch(groups, correction=correction if start is None else correction + start)
-            elif start is not None:
-                actions[idx] = bundle.act_batch(groups, correction=start)
-            else:
-                actions[idx] = bundle.act_batch(groups)
+            # refreshes due read this step's touch of their envs; a cautious start's shift goes under it
+            touch = None if line is None else line.step(k, idx, partial(envs_correction, bundle, obs))
+            correction = combined_correction(touch, bundle.start_correction(k))
+            actions[idx] = (bundle.act_batch(groups) if correction is None
+                            else bundle.act_batch(groups, correction=correction))
             k += 1
             obs, reward, terminated, truncated, info = env.step(actions)
             if record and active[0]:

@@ -103,30 +103,26 @@ def _actor(cfg: Config, bundle):
     if cfg.policy == "random":
         rng = np.random.default_rng(cfg.seed)
         return lambda obs: rng.uniform(-1.0, 1.0, (1, 16))
+    from rotation.policy.bundle import combined_correction
+
+    line = None
     if getattr(bundle, "touch_every", 0):  # a tactile adapter: refresh its correction as evaluate and deploy do
         from adapters.touch_delay import DelayLine, parse_delay
         from rotation.evaluate.rollout import touch_correction
 
         line = DelayLine(1, bundle.config.latent_dim, bundle.touch_every, parse_delay("0"), [cfg.seed],
                          bundle.touch_smoothing)
-        state = {"k": 0}
+    state = {"k": 0}
 
-        def act(obs):
-            groups = {key: obs[key] for key in bundle.config.obs_groups}
-            correction = line.step(state["k"], np.arange(1), lambda ids: touch_correction(bundle, obs, groups))
-            start = bundle.start_correction(state["k"])  # a cautious start, under the touch correction
-            state["k"] += 1
-            return bundle.act_batch(groups, correction=correction if start is None else correction + start)
+    def act(obs):
+        groups = {key: obs[key] for key in bundle.config.obs_groups}
+        touch = (None if line is None else
+                 line.step(state["k"], np.arange(1), lambda ids: touch_correction(bundle, obs, groups)))
+        correction = combined_correction(touch, bundle.start_correction(state["k"]))  # a cautious start under touch
+        state["k"] += 1
+        return bundle.act_batch(groups, correction=correction)
 
-        return act
-    steps = {"k": 0}
-
-    def act_plain(obs):
-        start = bundle.start_correction(steps["k"])  # a cautious start's latent shift (None: none)
-        steps["k"] += 1
-        return bundle.act_batch(obs, correction=None if start is None else start[None])
-
-    return act_plain
+    return act
 
 
 def run(cfg: Config) -> Path:

@@ -303,6 +303,17 @@ def shipped_bundles() -> list[str]:
     return sorted(p.name for p in SHIPPED_DIR.iterdir() if (p / CONFIG_FILE).is_file())
 
 
+def combined_correction(touch: np.ndarray | None, start: np.ndarray | None) -> np.ndarray | None:
+    """The latent correction a control step acts with: a tactile adapter's ``touch`` correction ((N, Z), (1, Z) or
+    (Z,)), a cautious start's ``start`` shift ((Z,), :meth:`PolicyBundle.start_correction`), their sum, or None
+    (the policy as it is)."""
+    if start is None:
+        return touch
+    if touch is None:
+        return start
+    return np.asarray(touch, np.float32) + start
+
+
 def resolve_bundle(name_or_path: str | Path) -> Path:
     """A bundle directory from a path, or from the name of a shipped bundle (``teacher``, ``student``)."""
     path = Path(name_or_path)

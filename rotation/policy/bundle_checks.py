@@ -91,10 +91,8 @@ def start_shift_problems(cfg: Any) -> list[str]:
         return [f"start_steps must be >= 0, got {steps}"]
     if steps == 0:
         return [] if len(shift) == 0 else ["start_shift is given but start_steps is 0: give both or neither"]
-    net = cfg.encoder if cfg.latent_source == "privileged" else cfg.adaptation
-    dim = net.latent_dim if net is not None else None
-    if dim is not None and len(shift) != dim:
-        return [f"start_shift must have one value per latent dimension ({dim}), got {len(shift)}"]
+    if len(shift) != cfg.latent_dim:
+        return [f"start_shift must have one value per latent dimension ({cfg.latent_dim}), got {len(shift)}"]
     if not all(math.isfinite(v) for v in shift):
         return [f"start_shift must be finite, got {list(shift)}"]
     return []

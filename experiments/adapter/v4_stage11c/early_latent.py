@@ -43,13 +43,12 @@ EARLY_S = 2.0
 FRICTION = PRIV_FIELDS.index("friction")
 
 
-class FirstSteps:
-    """Acts with ``first`` for the first ``steps`` actions after each env reset, then with ``then``; ``first_priv``
-    scales the privileged friction that ``first`` sees (1: the truth)."""
+class StepCounter:
+    """Counts the actions since the env's last reset (``k``): every env of a chunk starts together in
+    rotation.evaluate.rollout.run_episodes, so one count serves the whole batch."""
 
-    def __init__(self, env: RotateCupVec, first, then, steps: int, first_priv: float = 1.0) -> None:
-        self.first, self.then, self.steps, self.scale, self.k = first, then, steps, first_priv, 0
-        self.config = SimpleNamespace(obs_groups={**then.config.obs_groups, **first.config.obs_groups})
+    def __init__(self, env: RotateCupVec) -> None:
+        self.k = 0
         reset = env.reset
 
         def counted_reset(*args, **kwargs):
@@ -60,6 +59,16 @@ class FirstSteps:
 
     def start_correction(self, step: int) -> None:
         return None  # the start is this wrapper's own doing: no bundle shift on top
+
+
+class FirstSteps(StepCounter):
+    """Acts with ``first`` for the first ``steps`` actions after each env reset, then with ``then``; ``first_priv``
+    scales the privileged friction that ``first`` sees (1: the truth)."""
+
+    def __init__(self, env: RotateCupVec, first, then, steps: int, first_priv: float = 1.0) -> None:
+        super().__init__(env)
+        self.first, self.then, self.steps, self.scale = first, then, steps, first_priv
+        self.config = SimpleNamespace(obs_groups={**then.config.obs_groups, **first.config.obs_groups})
 
     def act_batch(self, groups: dict[str, np.ndarray]) -> np.ndarray:
         use = self.first if self.k < self.steps else self.then
@@ -71,22 +80,13 @@ class FirstSteps:
         return use.act_batch(mine)
 
 
-class CautiousStart:
+class CautiousStart(StepCounter):
     """The student acting on its latent plus ``shift`` for the first ``steps`` actions after each env reset."""
 
     def __init__(self, env: RotateCupVec, student, shift: np.ndarray, steps: int) -> None:
-        self.student, self.shift, self.steps, self.k = student, torch.as_tensor(shift), steps, 0
+        super().__init__(env)
+        self.student, self.shift, self.steps = student, torch.as_tensor(shift), steps
         self.config = student.config
-        reset = env.reset
-
-        def counted_reset(*args, **kwargs):
-            self.k = 0
-            return reset(*args, **kwargs)
-
-        env.reset = counted_reset
-
-    def start_correction(self, step: int) -> None:
-        return None  # the start is this wrapper's own doing: no bundle shift on top
 
     @torch.no_grad()
     def act_batch(self, groups: dict[str, np.ndarray]) -> np.ndarray:
