@@ -12,7 +12,9 @@ Steps (each a `rotate` command; a finished one is skipped, a stopped one resumes
    ``dagger_episodes`` episodes seeded r x 1,000,000 + e while the expert labels the states it reaches, DAgger) into
    dagger_<row>_<r>/, then `rotate train-il` on the expert's demonstrations and every round so far, il_<row>_r<r>/;
 4. `rotate evaluate --task insertion` of every row's last policy over ``trials`` closed-loop trials seeded from
-   ``eval_seed`` (the demonstrations' episodes are seeded ``e`` for e < episodes: no trial shares one).
+   ``eval_seed`` (the demonstrations' episodes are seeded ``e`` for e < episodes: no trial shares one); with DAgger
+   rounds also each row's policy before them (``<row>_bc``, behaviour cloning alone) on the same trials, so that
+   the table pairs what the rounds changed.
 
     python scripts/insertion_cpu_recipe.py --out runs/insertion_cpu
     python scripts/insertion_cpu_recipe.py --out runs/insertion_cpu --rows camera touch_all --dry-run
@@ -150,9 +152,11 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
             if not (_run_dir(cfg, row, r) / "bundle").is_dir():
                 todo.append((f"train {row} after round {r}", _train(cfg, row, r)))
     if not (out / "eval" / "results.json").is_file():
-        last = cfg.dagger_rounds
-        policies = [a for row in cfg.rows for a in ("--policy", f"{row}={_run_dir(cfg, row, last) / 'bundle'}")]
-        todo.append((f"evaluate {len(cfg.rows)} rows over {cfg.trials} trials",
+        runs = [(row, _run_dir(cfg, row, cfg.dagger_rounds)) for row in cfg.rows]
+        if cfg.dagger_rounds:  # the same rows before DAgger, on the same trials: what the rounds changed, paired
+            runs += [(f"{row}_bc", _run_dir(cfg, row, 0)) for row in cfg.rows]
+        policies = [a for name, run in runs for a in ("--policy", f"{name}={run / 'bundle'}")]
+        todo.append((f"evaluate {len(runs)} policies over {cfg.trials} trials",
                      ["evaluate", "--task", "insertion", *policies, "--episodes", str(cfg.trials), "--seed",
                       str(cfg.eval_seed), "--out", str(out / "eval"), *progress]))
     return todo

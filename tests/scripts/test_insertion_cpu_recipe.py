@@ -31,7 +31,7 @@ def test_every_step_is_listed_and_parses(recipe, tmp_path):
     steps = recipe.commands(cfg)
     assert [w for w, _ in steps] == ["demonstrations (Digit 360 hand)", "demonstrations (Xela hand)", "train camera",
                                      "train touch_all", "train touch_e2e", "train skin",
-                                     "evaluate 4 rows over 100 trials"]
+                                     "evaluate 4 policies over 100 trials"]
     parsed = [_parsed(args) for _what, args in steps]
     assert [p.hand for p in parsed[:2]] == ["digit360_v4", "xela_v4"] and parsed[0].episodes == 100
     camera, touch_all, e2e, skin = parsed[2:6]
@@ -74,9 +74,11 @@ def test_dagger_rounds_drive_each_row_with_its_latest_policy_and_train_on_every_
     assert parsed["train camera after round 2"].demos == (out / "demos", out / "dagger_camera_1",
                                                          out / "dagger_camera_2")
     assert parsed["train camera after round 2"].out == out / "il_camera_r2"
-    evaluate = parsed["evaluate 2 rows over 100 trials"]
+    evaluate = parsed["evaluate 4 policies over 100 trials"]
     assert dict(evaluate.policies) == {"camera": str(out / "il_camera_r2" / "bundle"),
-                                       "skin": str(out / "il_skin_r2" / "bundle")}
+                                       "skin": str(out / "il_skin_r2" / "bundle"),
+                                       "camera_bc": str(out / "il_camera" / "bundle"),
+                                       "skin_bc": str(out / "il_skin" / "bundle")}
     (out / "il_camera_r1" / "bundle").mkdir(parents=True)  # a round trained is skipped, its demos still listed
     names = [w for w, _ in recipe.commands(cfg)]
     assert "train camera after round 1" not in names and "DAgger round 1 of camera" in names
