@@ -292,9 +292,11 @@ class InsertionSim:
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], bool, dict[str, float]]:
         """Move the wrist's target by ``action`` (see the module docstring) and step ``control_dt``; returns the
         observation, whether the episode ended, and info: success, depth, force, max_force, lost (1 once the plug
-        has left the grasp), press_x and press_y (m: where the socket pressed on the prong over the action's steps,
-        force-weighted, relative to its tip in the socket's plane; 0 without contact; privileged, but what a hand
-        feels: a press off the prong's axis is a moment on the held plug, and the fingertips' forces shift with it)."""
+        has left the grasp), slip (m: how far the plug's centre has moved from where it settled, in the palm's
+        frame; lost is slip past ``lost_distance``), press_x and press_y (m: where the socket pressed on the prong
+        over the action's steps, force-weighted, relative to its tip in the socket's plane; 0 without contact;
+        privileged, but what a hand feels: a press off the prong's axis is a moment on the held plug, and the
+        fingertips' forces shift with it)."""
         cfg = self.cfg
         a = np.asarray(action, dtype=np.float64).reshape(6)
         if not np.all(np.isfinite(a)):
@@ -324,12 +326,13 @@ class InsertionSim:
         self.max_force = max(self.max_force, force)
         depth, inside = self.depth()
         success = inside and depth >= cfg.success_depth and self.max_force <= cfg.max_force
-        lost = float(np.linalg.norm(held[-1] - self._held0)) > cfg.lost_distance
+        slip = float(np.linalg.norm(held[-1] - self._held0))  # how far the plug has moved in the hand
+        lost = slip > cfg.lost_distance
         press = (self._socket_rot().T @ moment)[:2] / max(sum(forces), 1e-9)  # over the action's steps, in the
         # socket's plane: a press off the prong's axis is a moment on the held plug, which the fingertips feel
         done = success or lost or self.steps >= cfg.episode_steps or self.max_force > cfg.max_force
         return self.observe(), done, {"success": float(success), "depth": depth, "inside": float(inside),
-                                      "force": force, "max_force": self.max_force, "lost": float(lost),
+                                      "force": force, "max_force": self.max_force, "lost": float(lost), "slip": slip,
                                       "press_x": float(press[0]), "press_y": float(press[1])}
 
     def observe(self) -> dict[str, np.ndarray]:

@@ -58,6 +58,7 @@ ALLOWED: dict[str, dict[str, str]] = {
     "grasps:noise": {"zero": "grasps exactly at the canonical pose"},
     "demos:noise_m": {"zero": "the expert's actions executed as chosen (no DART noise, the default)"},
     "demos:noise_rad": {"zero": "the expert's rotations executed as chosen (the default)"},
+    "demos:slip_stop": {"zero": "0 = off: a DAgger round's episode runs on to the env's own end"},
     "demos:beta": {"zero": "0 = the policy drives every step (DAgger's last rounds; the default)"},
     "grasps:hold_seconds": {"zero": "turns the hold check off (the cache records no hold rule)"},
     "train-teacher:critic_warmup": {"zero": "0 = the actor trains from the first update"},

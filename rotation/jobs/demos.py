@@ -36,7 +36,8 @@ follows from what a policy's touch can carry; ``--expert-align state`` slides to
 neither the camera nor touch shows (the first demonstrations, experiments/insertion).
 
 The session's properties record the outcome (``success``, ``steps``, ``max_force``, ``lost``: the plug left the
-grasp, ``retries``: the expert's back-offs after a jam, ``policy_steps``: the steps a --policy drove). A run that
+grasp, ``retries``: the expert's back-offs after a jam, ``policy_steps``: the steps a --policy drove, ``slipped``:
+a --policy episode ended because the plug moved ``slip_stop`` in the hand). A run that
 stops keeps the finished episodes; running the same command again records the rest (an episode's file is complete or
 recorded again). Other tasks follow as they are added.
 """
@@ -91,6 +92,10 @@ class Config:
     labels the states it reaches (DAgger; module docstring); None: the expert drives."""
     beta: float = 0.0
     """With --policy: the probability that a step executes the expert's action instead of the policy's."""
+    slip_stop: float = 0.012
+    """With --policy: end the episode once the plug has moved this far in the hand (m). The expert has no answer
+    for a slipping grasp, and its near-still labels there taught a policy to hold still (experiments/insertion); its
+    own seated demonstrations move the plug at most 10.5 mm (60 seeds). 0: run on to the env's own end."""
     grip: Literal["fingertips", "palm"] = "fingertips"
     """How the hand holds the plug: 'fingertips' (only the domes touch it, squeezed, so the socket's forces reach the
     sensors) or 'palm' (the cup's body on the phalanges; the first version's demonstrations). envs.plug_grip."""
@@ -111,6 +116,7 @@ class Config:
         check_number("noise_rad", self.noise_rad, 0.0, 0.05, unit="rad")
         check_number("flush_interval_s", self.flush_interval_s, 0.0, 3600.0, low_open=True, unit="s")
         check_number("beta", self.beta, 0.0, 1.0)
+        check_number("slip_stop", self.slip_stop, 0.0, 0.06, unit="m")
         if self.policy is None and self.beta:
             raise ValueError("beta mixes the expert's actions into a policy's rollouts: give --policy")
         if self.policy is not None and (self.noise_m or self.noise_rad):
@@ -185,7 +191,7 @@ def record_episode(cfg: Config, episode: int, grasps: Any, policy: Any = None, p
     noise_rng = np.random.default_rng([seed, 0xDA27])  # the executed action's noise (DART), apart from the expert's
     noise_std = np.array([cfg.noise_m] * 3 + [cfg.noise_rad] * 3)
     mix_rng = np.random.default_rng([seed, 0xDA66])  # which steps execute the expert's action (DAgger's beta)
-    policy_steps = 0
+    policy_steps, slipped = 0, False
     if policy is not None:
         policy.reset()
     key = sim.touch_key
@@ -215,6 +221,8 @@ def record_episode(cfg: Config, episode: int, grasps: Any, policy: Any = None, p
                 if mix_rng.random() >= cfg.beta:
                     executed, policy_steps = driven, policy_steps + 1
             obs, done, info = sim.step(executed)
+            if policy is not None and cfg.slip_stop and info["slip"] > cfg.slip_stop:
+                done = slipped = True  # the grasp is going: nothing the expert labels from here is worth learning
             frames[-1] = (*frames[-1], sim.contact.copy(), t + np.arange(icfg.substeps) * TIMESTEP)
             if sim.skin is not None:
                 skin.append(sim.skin.drain())
@@ -222,7 +230,7 @@ def record_episode(cfg: Config, episode: int, grasps: Any, policy: Any = None, p
         sim.close()
     outcome = {"success": bool(info["success"]), "steps": sim.steps, "max_force": float(info["max_force"]),
                "lost": bool(info["lost"]), "retries": expert.retries, "grasp_u": sim.grasp_u,
-               "regrips": sim.regrips, "policy_steps": policy_steps}
+               "regrips": sim.regrips, "policy_steps": policy_steps, "slipped": slipped}
     meta = SessionMeta(**meta_base, properties=outcome, extra=extra)
     with SessionWriter(path, meta, demo_streams(cfg.image_size, 1.0 / icfg.control_dt, bool(skin)),
                        flush_interval_s=cfg.flush_interval_s, overwrite=True) as w:

@@ -232,6 +232,13 @@ def test_dagger_rollouts_record_the_experts_labels_on_the_states_the_policy_reac
     moved = np.diff(s["wrist/pose"][:, :3], axis=0)
     assert np.abs(moved - np.clip(s["actions/wrist"][:-1, :3], -0.003, 0.003)).max() > 1e-4
     assert demos.run(demos.Config(out=driven, policy=str(bundle), **base))["episodes"] == 0  # kept
+    # a round ends its episode once the plug has moved slip_stop in the hand (here at once: 0.1 mm)
+    stopped = tmp_path / "stopped"
+    demos.run(demos.Config(out=stopped, policy=str(bundle), slip_stop=1e-4, **base))
+    short = read(stopped)[0]
+    assert short["slipped"] and short["steps"] == len(read(stopped)[2]["actions/wrist"]) < props["steps"]
+    with pytest.raises(ValueError, match="slip_stop"):
+        demos.Config(out=tmp_path / "y", policy=str(bundle), slip_stop=0.1)
     plain, mixed = tmp_path / "plain", tmp_path / "mixed"
     demos.run(demos.Config(out=plain, **base))
     demos.run(demos.Config(out=mixed, policy=str(bundle), beta=1.0, **base))
