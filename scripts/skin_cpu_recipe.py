@@ -138,8 +138,9 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
 def card_commands(encoder: str, out: Path, progress: bool = False) -> list[tuple[str, list[str]]]:
     """The card check of a skin encoder (a path or a shipped name): 8 sessions of cup play on seed
     :data:`CARD_SEED` into OUT/card_sessions, then a frozen force probe of 200 steps on one thread (seed 0, all the
-    training labels) into OUT/card_check. Deterministic on one machine; across machines its figures agree within
-    float differences."""
+    training labels) into OUT/card_check. Deterministic on one machine; across machines the simulation's float
+    differences grow into different trajectories, and the figures moved up to 6.2% on three float variants
+    (tests/scripts/test_skin_cpu_recipe.py allows 15%)."""
     out = Path(out)
     return [("card check: its sessions", ["collect", "--skin", "--hand", "xela_v4", "--policy", "play", "--num-envs",
                                           "8", *progress_args(progress), "--episodes", "8", "--seed", str(CARD_SEED),

@@ -19,8 +19,13 @@ from rotation.tactile.pretrain import job as pretrain
 from rotation.tactile.probes import config as probe
 
 SHIPPED = "sparshskin-tiny-sim"
-TOLERANCE = 0.05
-"""Relative difference allowed between the card's figures and a rerun's (float differences between machines)."""
+TOLERANCE = 0.15
+"""Relative difference allowed between the card's probe figures and a rerun's. The check's sessions come from a
+contact simulation in which last-bit float differences between machines (the C library's maths code paths, for one)
+grow into different trajectories within seconds, and the 200-step probe follows its data: on three float variants of
+the same commands (the card's machine; another with glibc's FMA code paths, and the same with them turned off by
+GLIBC_TUNABLES=glibc.cpu.hwcaps=-FMA) the figures lay up to 6.2% from the card's. The tokens' fingerprint (first
+windows, before the trajectories part) agreed to 2e-6 on all three: it is what pins the weights."""
 
 
 @pytest.fixture(scope="module")
