@@ -137,6 +137,15 @@ class InsertionEpisode:
     """Socket roll and pitch (rad)."""
 
 
+def clip_action(cfg: InsertionConfig, action: np.ndarray) -> np.ndarray:
+    """The wrist action (..., 6) as a step executes it: translation clipped to ``max_step``, rotation to
+    ``max_turn`` per component. The scripted expert's corrections can be far larger (a proportional step toward a
+    target 1 cm away, a turn of 0.5 rad where a policy has tilted the wrist): what a step does with them is this."""
+    a = np.asarray(action, dtype=np.float64)
+    return np.concatenate([np.clip(a[..., :3], -cfg.max_step, cfg.max_step),
+                           np.clip(a[..., 3:], -cfg.max_turn, cfg.max_turn)], axis=-1)
+
+
 def draw_episode(cfg: InsertionConfig, seed: int, grasps: GraspCache) -> InsertionEpisode:
     rng = np.random.default_rng([int(seed), 0x1A5])
     r = cfg.socket_xy * math.sqrt(rng.uniform())
@@ -301,8 +310,8 @@ class InsertionSim:
         a = np.asarray(action, dtype=np.float64).reshape(6)
         if not np.all(np.isfinite(a)):
             raise ValueError(f"insertion: the action must be 6 finite numbers, got {action!r}")
-        move = np.clip(a[:3], -cfg.max_step, cfg.max_step)
-        turn = np.clip(a[3:], -cfg.max_turn, cfg.max_turn)
+        executed = clip_action(cfg, a)
+        move, turn = executed[:3], executed[3:]
         self._pos = self._pos + move
         for axis, angle in zip(np.eye(3), turn, strict=True):
             self._quat = tilt_quat(self._quat, axis, float(angle))

@@ -1,5 +1,6 @@
 """Demonstrations as training samples: each action step of each demonstration (rotation.jobs.demos) with its camera
-frame, proprioception, the fingertips' touch embeddings and the chunk of actions that follows.
+frame, proprioception, the fingertips' touch embeddings and the chunk of actions that follows, each action as the
+env's step executes it (:data:`LIMITS`).
 
 Touch: the window of each fingertip ending at the newest 30 fps frame at or before the step's time (what the
 closed-loop policy reads then: envs.held_hand.TouchHistory). Through a frozen encoder it is embedded once and the
@@ -21,9 +22,15 @@ from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from envs.constants import FINGERS
+from envs.insertion import InsertionConfig, clip_action
 from rotation.data.session_reader import SessionReader
 
 IMAGE_HZ = 30.0
+LIMITS = InsertionConfig()
+"""The env whose step limits (``max_step``, ``max_turn``) the recorded actions are clipped to before a policy learns
+them: sessions keep the expert's raw label, which can be far outside what a step executes (in the demonstrations of
+experiments/insertion 9% of the labels move more than 3 mm on an axis and 16% turn more than 2 degrees, up to 0.59
+rad; in a DAgger round's states more), and those outliers would set the actions' standardization and the loss."""
 
 
 def proprio_of(wrist: np.ndarray, joints: np.ndarray) -> np.ndarray:
@@ -42,7 +49,7 @@ class Demos(Dataset):
             with SessionReader(path) as r:
                 images.append(np.asarray(r.stream("camera/wrist").data, np.uint8))
                 proprio.append(proprio_of(r.stream("wrist/pose").data, r.stream("joints/position").data))
-                actions.append(np.asarray(r.stream("actions/wrist").data, np.float32))
+                actions.append(clip_action(LIMITS, r.stream("actions/wrist").data).astype(np.float32))
                 times.append(np.asarray(r.stream("actions/wrist").timestamps))
             starts.append(sum(len(a) for a in actions[:-1]))
         if not actions or not sum(len(a) for a in actions):

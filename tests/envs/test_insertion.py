@@ -11,7 +11,7 @@ import pytest
 
 from envs.constants import FINGERS
 from envs.grasp_cache import load_default_cache
-from envs.insertion import CLEARANCE, PRONG, SOCKET_DEPTH, InsertionConfig, InsertionSim, draw_episode
+from envs.insertion import CLEARANCE, PRONG, SOCKET_DEPTH, InsertionConfig, InsertionSim, clip_action, draw_episode
 from envs.insertion_expert import ExpertConfig, InsertionExpert, _rot
 from envs.plug_grip import HOLD_DRIFT, MAX_REGRIPS, holds, regrip_row
 from envs.sensors.digit360 import FIELD
@@ -224,3 +224,9 @@ def test_on_the_xela_hand_the_skin_samples_at_100_hz_and_feels_the_grip_and_the_
     assert info["max_force"] > 1.0 and np.abs(obs["skin"][-1, :, 2] - z1).sum() > 2 * still
     assert len(sim.skin.drain()[0]) == 12 * cfg.substeps // 5  # one sample every five 2 ms steps
     assert _episode(cfg, 101, g)[2]["success"] == 1.0  # 8 of 8 seeds measured
+
+
+def test_clip_action_is_what_a_step_executes():
+    cfg = InsertionConfig(max_step=0.002, max_turn=0.01)
+    got = clip_action(cfg, np.array([[0.001, -0.005, 0.003, 0.02, -0.001, -0.3]]))
+    assert got == pytest.approx(np.array([[0.001, -0.002, 0.002, 0.01, -0.001, -0.01]]))

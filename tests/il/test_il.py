@@ -89,6 +89,25 @@ def test_a_bundle_knows_its_grip_and_demonstrations_of_two_grips_are_refused(dem
     assert not (tmp_path / "il").exists()
 
 
+def test_the_policy_learns_the_actions_a_step_executes(demo_dir):
+    """The sessions keep the expert's raw labels (here some beyond the step's limits: 3 mm and 2 degrees per axis);
+    the training samples hold them clipped as the env's step clips them."""
+    from rotation.data.session_reader import SessionReader
+
+    paths = find_sessions(demo_dir)
+    raw = []
+    for path in paths:
+        with SessionReader(path) as r:
+            raw.append(r.stream("actions/wrist").data.copy())
+    raw = np.concatenate(raw)
+    assert np.abs(raw[:, :3]).max() > 0.003 and np.abs(raw[:, 3:]).max() > np.radians(2)
+    data = Demos(paths, chunk=4)
+    assert np.abs(data.actions[:, :3]).max() <= 0.003 + 1e-9
+    assert np.abs(data.actions[:, 3:]).max() <= np.radians(2) + 1e-7
+    inside = (np.abs(raw[:, :3]) < 0.003).all(1) & (np.abs(raw[:, 3:]) < np.radians(2)).all(1)
+    assert inside.any() and np.array_equal(data.actions[inside], raw[inside])
+
+
 def test_temporal_ensembling_averages_the_chunks_that_cover_a_step():
     model = ChunkPolicy(PolicyConfig(image_size=(32, 32), chunk=3, width=16, heads=2))
     outputs = iter([torch.tensor([[[1.0] * 6, [2.0] * 6, [3.0] * 6]]), torch.tensor([[[10.0] * 6] * 3])])
