@@ -15,13 +15,14 @@ step, beside the median largest socket force of each outcome.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-import h5py
 import mujoco
 import numpy as np
+
+from rotation.data.dataset import find_sessions
+from rotation.data.session_reader import SessionReader
 
 TOUCH_N = 0.5
 """Socket force (N) above which the prong counts as touching the socket."""
@@ -38,9 +39,9 @@ def in_wrist(wrist: np.ndarray, prong: np.ndarray) -> np.ndarray:
 
 
 def episode(path: Path, slip_m: float) -> dict:
-    with h5py.File(path, "r") as f:
-        props = json.loads(f.attrs["properties"])
-        data = {k: f[f"streams/{k}/data"][()] for k in ("wrist/pose", "labels/prong", "labels/socket_force")}
+    with SessionReader(path) as r:
+        props = r.meta.properties
+        data = {k: np.asarray(r.stream(k).data) for k in ("wrist/pose", "labels/prong", "labels/socket_force")}
     rel = in_wrist(data["wrist/pose"], data["labels/prong"])
     moved = np.linalg.norm(rel - rel[0], axis=1)
     force = data["labels/socket_force"][:, 0]
@@ -55,7 +56,7 @@ def episode(path: Path, slip_m: float) -> dict:
 
 
 def summary(folder: Path, slip_m: float) -> list[str]:
-    files = sorted(folder.glob("shard_*/episode_*.h5"))
+    files = find_sessions(folder) if folder.exists() else []
     if not files:
         raise SystemExit(f"insertion_rounds: no episodes under {folder}")
     eps = [episode(p, slip_m) for p in files]

@@ -3,12 +3,13 @@ episodes written field by field, and read from a real recorded demonstration."""
 
 from __future__ import annotations
 
-import json
 import math
 
-import h5py
 import numpy as np
 import pytest
+
+from rotation.data.session import SessionMeta, StreamSetup
+from rotation.data.session_writer import SessionWriter
 
 
 @pytest.fixture(scope="module")
@@ -17,12 +18,14 @@ def rounds(load_script):
 
 
 def _write(path, wrist, prong, force, **props):
+    """A session in the demonstrations' format with just the streams the tool reads, at 20 Hz."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    base = {"success": False, "lost": False, "slipped": False}
-    with h5py.File(path, "w") as f:
-        f.attrs["properties"] = json.dumps({**base, **props})
-        for key, value in (("wrist/pose", wrist), ("labels/prong", prong), ("labels/socket_force", force)):
-            f[f"streams/{key}/data"] = np.asarray(value, dtype=np.float32)
+    meta = SessionMeta(source="sim", object="plug", control_hz=20.0, seed=0,
+                       properties={"success": False, "lost": False, "slipped": False, **props})
+    streams = {"wrist/pose": wrist, "labels/prong": prong, "labels/socket_force": force}
+    with SessionWriter(path, meta, [StreamSetup(k, rate_hz=20.0) for k in streams]) as w:
+        for key, value in streams.items():
+            w.append(key, np.asarray(value, dtype=np.float32), np.arange(len(value)) / 20.0)
 
 
 def test_in_wrist_turns_into_the_wrists_frame(rounds):
