@@ -149,14 +149,22 @@ class Digit360Emulator(EmulatorThread):
             self.link.read(max(0.0, next_t - time.monotonic()))  # drain host -> device bytes; also paces
             if time.monotonic() < next_t:
                 continue
+            k = self._send_due(k, t0_late)
             if self.faults.pause_s > 0:  # the device clock runs on; the samples of the pause are lost
+                # first every tick due before the pause starts, so that a thread that ran late (a loaded machine)
+                # loses only the pause's own samples, not the backlog it was catching up on
                 pause, self.faults.pause_s = self.faults.pause_s, 0.0
+                k = self._send_due(k, t0_late)
                 self._stop.wait(pause)
-                k = int((time.monotonic() - t0_late) / IMU_PERIOD_S)
-            due = int((time.monotonic() - t0_late) / IMU_PERIOD_S)  # every tick whose sending time has come
-            while k < due and not self._stop.is_set():
-                k += 1
-                self._tick(k)
+                k = max(k, int((time.monotonic() - t0_late) / IMU_PERIOD_S))
+
+    def _send_due(self, k: int, t0_late: float) -> int:
+        """Send every tick after ``k`` whose sending time has come; returns the last one sent."""
+        due = int((time.monotonic() - t0_late) / IMU_PERIOD_S)
+        while k < due and not self._stop.is_set():
+            k += 1
+            self._tick(k)
+        return k
 
     def _tick(self, k: int) -> None:
         """Write IMU tick ``k`` (and its pressure sample, and every 400th tick a ``system`` message)."""

@@ -159,3 +159,29 @@ def test_the_linear_acceleration_channel_of_an_emulated_fingertip_is_free_of_gra
     assert np.abs(window["imu"]).max() < 0.05  # the windows hold the linear acceleration
     # the gravity the emulator removes is the fingertip frame's: not the world's z, a tilted finger's
     assert abs(physics.gravity_in_sensor("index")[2]) < 0.99
+
+
+def test_a_pause_loses_only_its_own_samples_when_the_emulator_ran_late():
+    """A stall injected while the emulator's thread is behind (a loaded machine) must not also drop the backlog of
+    samples that were due before it: the gap in the device's timestamps is the pause, not the pause plus the lag."""
+    emu: Digit360Emulator | None = None
+    blocked = []
+
+    def late_once(t: float):
+        if t >= 0.5 and not blocked:  # the thread falls 0.4 s behind, and a 0.2 s pause arrives meanwhile
+            blocked.append(t)
+            time.sleep(0.4)
+            emu.faults.pause_s = 0.2
+        return 0.0, np.array([0.0, 0.0, 1.0])
+
+    emu = Digit360Emulator(source=late_once)
+    with emu, serial.Serial(emu.path, timeout=0.2) as port:
+        data = b""
+        deadline = time.monotonic() + 1.8
+        while time.monotonic() < deadline:
+            data += port.read(4096)
+    msgs = [messages()["Digit360Message"].FromString(cobs.decode(f)) for f in data.split(b"\x00")[1:-1] if f]
+    ts = np.array([m.imu_data.ts for m in msgs if m.WhichOneof("type") == "imu_data"], dtype=float) / 1e3
+    assert blocked and ts[-1] > 1.3, ts[-1]
+    gap = np.diff(ts).max()
+    assert 0.15 < gap < 0.3, gap  # the old order lost the 0.4 s backlog too (a gap of about 0.6 s)
