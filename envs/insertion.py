@@ -57,6 +57,7 @@ from envs.plug_grip import GRIP_HEIGHT, MAX_REGRIPS, check_grip, fingertip_grip,
 from envs.render import offscreen_renderer
 from envs.rng import splitmix64
 from envs.sensors.xela_layout import XELA_HANDS
+from envs.wrist_compliance import FIRST_WRIST, check_wrist, contact_force_on, wrist_model
 
 TIMESTEP = 0.002
 PRONG = (0.012, 0.006, 0.024)
@@ -109,10 +110,15 @@ class InsertionConfig:
     grip: str = "fingertips"
     """How the plug is held: 'fingertips' (the domes alone) or 'palm' (the cup's body on the phalanges; the first
     version's runs)."""
+    wrist: str = FIRST_WRIST
+    """How the arm moves the wrist: 'stiff' (the target jumps to each action's pose, held by a stiff weld: the runs
+    recorded before the setting) or 'compliant' (the target moves there over the action, and the arm yields to the
+    socket's forces as under admittance control; envs.wrist_compliance)."""
 
     def __post_init__(self) -> None:
         check_touch_hand("insertion", self.hand, skin=True)
         check_grip("insertion", self.grip)
+        check_wrist("insertion", self.wrist)
         steps = self.control_dt / TIMESTEP
         if abs(steps - round(steps)) > 1e-9 or steps < 1:
             raise ValueError(f"insertion: control_dt must be a whole number of {TIMESTEP} s steps, got "
@@ -199,6 +205,9 @@ class InsertionSim:
         self._renderer = offscreen_renderer(self.model, cfg.image_size[1], cfg.image_size[0],
                                             "the wrist camera") if render else None
         self._wrench = np.zeros(6)
+        self._wrist = wrist_model(cfg.wrist)
+        self._from: tuple[np.ndarray, np.ndarray, float] | None = None
+        """The wrist target's pose and the time at the start of the current action (a ramped wrist moves from it)."""
         with np.errstate(over="ignore"):
             self.touch_key = int(splitmix64(np.asarray([episode.seed], dtype=np.uint64))[0])
         """The episode's touch noise key: a recorded demonstration stores it as its session's (rotation.jobs.demos)."""
@@ -292,11 +301,20 @@ class InsertionSim:
         d.mocap_quat[1] = tilt_quat(quat, np.array([0.0, 1.0, 0.0]), ep.tilt[1])
         mujoco.mj_forward(self.model, d)
         self._start_pos, self._start_quat = self._pos.copy(), self._quat.copy()
+        self._wrist.reset()
+        self._from = None
         self.steps, self.max_force = 0, 0.0
         return self.observe()
 
     def _target(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        return self._pos, self._quat
+        pos, quat = self._pos, self._quat
+        if self._wrist.ramps and self._from is not None:  # the arm moves to the new target over the action
+            pos0, quat0, t0 = self._from
+            u = min(1.0, (t - t0 + TIMESTEP) / self.cfg.control_dt)
+            pos = pos0 + u * (pos - pos0)
+            q = (1.0 - u) * quat0 + u * (quat if float(np.dot(quat, quat0)) >= 0.0 else -quat)
+            quat = q / np.linalg.norm(q)
+        return pos + self._wrist.offset, quat
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], bool, dict[str, float]]:
         """Move the wrist's target by ``action`` (see the module docstring) and step ``control_dt``; returns the
@@ -312,6 +330,7 @@ class InsertionSim:
             raise ValueError(f"insertion: the action must be 6 finite numbers, got {action!r}")
         executed = clip_action(cfg, a)
         move, turn = executed[:3], executed[3:]
+        self._from = (self._pos, self._quat, self.data.time)  # where a ramped wrist moves from over the action
         self._pos = self._pos + move
         for axis, angle in zip(np.eye(3), turn, strict=True):
             self._quat = tilt_quat(self._quat, axis, float(angle))
@@ -325,6 +344,8 @@ class InsertionSim:
                 moment = moment + pressed - total * self._pose_of(self._tip_local)[:3]
             if self.skin is not None:
                 self.skin.on_step(d)
+            if self._wrist.active:  # the arm yields to what the socket does to the plug
+                self._wrist.update(-contact_force_on(self.model, d, self._socket, self._wrench), TIMESTEP)
 
         times, rows, held = self._run.run(cfg.substeps, self._target, on_step)
         self.contact = rows

@@ -36,6 +36,7 @@ from pathlib import Path
 
 from envs.insertion_expert import ALIGNS
 from envs.plug_grip import check_grip
+from envs.wrist_compliance import check_wrist
 from rotation.configs import script_main
 from rotation.jobs.recipe import progress_args, run_steps
 
@@ -62,6 +63,8 @@ class Config:
     """How the demonstrations' expert finds the hole (`rotate demos --expert-align`: feel or state)."""
     grip: str = "fingertips"
     """How the demonstrations' hand holds the plug (`rotate demos --grip`: fingertips or palm)."""
+    wrist: str = "stiff"
+    """How the arm moves the wrist (`rotate demos --wrist`: stiff or compliant; envs.wrist_compliance)."""
     encoder: str = "sparshx-tinier-sim"
     """The Sparsh-X encoder of the touch rows (a shipped name or an encoder folder)."""
     skin_encoder: str = ""
@@ -93,6 +96,7 @@ class Config:
         if self.expert_align not in ALIGNS:
             raise ValueError(f"expert_align must be feel or state, got {self.expert_align!r}")
         check_grip("grip", self.grip)
+        check_wrist("wrist", self.wrist)
         if "skin" in self.rows and not self.skin_encoder:
             raise ValueError("rows: the skin row needs --skin-encoder (a pretrained Sparsh-skin: "
                              "scripts/skin_cpu_recipe.py)")
@@ -130,7 +134,8 @@ def commands(cfg: Config) -> list[tuple[str, list[str]]]:
     """(what, command) still to run, in order (demonstrations are always listed: `rotate demos` keeps what is
     complete and records the rest)."""
     out, todo, progress = cfg.out, [], progress_args(cfg.progress)
-    expert = ["--expert-align", cfg.expert_align, "--grip", cfg.grip]  # the demonstrations' and every round's
+    expert = ["--expert-align", cfg.expert_align, "--grip", cfg.grip,
+              "--wrist", cfg.wrist]  # the demonstrations' and every round's
     noise = ["--noise-m", str(cfg.noise_m), "--noise-rad", str(cfg.noise_rad)] if cfg.noise_m or cfg.noise_rad else []
     demo_flags = [*noise, *expert]
     todo.append(("demonstrations (Digit 360 hand)", ["demos", "--task", "insertion", "--episodes", str(cfg.episodes),

@@ -53,6 +53,14 @@ class ILPolicy:
         return str(self.meta.get("grip", FIRST_GRIP))
 
     @property
+    def wrist(self) -> str:
+        """How its demonstrations' arm moved the wrist, which its evaluation moves it by (a bundle from before bundles
+        recorded it: the stiff wrist)."""
+        from envs.wrist_compliance import FIRST_WRIST
+
+        return str(self.meta.get("wrist", FIRST_WRIST))
+
+    @property
     def reads_touch(self) -> bool:
         return self.touch_modalities != "none"
 

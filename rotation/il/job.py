@@ -107,29 +107,34 @@ class EndToEndTouch:
         return self.embedder.tokens_mean(x).reshape(len(steps), self.rows.shape[1], self.embedder.width)
 
 
-def _hand_and_grip(paths: list[Path], touch: str) -> tuple[str, str]:
-    """The demonstrations' hand and grip of the plug (one of each for all of them), the hand checked against the
-    touch the policy reads."""
+def _hand_and_grip(paths: list[Path], touch: str) -> tuple[str, str, str]:
+    """The demonstrations' hand, grip of the plug and wrist (one of each for all of them), the hand checked against
+    the touch the policy reads."""
     from envs.insertion import InsertionConfig
     from envs.plug_grip import FIRST_GRIP
+    from envs.wrist_compliance import FIRST_WRIST
     from rotation.data.session_reader import SessionReader
 
-    hands, grips = set(), set()
+    hands, grips, wrists = set(), set(), set()
     for path in paths:
         with SessionReader(path) as r:
             hands.add(str(r.meta.extra.get("sim_hand", InsertionConfig.hand)))
             grips.add(str((r.meta.extra.get("demos") or {}).get("grip", FIRST_GRIP)))
+            wrists.add(str((r.meta.extra.get("demos") or {}).get("wrist", FIRST_WRIST)))
     if len(hands) > 1:
         raise RequestRefused(f"demos: the demonstrations come from different hands ({', '.join(sorted(hands))}); "
                              "train on one hand's")
     if len(grips) > 1:
         raise RequestRefused(f"demos: the demonstrations hold the plug in different grips ({', '.join(sorted(grips))}"
                              "); train on one grip's")
+    if len(wrists) > 1:
+        raise RequestRefused(f"demos: the demonstrations move the wrist in different ways ({', '.join(sorted(wrists))}"
+                             "); train on one wrist's")
     hand = hands.pop()
     if (touch == "skin") != (hand == "xela_v4") and touch != "none":
         need = "the Xela hand's (`rotate demos --hand xela_v4`)" if touch == "skin" else "a Digit 360 hand's"
         raise RequestRefused(f"touch: --touch {touch} needs {need} demonstrations; these are the {hand} hand's")
-    return hand, grips.pop()
+    return hand, grips.pop(), wrists.pop()
 
 
 def _paths(demos: tuple[Path, ...]) -> list[Path]:
@@ -154,7 +159,7 @@ def run(cfg: Config) -> dict:
         raise RequestRefused(f"resume: no checkpoint in {out}")
     if not cfg.resume and ckpt.is_file():
         raise RequestRefused(f"out: {out} holds a run; continue it with --resume or choose another --out")
-    hand, grip = _hand_and_grip(paths, cfg.touch)  # before anything is written: a refused request leaves OUT as it was
+    hand, grip, wrist = _hand_and_grip(paths, cfg.touch)  # before anything is written: a refusal leaves OUT as it was
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.json")
     touch, touch_dim, fingers, e2e = None, 0, 4, None
@@ -221,7 +226,8 @@ def run(cfg: Config) -> dict:
     card = {"trained_by": "rotate train-il", "config": to_jsonable(cfg), "demonstrations": len(paths),
             "samples": len(data), "steps": cfg.steps, "wall_time_s": round(wall, 1),
             "final_loss": history[-1]["loss"] if history else math.nan}
-    bundle = save_il(out / "bundle", model, {"task": "insertion", "hand": hand, "grip": grip, "touch": cfg.touch,
+    bundle = save_il(out / "bundle", model, {"task": "insertion", "hand": hand, "grip": grip, "wrist": wrist,
+                                             "touch": cfg.touch,
                                              "encoder": None if cfg.touch == "none" else cfg.encoder, "card": card},
                      touch_encoder=None if e2e is None else e2e.embedder.encoder)
     print(f"train-il: {cfg.steps} steps on {len(paths)} demonstrations ({len(data)} samples) in {wall:.0f} s, "

@@ -59,7 +59,7 @@ def run_trial(policy: Any, seed: int, grasps: Any, keep_frames: bool, episode_st
     from envs.insertion import InsertionConfig, InsertionSim, draw_episode
 
     w, h = policy.model.cfg.image_size
-    cfg = InsertionConfig(hand=policy.hand, grip=policy.grip, image_size=(w, h),
+    cfg = InsertionConfig(hand=policy.hand, grip=policy.grip, wrist=policy.wrist, image_size=(w, h),
                           **({} if episode_steps is None else {"episode_steps": episode_steps}))
     sim = InsertionSim(cfg, draw_episode(cfg, seed, grasps), grasps, render=True)
     policy.reset()
@@ -122,6 +122,7 @@ def evaluate_insertion(policies: dict[str, str], episodes: int, seed: int, out: 
         lo, hi = wilson(wins, episodes)
         times = [t["time_s"] for t in trials if t["success"]]
         rows.append({"policy": name, "bundle": policies[name], "hand": policy.hand, "grip": policy.grip,
+                     "wrist": policy.wrist,
                      "touch": policy.touch_modalities,
                      "episodes": episodes, "seed": seed, "success_rate": wins / episodes, "ci95": [lo, hi],
                      "time_to_insert_s": float(np.mean(times)) if times else None,

@@ -55,6 +55,7 @@ from tqdm import tqdm
 from envs.constants import FINGERS, NUM_JOINTS
 from envs.plug_grip import FIRST_GRIP
 from envs.validation import check_int, check_number, check_output_dir, check_seed, check_types
+from envs.wrist_compliance import FIRST_WRIST
 from rotation.configs import to_jsonable
 from rotation.data.session import SessionMeta, StreamSetup
 from rotation.data.session_writer import SessionWriter
@@ -99,6 +100,10 @@ class Config:
     grip: Literal["fingertips", "palm"] = "fingertips"
     """How the hand holds the plug: 'fingertips' (only the domes touch it, squeezed, so the socket's forces reach the
     sensors) or 'palm' (the cup's body on the phalanges; the first version's demonstrations). envs.plug_grip."""
+    wrist: Literal["stiff", "compliant"] = "stiff"
+    """How the arm moves the wrist: 'stiff' (jumps to each action's target, a stiff weld; the demonstrations recorded
+    before the setting) or 'compliant' (moves there over the action and yields to the socket's forces, as an arm
+    under admittance control). envs.wrist_compliance."""
     flush_interval_s: float = 2.0
     """Session writers flush at least this often (s)."""
     progress: bool = True
@@ -143,7 +148,7 @@ def demo_streams(image_size: tuple[int, int], control_hz: float, skin: bool = Fa
 
 SAME_RUN = {"task": None, "seed": None, "image_size": None, "episode_steps": None, "hand": "digit360_v4",
             "noise_m": 0.0, "noise_rad": 0.0, "expert_align": "state", "grip": FIRST_GRIP, "policy": None,
-            "beta": 0.0}
+            "beta": 0.0, "wrist": FIRST_WRIST}
 """Settings an episode's file must share with this run to be kept (complete) or recorded again (incomplete), with
 the value a file recorded before the setting existed had."""
 
@@ -183,7 +188,8 @@ def record_episode(cfg: Config, episode: int, grasps: Any, policy: Any = None, p
     from envs.scene import touch_model
     from rotation.il.rollout import touch_windows
 
-    icfg = InsertionConfig(hand=cfg.hand, image_size=cfg.image_size, episode_steps=cfg.episode_steps, grip=cfg.grip)
+    icfg = InsertionConfig(hand=cfg.hand, image_size=cfg.image_size, episode_steps=cfg.episode_steps, grip=cfg.grip,
+                           wrist=cfg.wrist)
     seed = cfg.seed * 1_000_000 + episode
     ep = draw_episode(icfg, seed, grasps)
     sim = InsertionSim(icfg, ep, grasps, render=True)
@@ -258,7 +264,7 @@ def record_episode(cfg: Config, episode: int, grasps: Any, policy: Any = None, p
 
 def _driving_policy(cfg: Config) -> tuple[Any, str | None]:
     """The imitation policy of ``--policy`` and its bundle digest, (None, None) without one; refused where it was
-    trained on another hand, grip or camera size than this run records."""
+    trained on another hand, grip, wrist or camera size than this run records."""
     if cfg.policy is None:
         return None, None
     from rotation.il.bundle import load_il
@@ -267,6 +273,7 @@ def _driving_policy(cfg: Config) -> tuple[Any, str | None]:
     policy = load_il(cfg.policy)
     size = tuple(policy.model.cfg.image_size)
     for what, flag, theirs, mine in (("hand", "hand", policy.hand, cfg.hand), ("grip", "grip", policy.grip, cfg.grip),
+                                     ("wrist", "wrist", policy.wrist, cfg.wrist),
                                      ("camera size", "image-size", size, tuple(cfg.image_size))):
         if theirs != mine:
             raise ValueError(f"policy: {cfg.policy} was trained with the {what} {theirs}, this run records {mine}; "

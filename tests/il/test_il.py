@@ -71,6 +71,7 @@ def test_the_policy_learns_the_demonstrations_and_resumes_exactly(demo_dir, tmp_
     card = json.loads((tmp_path / "full" / "bundle" / "config.json").read_text())["card"]
     assert card["trained_by"] == "rotate train-il" and card["demonstrations"] == 2 and card["steps"] == 160
     assert a.meta["grip"] == "fingertips" and a.grip == "fingertips"  # its evaluation holds the plug the same way
+    assert a.meta["wrist"] == "stiff" and a.wrist == "stiff"  # and moves the wrist the same way
 
 
 def test_a_bundle_knows_its_grip_and_demonstrations_of_two_grips_are_refused(demo_dir, tmp_path):
@@ -78,6 +79,7 @@ def test_a_bundle_knows_its_grip_and_demonstrations_of_two_grips_are_refused(dem
 
 
     assert ILPolicy(ChunkPolicy(PolicyConfig()), {"task": "insertion"}).grip == "palm"  # bundles from before
+    assert ILPolicy(ChunkPolicy(PolicyConfig()), {"task": "insertion"}).wrist == "stiff"
     palm = tmp_path / "palm"
     demos.run(demos.Config(episodes=1, out=palm, seed=4, image_size=(48, 36), grip="palm", progress=False))
     mixed = tmp_path / "mixed"
@@ -87,6 +89,29 @@ def test_a_bundle_knows_its_grip_and_demonstrations_of_two_grips_are_refused(dem
     with pytest.raises(ValueError, match="different grips"):
         _train(mixed, tmp_path / "il", steps=2)
     assert not (tmp_path / "il").exists()
+
+
+def test_a_compliant_wrist_run_trains_and_evaluates_with_its_wrist_and_is_not_mixed(demo_dir, tmp_path):
+    import shutil
+
+    from rotation.cli import main
+
+    soft = tmp_path / "soft"
+    demos.run(demos.Config(episodes=1, out=soft, seed=6, image_size=(48, 36), wrist="compliant", progress=False))
+    bundle = _train(soft, tmp_path / "il_soft", steps=2)["bundle"]
+    assert load_il(bundle).wrist == "compliant"
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--task", "insertion", "--policy", f"soft={bundle}", "--episodes", "1", "--seed", "900",
+                 "--episode-steps", "4", "--out", str(out), "--no-progress"]) == 0
+    [row] = json.loads((out / "results.json").read_text())["rows"]
+    assert row["wrist"] == "compliant" and row["grip"] == "fingertips"
+    mixed = tmp_path / "mixed"
+    shutil.copytree(demo_dir, mixed)
+    [extra] = find_sessions(soft)
+    shutil.copy(extra, mixed / "soft_episode.h5")
+    with pytest.raises(ValueError, match="move the wrist in different ways"):
+        _train(mixed, tmp_path / "il_mixed", steps=2)
+    assert not (tmp_path / "il_mixed").exists()
 
 
 def test_the_policy_learns_the_actions_a_step_executes(demo_dir):

@@ -123,3 +123,8 @@ def test_noisy_demonstrations_record_the_experts_corrections_not_the_noise(tmp_p
     assert main(["demos", "--episodes", "1", "--out", str(clean), "--seed", "5", "--image-size", "48", "36",
                  "--grip", "palm"]) == 1
     assert "another run's demonstration" in capsys.readouterr().err
+    # and the wrist: stiff by default, recorded, a compliant run refused here
+    assert extra["wrist"] == "stiff"
+    assert main(["demos", "--episodes", "1", "--out", str(clean), "--seed", "5", "--image-size", "48", "36",
+                 "--wrist", "compliant"]) == 1
+    assert "another run's demonstration" in capsys.readouterr().err
