@@ -19,9 +19,10 @@ Two settings (``InsertionConfig.wrist``):
   ``K`` times how far the command is past where the prong stops: STIFFNESS along the socket's axis (world z, the
   socket tilts at most 3 degrees), LATERAL_STIFFNESS across it, ``M`` = MASS, ``D`` critically damped.
 
-Measured (seeds 200-203, the prong moved 5 mm sideways from under the hole and pushed onto the plate, 1 mm per action then 3 mm per action
-for three actions): the stiff wrist pressed 15-17 N at the end and the plug moved 5-11 mm in the fingertips; the
-ramped target alone 10-12 N and 3-10 mm; ramped and compliant 2.2-4.1 N and under 1 mm.
+Measured (seeds 200-203, the prong moved 5 mm sideways from under the hole and pushed onto the plate, 1 mm per
+action, then 3 mm per action for three actions): the stiff wrist pressed 15-17 N at the end and the plug moved
+5-11 mm in the fingertips; the ramped target alone 10-12 N and 3-10 mm; ramped and compliant 2.2-4.1 N and under
+1 mm.
 """
 
 from __future__ import annotations
