@@ -107,7 +107,7 @@ class EndToEndTouch:
         return self.embedder.tokens_mean(x).reshape(len(steps), self.rows.shape[1], self.embedder.width)
 
 
-def _hand_and_grip(paths: list[Path], touch: str) -> tuple[str, str, str]:
+def _hand_grip_wrist(paths: list[Path], touch: str) -> tuple[str, str, str]:
     """The demonstrations' hand, grip of the plug and wrist (one of each for all of them), the hand checked against
     the touch the policy reads."""
     from envs.insertion import InsertionConfig
@@ -159,7 +159,7 @@ def run(cfg: Config) -> dict:
         raise RequestRefused(f"resume: no checkpoint in {out}")
     if not cfg.resume and ckpt.is_file():
         raise RequestRefused(f"out: {out} holds a run; continue it with --resume or choose another --out")
-    hand, grip, wrist = _hand_and_grip(paths, cfg.touch)  # before anything is written: a refusal leaves OUT as it was
+    hand, grip, wrist = _hand_grip_wrist(paths, cfg.touch)  # before anything is written: a refusal leaves OUT as it was
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.json")
     touch, touch_dim, fingers, e2e = None, 0, 4, None
