@@ -64,22 +64,37 @@ def check_touch_hand(task: str, hand: str, skin: bool = False) -> None:
     raise ValueError(f"{task}: the hand must have Digit 360 fingertips ({allowed}), got {hand!r}")
 
 
-def contact_press(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> tuple[float, np.ndarray]:
+def contact_press(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray,
+                  force: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """Sum of the normal forces (N) of the contacts that involve ``body``'s geoms, and the force-weighted sum of their
-    positions (N m, world frame; divided by the force, where the press is centred)."""
+    positions (N m, world frame; divided by the force, where the press is centred). ``force`` (3,), where given,
+    gathers in the same pass the world-frame force (N) those contacts exert on ``body``, normal and friction."""
     total, moment = 0.0, np.zeros(3)
     for i in range(d.ncon):
         con = d.contact[i]
-        if m.geom_bodyid[con.geom1] == body or m.geom_bodyid[con.geom2] == body:
+        b1, b2 = m.geom_bodyid[con.geom1], m.geom_bodyid[con.geom2]
+        if b1 == body or b2 == body:
             mujoco.mj_contactForce(m, d, i, wrench)
             total += wrench[0]
             moment += wrench[0] * con.pos
+            if force is not None:  # the contact's force on geom2, whose side its normal points to
+                world = con.frame.reshape(3, 3).T @ wrench[:3]
+                force += world if b2 == body else -world
     return total, moment
 
 
 def contact_force(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> float:
     """Sum of the normal forces (N) of the contacts that involve ``body``'s geoms."""
     return contact_press(m, d, body, wrench)[0]
+
+
+def contact_force_on(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> np.ndarray:
+    """The world-frame force (N, (3,)) that the contacts involving ``body``'s geoms exert on it, normal and friction
+    together. On the insertion socket (whose only contacts are the prong's), its negative is the external force on
+    the hand and plug: what a force sensor between the arm and the hand measures, the hand's weight compensated."""
+    force = np.zeros(3)
+    contact_press(m, d, body, wrench, force)
+    return force
 
 
 def grip(grasps: GraspCache, bucket: int, u: float) -> Grip:

@@ -57,7 +57,7 @@ from envs.plug_grip import GRIP_HEIGHT, MAX_REGRIPS, check_grip, fingertip_grip,
 from envs.render import offscreen_renderer
 from envs.rng import splitmix64
 from envs.sensors.xela_layout import XELA_HANDS
-from envs.wrist_compliance import FIRST_WRIST, check_wrist, contact_force_on, wrist_model
+from envs.wrist_compliance import FIRST_WRIST, check_wrist, wrist_model
 
 TIMESTEP = 0.002
 PRONG = (0.012, 0.006, 0.024)
@@ -338,14 +338,15 @@ class InsertionSim:
 
         def on_step(d: mujoco.MjData) -> None:
             nonlocal moment
-            total, pressed = contact_press(self.model, d, self._socket, self._wrench)
+            on_socket = np.zeros(3) if self._wrist.active else None  # the prong's force on the socket (world)
+            total, pressed = contact_press(self.model, d, self._socket, self._wrench, on_socket)
             forces.append(total)
             if total > 0.0:  # where the socket presses, relative to the prong's tip at that step
                 moment = moment + pressed - total * self._pose_of(self._tip_local)[:3]
             if self.skin is not None:
                 self.skin.on_step(d)
-            if self._wrist.active:  # the arm yields to what the socket does to the plug
-                self._wrist.update(-contact_force_on(self.model, d, self._socket, self._wrench), TIMESTEP)
+            if on_socket is not None:  # the arm yields to what the socket does to the plug
+                self._wrist.update(-on_socket, TIMESTEP)
 
         times, rows, held = self._run.run(cfg.substeps, self._target, on_step)
         self.contact = rows

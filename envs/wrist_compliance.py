@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import math
 
-import mujoco
 import numpy as np
 
 WRISTS = ("stiff", "compliant")
@@ -60,22 +59,6 @@ def wrist_model(wrist: str) -> CompliantWrist:
     if wrist == "stiff":
         return CompliantWrist(0.0, 0.0, ramps=False)
     return CompliantWrist(STIFFNESS, LATERAL_STIFFNESS, MASS, ramps=True)
-
-
-def contact_force_on(m: mujoco.MjModel, d: mujoco.MjData, body: int, wrench: np.ndarray) -> np.ndarray:
-    """The world-frame force (N, (3,)) that the contacts involving ``body``'s geoms exert on it, normal and friction
-    together. On the socket (whose only contacts are the prong's), its negative is the external force on the hand
-    and plug: what a force sensor between the arm and the hand measures, the hand's weight compensated."""
-    total = np.zeros(3)
-    for i in range(d.ncon):
-        con = d.contact[i]
-        b1, b2 = m.geom_bodyid[con.geom1], m.geom_bodyid[con.geom2]
-        if body not in (b1, b2):
-            continue
-        mujoco.mj_contactForce(m, d, i, wrench)
-        world = con.frame.reshape(3, 3).T @ wrench[:3]  # the force on geom2, whose side the normal points to
-        total += world if b2 == body else -world
-    return total
 
 
 class CompliantWrist:

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from envs.grasp_cache import load_default_cache
+from envs.held_hand import contact_force_on
 from envs.insertion import TIMESTEP, InsertionConfig, InsertionSim, draw_episode
 from envs.insertion_expert import ExpertConfig, InsertionExpert
 from envs.wrist_compliance import (
     LATERAL_STIFFNESS,
     STIFFNESS,
     CompliantWrist,
-    contact_force_on,
     wrist_model,
 )
 

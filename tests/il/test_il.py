@@ -74,26 +74,29 @@ def test_the_policy_learns_the_demonstrations_and_resumes_exactly(demo_dir, tmp_
     assert a.meta["wrist"] == "stiff" and a.wrist == "stiff"  # and moves the wrist the same way
 
 
-def test_a_bundle_knows_its_grip_and_demonstrations_of_two_grips_are_refused(demo_dir, tmp_path):
+def _mixing_is_refused(demo_dir, other, tmp_path, match):
+    """Training on ``demo_dir`` with ``other``'s one demonstration beside it is refused with ``match``, before the
+    run's folder is made."""
     import shutil
 
+    mixed = tmp_path / f"mixed_{other.name}"
+    shutil.copytree(demo_dir, mixed)
+    [extra] = find_sessions(other)
+    shutil.copy(extra, mixed / f"{other.name}_episode.h5")
+    with pytest.raises(ValueError, match=match):
+        _train(mixed, tmp_path / f"il_mixed_{other.name}", steps=2)
+    assert not (tmp_path / f"il_mixed_{other.name}").exists()
 
+
+def test_a_bundle_knows_its_grip_and_demonstrations_of_two_grips_are_refused(demo_dir, tmp_path):
     assert ILPolicy(ChunkPolicy(PolicyConfig()), {"task": "insertion"}).grip == "palm"  # bundles from before
     assert ILPolicy(ChunkPolicy(PolicyConfig()), {"task": "insertion"}).wrist == "stiff"
     palm = tmp_path / "palm"
     demos.run(demos.Config(episodes=1, out=palm, seed=4, image_size=(48, 36), grip="palm", progress=False))
-    mixed = tmp_path / "mixed"
-    shutil.copytree(demo_dir, mixed)
-    [extra] = find_sessions(palm)
-    shutil.copy(extra, mixed / "palm_episode.h5")
-    with pytest.raises(ValueError, match="different grips"):
-        _train(mixed, tmp_path / "il", steps=2)
-    assert not (tmp_path / "il").exists()
+    _mixing_is_refused(demo_dir, palm, tmp_path, "different grips")
 
 
 def test_a_compliant_wrist_run_trains_and_evaluates_with_its_wrist_and_is_not_mixed(demo_dir, tmp_path):
-    import shutil
-
     from rotation.cli import main
 
     soft = tmp_path / "soft"
@@ -105,13 +108,7 @@ def test_a_compliant_wrist_run_trains_and_evaluates_with_its_wrist_and_is_not_mi
                  "--episode-steps", "4", "--out", str(out), "--no-progress"]) == 0
     [row] = json.loads((out / "results.json").read_text())["rows"]
     assert row["wrist"] == "compliant" and row["grip"] == "fingertips"
-    mixed = tmp_path / "mixed"
-    shutil.copytree(demo_dir, mixed)
-    [extra] = find_sessions(soft)
-    shutil.copy(extra, mixed / "soft_episode.h5")
-    with pytest.raises(ValueError, match="move the wrist in different ways"):
-        _train(mixed, tmp_path / "il_mixed", steps=2)
-    assert not (tmp_path / "il_mixed").exists()
+    _mixing_is_refused(demo_dir, soft, tmp_path, "move the wrist in different ways")
 
 
 def test_the_policy_learns_the_actions_a_step_executes(demo_dir):
