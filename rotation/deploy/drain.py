@@ -5,10 +5,20 @@ delays a control step.
 from __future__ import annotations
 
 import logging
+import math
 import threading
+import time
 
 log = logging.getLogger("rotation.deploy.loop")  # the loop's own logger: its messages are the loop's
 
+SETTLE_S = 3.0
+"""Longest wait (s), with the motors off, for sensors whose samples of the run's last moments are still on their
+way (the emulated fingertips of the vendor-kinematics hand fell 1.3 s behind on a loaded 2-core machine)."""
+STILL_S = 0.3
+"""A sensor whose newest sample has not advanced for this long (s) is stalled or unplugged: not waited for."""
+CAUGHT_UP_S = 0.01
+"""A sensor whose newest sample is at most this long (s) before the run's last step has caught up."""
+POLL_S = 0.02
 
 
 class Drains:
@@ -21,6 +31,13 @@ class Drains:
         for d in self.drains:
             d.drain(append)
 
+    def newest(self) -> dict[str, float]:
+        """Each sensor's newest sample time (host s), by name (``digit360 index``, ``skin``)."""
+        out: dict[str, float] = {}
+        for d in self.drains:
+            out.update(d.newest())
+        return out
+
 
 class DrainThread:
     """Moves the sensors' samples into the recording every ``every_s`` from its own thread, so that the control
@@ -32,7 +49,6 @@ class DrainThread:
     def __init__(self, drain: Drains, append, every_s: float) -> None:
         self.drain, self.append, self.every_s = drain, append, every_s
         self.error: BaseException | None = None
-        self._drained = False  # the run's samples are all in the recording
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="deploy-drain", daemon=True)
         self._thread.start()
@@ -59,14 +75,41 @@ class DrainThread:
             self._thread.join()
             self.check()
             self.drain.drain(self.append)
-            self._drained = True
+
+    def settle(self, t_end: float, cap_s: float = SETTLE_S) -> dict[str, float]:
+        """Wait (at most ``cap_s``) until every sensor has delivered its samples up to ``t_end`` (host s, the run's
+        last step), so that :meth:`drain_rest` records the run to its end: on a loaded machine the emulated
+        fingertips' samples reach their readers up to a second late. A sensor whose newest sample stops advancing
+        for ``STILL_S`` (stalled or unplugged) is not waited for. Returns how far (s) each sensor that did not
+        catch up ends before ``t_end`` (logged); never raises (it runs while the run's hand is being closed)."""
+        try:
+            deadline = time.monotonic() + cap_s
+            seen: dict[str, tuple[float, float]] = {}  # sensor -> (newest sample time, when it last advanced)
+            while True:
+                now = time.monotonic()
+                # (a sensor that never delivered a sample is not waited for: its drain has said so already)
+                short = {name: t for name, t in self.drain.newest().items()
+                         if math.isfinite(t) and t < t_end - CAUGHT_UP_S}
+                for name, t in short.items():
+                    if name not in seen or t > seen[name][0]:
+                        seen[name] = (t, now)
+                waiting = [n for n in short if now - seen[n][1] < STILL_S]
+                if not waiting or now >= deadline:
+                    break
+                time.sleep(POLL_S)
+        except Exception as err:  # noqa: BLE001 -- the recording keeps what arrived; say so
+            log.warning("recording: could not wait for the sensors' last samples: %s", err)
+            return {}
+        behind = {name: t_end - t for name, t in short.items()}
+        for name, lag in behind.items():
+            log.warning("recording: %s's samples end %.2f s before the run's last step", name, lag)
+        return behind
 
     def drain_rest(self, timeout_s: float) -> bool:
-        """After a fault, once the motors are off: wait up to ``timeout_s`` for a drain in progress, then move the
-        samples that came since (the moments before a fault are those a lab most wants to look at). False (logged)
-        when they could not be recorded: a drain still busy, or the recording failed."""
-        if self._drained:
-            return True
+        """Once the motors are off (after a fault, or after a run that ended well): wait up to ``timeout_s`` for a
+        drain in progress, then move the samples that came since (the moments before a fault are those a lab most
+        wants to look at; :meth:`settle` first lets late sensors deliver them). False (logged) when they could not
+        be recorded: a drain still busy, or the recording failed."""
         self._stop.set()
         self._thread.join(timeout=timeout_s)
         if self._thread.is_alive():
@@ -82,5 +125,4 @@ class DrainThread:
         except Exception as err:  # noqa: BLE001 -- the hand is off; the run's outcome is already decided
             log.error("recording: the sensors' last samples could not be recorded: %s", err)
             return False
-        self._drained = True
         return True

@@ -52,7 +52,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rotation.configs import to_jsonable
 from rotation.data.properties import parse_properties
@@ -67,14 +67,23 @@ from rotation.deploy.outcome import EXIT_FAULT, EXIT_OK, CriticalRecords, classi
 from rotation.deploy.sensors import check_digit360, parse_digit360, parse_skin
 from rotation.deploy.sim_faults import FaultSchedule, check_sim_faults, parse_sim_faults
 
+if TYPE_CHECKING:
+    from rotation.deploy.loop import ControlLoop
+
 log = logging.getLogger("rotation.deploy")
 
 TOUCH_JOIN_S = 5.0
 """Longest wait (s), after the motors are off, for a touch refresh still running (one takes up to ~1 s on a loaded
 2-core machine); torch still computing on a daemon thread when the interpreter exits aborts the process."""
 DRAIN_JOIN_S = 2.0
-"""Longest wait (s), after a fault and with the motors off, for a recording drain in progress (one took up to
+"""Longest wait (s), after the run and with the motors off, for a recording drain in progress (one took up to
 0.5 s on a loaded 2-core machine) before the sensors' last samples are moved into the session."""
+
+
+def _settle_sensors(loop: ControlLoop) -> None:
+    """Let the sensors deliver their samples up to the loop's end before they close (DrainThread.settle)."""
+    if loop.drainer is not None and loop.ended_at is not None:
+        loop.drainer.settle(loop.ended_at)
 
 
 class _RunSignals:
@@ -220,6 +229,8 @@ def run(cfg: Config) -> dict[str, Any]:
                     log.info("touch: every fingertip's windows ready %.0f ms after the sensors opened, before the "
                              "motors go on", 1e3 * took)
             skin, skin_baseline = open_skin(parse_skin(cfg.skin, setup.emulated), stack)
+            # on exit after the hand (motors off), before the sensors close: their samples of the run's last moments
+            stack.callback(lambda: loop is not None and _settle_sensors(loop))
             # motors on, holding the current pose; the stack switches them off
             opened = open_hand(setup, stack, created=created.append, physics=physics)
             hand = opened.hand
@@ -249,7 +260,7 @@ def run(cfg: Config) -> dict[str, Any]:
         signals.defer()  # the hand has left (motors off): nothing may cut the rest short
         if loop is not None and loop.touch is not None:
             loop.touch.join(TOUCH_JOIN_S)  # a refresh still encoding; now that the motors are off it may be waited for
-        if loop is not None and loop.drainer is not None:  # after a fault: the moments before it (else a no-op)
+        if loop is not None and loop.drainer is not None:  # the run's last moments (after a fault: before it)
             loop.drainer.drain_rest(DRAIN_JOIN_S)
         sys.setswitchinterval(switch_interval)
         torch.set_num_threads(torch_threads)

@@ -102,8 +102,10 @@ class ControlLoop:
         self.touch: TouchWorker | None = None
         """The touch worker of a touch-reading policy (its ``stats`` stay valid after the run); None otherwise."""
         self.drainer: DrainThread | None = None
-        """The recording's drain thread (a recorded run with sensors); after a fault, ``rotate deploy`` calls its
+        """The recording's drain thread (a recorded run with sensors); ``rotate deploy`` calls its ``settle`` and
         ``drain_rest`` once the motors are off."""
+        self.ended_at: float | None = None
+        """Host monotonic time (s) at which the run's loop ended (well or by a fault); None before."""
 
     def _act(self, request: tuple[dict[str, np.ndarray], np.ndarray | None]) -> np.ndarray:
         """The policy worker's call: one observation and the touch correction to act with (None: the policy alone,
@@ -238,6 +240,7 @@ class ControlLoop:
             if drainer is not None:
                 drainer.stop(final_drain=True)
         finally:
+            self.ended_at = time.monotonic()
             if drainer is not None:
                 drainer.stop(final_drain=False)  # after a fault: the motors first (job.py then calls drain_rest)
             worker.close(join_timeout_s=0.0)

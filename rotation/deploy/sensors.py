@@ -315,6 +315,10 @@ class SkinDrain:
                 log.info("skin: streaming again")
             self._stalled = stalled
 
+    def newest(self) -> dict[str, float]:
+        """The newest frame's time (host s), as ``{"skin": t}``."""
+        return {"skin": float(self.reader.frames.newest_time())}
+
 
 def media_streams(reader: Any) -> tuple[str, ...]:
     """Which of ``image`` and ``audio`` a Digit 360 reader streams into ring buffers (a real sensor's camera and
@@ -334,6 +338,11 @@ class DigitDrain:
         self._streams = {f: STREAMS + media_streams(r) for f, r in readers.items()}
         self._cursors = {(f, s): SampleCursor(t0) for f in readers for s in self._streams[f]}
         self._stalled = dict.fromkeys(readers, False)
+
+    def newest(self) -> dict[str, float]:
+        """Each fingertip's newest serial sample time (host s), by ``digit360 <finger>``."""
+        return {f"digit360 {finger}": max(float(getattr(reader, s).newest_time()) for s in STREAMS)
+                for finger, reader in self.readers.items()}
 
     def drain(self, append) -> None:
         """Call ``append(stream_name, data (n, ...), timestamps (n,))`` with the samples since the last drain."""

@@ -186,7 +186,7 @@ class FaultSchedule:
             elif fault.kind == "lag":
                 emu.faults.latency_s = fault.amount
             else:
-                emu.faults.pause_s = fault.amount
+                emu.faults.pause(fault.amount)
             return None
         faults = self.hand.faults
         allegro = hasattr(faults, "stream_pause_s")

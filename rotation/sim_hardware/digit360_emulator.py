@@ -62,12 +62,21 @@ class Digit360Faults:
     corrupt_frames: int = 0
     """Corrupt the next N frames [frame dropped and counted, a warning logged]."""
     pause_s: float = 0.0
-    """Stop streaming once for this long [window() raises SensorStale after stale_timeout_s]."""
+    """Stop streaming once for this long [window() raises SensorStale after stale_timeout_s]: the samples of the
+    pause's device times are never sent (from ``pause_at``, or from when the emulator's thread sees the request)."""
+    pause_at: float | None = None
+    """Host time (``time.monotonic()`` s) the pause starts; :meth:`pause` sets it with the request."""
     latency_s: float = 0.0
     """Deliver every sample this long after its device time, from now on (a slower link) [a reader on the host's
     clock (``Digit360Config.host_epoch_s``, as deploy gives its emulated fingertips) sees its windows end that much
     further in the past, and a deploy's touch age grows by it; a reader that learns the clock (a real sensor's)
     takes a delay that stays for its clock and cannot see it]."""
+
+    def pause(self, seconds: float) -> None:
+        """Stall the stream for ``seconds`` from now: the samples of those device times are lost, also when the
+        emulator's thread runs late (a loaded machine) and sees the request only later."""
+        self.pause_at = time.monotonic()
+        self.pause_s = seconds
 
 
 class Digit360Emulator(EmulatorThread):
@@ -150,21 +159,32 @@ class Digit360Emulator(EmulatorThread):
             if time.monotonic() < next_t:
                 continue
             k = self._send_due(k, t0_late)
-            if self.faults.pause_s > 0:  # the device clock runs on; the samples of the pause are lost
-                # first every tick due before the pause starts, so that a thread that ran late (a loaded machine)
-                # loses only the pause's own samples, not the backlog it was catching up on
-                pause, self.faults.pause_s = self.faults.pause_s, 0.0
-                k = self._send_due(k, t0_late)
-                self._stop.wait(pause)
-                k = max(k, int((time.monotonic() - t0_late) / IMU_PERIOD_S))
+            if self.faults.pause_s > 0:
+                k = self._pause(k, t0_late)
 
     def _send_due(self, k: int, t0_late: float) -> int:
-        """Send every tick after ``k`` whose sending time has come; returns the last one sent."""
+        """Send every tick after ``k`` whose sending time has come, up to a pause's request; returns the last one
+        sent."""
         due = int((time.monotonic() - t0_late) / IMU_PERIOD_S)
-        while k < due and not self._stop.is_set():
+        while k < due and not self._stop.is_set() and self.faults.pause_s <= 0:
             k += 1
             self._tick(k)
         return k
+
+    def _pause(self, k: int, t0_late: float) -> int:
+        """A requested pause: the device clock runs on and the ticks of the pause's device times are lost. First
+        every tick due before the pause starts, so that a thread running late (a loaded machine) loses only the
+        pause's own samples, not the backlog it was catching up on; nothing is sent until the pause has ended.
+        Returns the last tick taken as sent (the pause's last)."""
+        faults = self.faults
+        start = faults.pause_at if faults.pause_at is not None else time.monotonic()
+        pause, faults.pause_s, faults.pause_at = faults.pause_s, 0.0, None
+        first = int((start - t0_late) / IMU_PERIOD_S)  # the last tick due before the pause
+        while k < first and not self._stop.is_set():
+            k += 1
+            self._tick(k)
+        self._stop.wait(max(0.0, start + pause - time.monotonic()))
+        return max(k, int((start + pause - t0_late) / IMU_PERIOD_S))
 
     def _tick(self, k: int) -> None:
         """Write IMU tick ``k`` (and its pressure sample, and every 400th tick a ``system`` message)."""

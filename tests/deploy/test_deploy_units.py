@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 
@@ -195,8 +196,9 @@ def test_the_drain_thread_drains_off_the_loop_and_hands_over_its_error():
 
 
 def test_after_a_fault_drain_rest_moves_the_last_samples_once_the_motors_are_off(caplog):
-    """DrainThread.drain_rest (called once the hand is off): one more drain after a fault's stop; a no-op after a
-    run that ended well; False, logged, when the drain is still busy or had failed (nothing is waited for forever)."""
+    """DrainThread.drain_rest (called once the hand is off): one more drain after a fault's stop, and after the final
+    drain of a run that ended well (what arrived since); False, logged, when the drain is still busy or had failed
+    (nothing is waited for forever)."""
     from rotation.data.session import SessionError
     from rotation.deploy.drain import DrainThread
 
@@ -217,11 +219,10 @@ def test_after_a_fault_drain_rest_moves_the_last_samples_once_the_motors_are_off
     faulted.stop(final_drain=False)
     assert appended == []
     assert faulted.drain_rest(timeout_s=5.0) and len(appended) == 1
-    assert faulted.drain_rest(timeout_s=5.0) and len(appended) == 1  # once
 
     ended = DrainThread(Drain(), lambda *a: appended.append(a), every_s=60.0)
     ended.stop(final_drain=True)
-    assert len(appended) == 2 and ended.drain_rest(timeout_s=5.0) and len(appended) == 2
+    assert len(appended) == 2 and ended.drain_rest(timeout_s=5.0) and len(appended) == 3
 
     release = threading.Event()
     busy = DrainThread(Drain(block=release), lambda *a: None, every_s=0.01)
@@ -236,3 +237,47 @@ def test_after_a_fault_drain_rest_moves_the_last_samples_once_the_motors_are_off
     time.sleep(0.2)
     failing.stop(final_drain=False)
     assert not failing.drain_rest(timeout_s=5.0) and "a drain failed: disk full" in caplog.text
+
+
+def test_settle_waits_for_late_sensors_but_not_for_a_stalled_one(caplog):
+    """DrainThread.settle (the motors off, the sensors still open) waits while a sensor's samples of the run's last
+    moments are still arriving, stops waiting for one whose newest sample no longer advances (stalled, unplugged),
+    never waits for one that delivered nothing, and reports how far the ones that did not catch up end early."""
+    from rotation.deploy import drain as drain_module
+    from rotation.deploy.drain import DrainThread
+
+    t_end = time.monotonic()
+    started = time.monotonic()
+
+    class Late:
+        def drain(self, append):
+            pass
+
+        def newest(self):
+            elapsed = time.monotonic() - started
+            return {"digit360 index": t_end - 0.5 + elapsed,  # 0.5 s behind, catching up in real time
+                    "digit360 ring": t_end - 2.0,  # stalled before the end
+                    "skin": -np.inf}  # never delivered
+
+    drainer = DrainThread(Late(), lambda *a: None, every_s=60.0)
+    drainer.stop(final_drain=False)
+    with caplog.at_level(logging.WARNING):
+        behind = drainer.settle(t_end, cap_s=5.0)
+    waited = time.monotonic() - started
+    assert 0.5 <= waited < 1.5, waited  # until the index caught up, not the 5 s cap for the ring
+    assert set(behind) == {"digit360 ring"} and behind["digit360 ring"] == pytest.approx(2.0)
+    assert "digit360 ring's samples end 2.00 s before the run's last step" in caplog.text
+
+    started = time.monotonic()
+    assert set(drainer.settle(t_end + 10.0, cap_s=0.3)) == {"digit360 index", "digit360 ring"}  # the cap holds
+    assert time.monotonic() - started < 0.3 + 5 * drain_module.POLL_S + 0.5
+
+    class Broken(Late):
+        def newest(self):
+            raise RuntimeError("reader gone")
+
+    broken = DrainThread(Broken(), lambda *a: None, every_s=60.0)
+    broken.stop(final_drain=False)
+    with caplog.at_level(logging.WARNING):
+        assert broken.settle(t_end) == {}
+    assert "could not wait for the sensors' last samples" in caplog.text

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 import time
 
 import numpy as np
@@ -185,3 +186,35 @@ def test_a_pause_loses_only_its_own_samples_when_the_emulator_ran_late():
     assert blocked and ts[-1] > 1.3, ts[-1]
     gap = np.diff(ts).max()
     assert 0.15 < gap < 0.3, gap  # the old order lost the 0.4 s backlog too (a gap of about 0.6 s)
+
+
+def test_a_pause_requested_while_the_emulator_is_late_starts_at_its_request():
+    """``faults.pause(s)`` (what ``rotate deploy --sim-faults stall=...`` calls) loses the samples of the device times
+    from the request on, even when the emulator's thread is busy and sees the request only later."""
+    emu: Digit360Emulator | None = None
+    blocked = threading.Event()
+
+    def late_once(t: float):
+        if t >= 0.5 and not blocked.is_set():  # the thread falls 0.4 s behind
+            blocked.set()
+            time.sleep(0.4)
+        return 0.0, np.array([0.0, 0.0, 1.0])
+
+    epoch = time.monotonic()
+    emu = Digit360Emulator(source=late_once, epoch=epoch)
+    with emu, serial.Serial(emu.path, timeout=0.2) as port:
+        data = b""
+        requested = None
+        deadline = time.monotonic() + 1.8
+        while time.monotonic() < deadline:
+            if blocked.is_set() and requested is None:
+                time.sleep(0.1)  # the thread is still asleep in the source
+                requested = time.monotonic() - epoch
+                emu.faults.pause(0.2)
+            data += port.read(4096)
+    msgs = [messages()["Digit360Message"].FromString(cobs.decode(f)) for f in data.split(b"\x00")[1:-1] if f]
+    ts = np.array([m.imu_data.ts for m in msgs if m.WhichOneof("type") == "imu_data"], dtype=float) / 1e3
+    gaps = np.diff(ts)
+    assert requested is not None and ts[-1] > 1.3, ts[-1]
+    start = ts[np.argmax(gaps)]
+    assert 0.15 < gaps.max() < 0.25 and abs(start - requested) < 0.02, (gaps.max(), start, requested)
