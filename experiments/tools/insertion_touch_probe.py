@@ -21,8 +21,10 @@ Scores by 5-fold cross-validation grouped by episode: R^2 of the offset, and the
 well the tokens read each fingertip's own contact force over all steps, and the change of it since the last step
 without contact with the socket on the pressing steps (what a press on the plate adds).
 
-With ``--encoder NAME``, a third table: the same offset and press change read from each modality's own mean token
-(image, audio, IMU, pressure; computed here, about 7 minutes for 100 demonstrations on 2 cores).
+With ``--encoder NAME``, a third table: the same offset and press change read from each modality's own tokens
+(image, audio, IMU, pressure; their mean, and for IMU and pressure also the newest 4 and the maximum; computed
+here, about 7 minutes for 100 demonstrations on 2 cores), after a table of how far those tokens move when a
+pressure step is added to one window (:func:`step_response`).
 
     python experiments/tools/insertion_touch_probe.py --demos DEMOS_DIR --touch-cache RUN/touch_..._all_....npz \
         [--encoder sparshx-tinier-sim]
@@ -119,8 +121,9 @@ def scores(p: np.ndarray, y: np.ndarray, far: np.ndarray) -> tuple[float, np.nda
     return r2.mean(), r2, (cos > np.cos(np.pi / 4)).mean()
 
 
-def group_tokens(paths: list[Path], encoder: str) -> tuple[list[str], np.ndarray]:
-    """Each modality's mean token of every step's four fingertip windows: names, (T, 4, groups, D)."""
+def group_tokens(paths: list[Path], encoder: str) -> dict[str, np.ndarray]:
+    """Pooled tokens of every step's four fingertip windows, (T, 4, D) each: every modality's mean token, and for the
+    serial streams (IMU, pressure, whose tokens run in time order) the mean of the newest 4 and the maximum."""
     import torch
     from tqdm import tqdm
 
@@ -131,13 +134,44 @@ def group_tokens(paths: list[Path], encoder: str) -> tuple[list[str], np.ndarray
     names = list(enc.token_interface.names)
     windows, rows = touch_rows(paths)
     width = int(enc.token_interface.width)
-    out = np.zeros((len(rows), len(FINGERS), len(names), width), np.float32)
+    pools = {"mean": lambda t: t.mean(1), "newest 4": lambda t: t[:, -4:].mean(1), "max": lambda t: t.amax(1)}
+    out: dict[str, list[np.ndarray]] = {}
     with torch.no_grad():
         for a in tqdm(range(0, len(rows), 16), desc="tokens by modality", mininterval=10):
             tokens = enc(enc.preprocess(dict(window_batch(windows, rows[a:a + 16]))))
-            for i, name in enumerate(names):
-                out[a:a + 16, :, i] = tokens[name].mean(1).reshape(-1, len(FINGERS), width).numpy()
-    return names, out
+            for name in names:
+                for pool, fn in pools.items():
+                    if pool == "mean" or name in ("imu", "pressure"):
+                        out.setdefault(f"{name}, {pool}", []).append(
+                            fn(tokens[name]).reshape(-1, len(FINGERS), width).numpy())
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def step_response(paths: list[Path], encoder: str, amps: tuple[float, ...] = (0.1, 0.4, 1.6)) -> None:
+    """How far each modality's mean token, and the pressure's newest 4 tokens, move when a pressure step of ``amps``
+    hPa over the last 0.25 s is added to one real window (the first demonstration's index fingertip, before any
+    contact), against the token's own norm: whether the encoder sees a press's pressure at all."""
+    import torch
+
+    from rotation.il.data import touch_rows, window_batch
+    from rotation.il.touch import TouchEmbedder
+
+    enc = TouchEmbedder(encoder, "all").encoder
+    windows, rows = touch_rows(paths[:1])
+    base = window_batch(windows, rows[5:6, :1])
+    with torch.no_grad():
+        ref = enc(enc.preprocess(dict(base)))
+        print("\n| pressure step (hPa) | " + " | ".join(f"{n} mean token moves" for n in ref)
+              + " | pressure's newest 4 tokens move |")
+        print("|---" * (len(ref) + 2) + "|")
+        for a in amps:
+            b = {k: v.clone() for k, v in base.items()}
+            b["pressure"][:, -50:, 0] += a  # 50 samples at 200 Hz
+            tok = enc(enc.preprocess(dict(b)))
+            moves = [float((tok[n][0].mean(0) - ref[n][0].mean(0)).norm() / ref[n][0].mean(0).norm()) for n in ref]
+            newest = float((tok["pressure"][0, -4:].mean(0) - ref["pressure"][0, -4:].mean(0)).norm()
+                           / ref["pressure"][0, -4:].mean(0).norm())
+            print(f"| {a:g} | " + " | ".join(f"{m:.1%}" for m in moves) + f" | {newest:.1%} |")
 
 
 def main() -> None:
@@ -192,17 +226,19 @@ def main() -> None:
                 row += [", ".join(f"{v:.2f}" for v in f.std(0)), ", ".join(f"{v:.2f}" for v in r2)]
             print("| " + " | ".join(row) + " |")
     if args.encoder:
-        names, tokens = group_tokens(paths, args.encoder)
+        step_response(paths, args.encoder)
+        pooled = group_tokens(paths, args.encoder)
+        pooled["all four, mean"] = np.concatenate([v for k, v in pooled.items() if k.endswith(", mean")], axis=-1)
         change = cat["forces"][press, 12:].astype(np.float64)
-        print("\n| modality's mean token | offset R^2 x, y | direction within 45 deg | press change R^2 (mean of 12) |")
+        print("\n| modality's tokens, pooled | offset R^2 x, y | direction within 45 deg | "
+              "press change R^2 (mean of 12) |")
         print("|---|---|---|---|")
-        for i, name in enumerate([*names, "all four"]):
-            x = (tokens if name == "all four" else tokens[:, :, i]).reshape(len(tokens), -1)[press].astype(np.float64)
+        for name, tokens in pooled.items():
+            x = tokens.reshape(len(tokens), -1)[press].astype(np.float64)
             best = max((scores(ridge_cv(x, y, g, alpha), y, far) for alpha in (1e-2, 1e-1, 1.0)), key=lambda s: s[0])
             p = ridge_cv(x, change, g, 1e-1)
             r2 = 1 - ((p - change) ** 2).sum(0) / ((change - change.mean(0)) ** 2).sum(0)
             print(f"| {name} | {best[1][0]:.2f}, {best[1][1]:.2f} | {best[2]:.0%} | {r2.mean():.2f} |")
-
 
 if __name__ == "__main__":
     main()
