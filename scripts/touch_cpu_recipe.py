@@ -73,7 +73,9 @@ class Config:
     the size's (6 + 2). The per-step touch path's target is 50 ms on 2 cores: a fresh all-modality adapter's touch
     step takes 41 ms with 3 + 1 layers and 89 ms with 6 + 2 (scripts/bench_adapter.py, both threads, the machine
     otherwise idle); in an emulated deploy its correction acts 2-5 control steps after its touch (median 3) against
-    3-7 (median 4), without the emulator's rendering (bench_adapter --deploy 40, docs/adapter.md)."""
+    3-7 (median 4), without the emulator's rendering (bench_adapter --deploy 40, docs/adapter.md). But one
+    bottleneck fusion layer fuses nothing (SparshXConfig.fuses; `rotate pretrain` warns): 2 + 2 is the same depth
+    with one exchange between the modalities, not pretrained yet."""
     steps: int = 3000
     """Pretraining steps."""
     batch_size: int = 32

@@ -87,7 +87,8 @@ class SparshXConfig:
     unimodal_layers: int | None = None
     """Override of the size's unimodal layers L_f (None: the size's)."""
     fusion_layers: int | None = None
-    """Override of the size's fusion layers L_b (None: the size's; 0 = no fusion: modalities stay independent)."""
+    """Override of the size's fusion layers L_b (None: the size's; 0 = no fusion: modalities stay independent; with
+    bottleneck fusion 1 fuses nothing either, :attr:`fuses`)."""
 
     def __post_init__(self) -> None:
         if self.size not in SIZES:
@@ -136,6 +137,14 @@ class SparshXConfig:
     @property
     def depth(self) -> int:
         return self.num_unimodal + self.num_fusion
+
+    @property
+    def fuses(self) -> bool:
+        """Whether a modality's output tokens can depend on another modality's input. Vanilla fusion: from one
+        fusion layer on. Bottleneck fusion: from two on; in the first, every modality attends to the learned initial
+        bottleneck tokens, the same for every input, and the mean of their outputs, which does mix the modalities,
+        feeds only the next fusion layer. So one bottleneck layer is a fourth unimodal layer (tested)."""
+        return self.num_fusion >= (2 if self.fusion == "bottleneck" else 1) and len(self.modalities) > 1
 
     @property
     def token_counts(self) -> dict[str, int]:

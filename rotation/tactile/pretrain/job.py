@@ -30,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -77,6 +78,8 @@ from rotation.tactile.ssl import (
 __all__ = ["Config", "SkinObjectiveConfig", "build", "load_config", "objective", "run", "train"]
 WORKER_ENV = "ROTATE_PRETRAIN_WORKER"
 """Set in the processes torchrun starts, so they train instead of launching again."""
+
+log = logging.getLogger(__name__)
 
 
 def run(cfg: Config) -> dict[str, Any]:
@@ -156,6 +159,11 @@ def build(cfg: Config) -> tuple[torch.nn.Module, torch.nn.Module]:
     kind = encoder_kind(cfg.encoder)
     torch.manual_seed(cfg.seed)
     encoder = kind.build(cfg.size, cfg.groups, cfg.fusion, cfg.drop_path, (cfg.unimodal_layers, cfg.fusion_layers))
+    spec = getattr(encoder, "cfg", None)
+    if spec is not None and len(spec.modalities) > 1 and not getattr(spec, "fuses", True):
+        log.warning("pretrain: %d unimodal + %d %s fusion layer(s) fuse nothing: no modality's tokens will depend on "
+                    "another's (a bottleneck needs 2 fusion layers; SparshXConfig.fuses)", spec.num_unimodal,
+                    spec.num_fusion, spec.fusion)
     interface = encoder.token_interface
     hidden, prototypes = cfg.head_sizes()
     head = DINOHead(interface.width, hidden, cfg.head_bottleneck, prototypes)

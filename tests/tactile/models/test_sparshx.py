@@ -170,6 +170,17 @@ def test_bottleneck_is_the_only_path_between_modalities(monkeypatch):
     assert _change_of_img(shallow()) == 0.0
 
 
+def test_one_bottleneck_fusion_layer_fuses_nothing():
+    """In the first bottleneck layer every modality attends to the learned initial bottleneck, the same for every
+    input; the mixed mean of its outputs feeds only a next fusion layer. So 3 + 1 layers (the shipped
+    sparshx-tinier-sim's) pass nothing between modalities, and the config says so."""
+    one = shallow(fusion_layers=1)
+    assert _change_of_img(one) == 0.0 and not one.cfg.fuses
+    assert shallow().cfg.fuses and _change_of_img(shallow()) > 1e-6  # two layers: the mixed bottleneck is read
+    assert shallow(fusion="vanilla", fusion_layers=1).cfg.fuses
+    assert not shallow(fusion_layers=2, modalities=("img",)).cfg.fuses  # one modality: nothing to fuse
+
+
 def test_training_mode_drop_path_and_gradients():
     model = shallow(drop_path=0.2).train()
     out, regs = model(inputs(), registers=True)

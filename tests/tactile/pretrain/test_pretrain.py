@@ -263,3 +263,17 @@ def test_sigterm_to_the_process_group_saves_with_loader_workers(tmp_path, touch_
     assert "Traceback" not in err and "--resume continues" in err
     assert len(list(out.glob("ckpt_*.safetensors"))) == 1 and (out / "encoder.safetensors").is_file()
 
+
+def test_an_encoder_whose_layers_fuse_nothing_is_named_before_pretraining(tmp_path, touch_sessions, touch_cache,
+                                                                            cache_stride, caplog):
+    """`rotate pretrain` with one bottleneck fusion layer (3 + 1, the shipped tinier encoder's) warns that no
+    modality's tokens will depend on another's; two fusion layers do not warn."""
+    import logging
+
+    with caplog.at_level(logging.WARNING):
+        pretrain.build(tiny(tmp_path, touch_cache, touch_sessions, cache_stride, unimodal_layers=3, fusion_layers=1))
+    assert "3 unimodal + 1 bottleneck fusion layer(s) fuse nothing" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        pretrain.build(tiny(tmp_path, touch_cache, touch_sessions, cache_stride, unimodal_layers=2, fusion_layers=2))
+    assert "fuse nothing" not in caplog.text
