@@ -160,7 +160,7 @@ def build(cfg: Config) -> tuple[torch.nn.Module, torch.nn.Module]:
     torch.manual_seed(cfg.seed)
     encoder = kind.build(cfg.size, cfg.groups, cfg.fusion, cfg.drop_path, (cfg.unimodal_layers, cfg.fusion_layers))
     spec = getattr(encoder, "cfg", None)
-    if spec is not None and len(spec.modalities) > 1 and not getattr(spec, "fuses", True):
+    if not getattr(spec, "fuses", True):  # a Sparsh-X that cannot fuse (the skin encoder has one token group)
         log.warning("pretrain: %d unimodal + %d %s fusion layer(s) fuse nothing: no modality's tokens will depend on "
                     "another's (a bottleneck needs 2 fusion layers; SparshXConfig.fuses)", spec.num_unimodal,
                     spec.num_fusion, spec.fusion)
