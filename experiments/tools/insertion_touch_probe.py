@@ -71,12 +71,16 @@ def episode(path: Path) -> dict[str, np.ndarray]:
                 "forces": np.concatenate([forces, forces - forces[free]], axis=1), "proprio": proprio}
 
 
+def fold_ids(groups: np.ndarray, folds: int) -> np.ndarray:
+    """Each sample's cross-validation fold: whole episodes (groups) dealt to ``folds`` folds in a fixed random order."""
+    ids = np.unique(groups)
+    fold_of = dict(zip(np.random.default_rng(0).permutation(ids), np.arange(len(ids)) % folds, strict=True))
+    return np.array([fold_of[g] for g in groups])
+
+
 def ridge_cv(x: np.ndarray, y: np.ndarray, groups: np.ndarray, alpha: float, folds: int = 5) -> np.ndarray:
     pred = np.zeros_like(y)
-    ids = np.unique(groups)
-    rng = np.random.default_rng(0)
-    fold_of = dict(zip(rng.permutation(ids), np.arange(len(ids)) % folds, strict=True))
-    f = np.array([fold_of[g] for g in groups])
+    f = fold_ids(groups, folds)
     for k in range(folds):
         tr, te = f != k, f == k
         mu, sd = x[tr].mean(0), x[tr].std(0) + 1e-6
@@ -92,10 +96,7 @@ def mlp_cv(x: np.ndarray, y: np.ndarray, groups: np.ndarray, folds: int = 5, ste
 
     torch.manual_seed(0)
     pred = np.zeros_like(y)
-    ids = np.unique(groups)
-    rng = np.random.default_rng(0)
-    fold_of = dict(zip(rng.permutation(ids), np.arange(len(ids)) % folds, strict=True))
-    f = np.array([fold_of[g] for g in groups])
+    f = fold_ids(groups, folds)
     for k in range(folds):
         tr, te = f != k, f == k
         mu, sd = x[tr].mean(0), x[tr].std(0) + 1e-6
@@ -115,8 +116,13 @@ def mlp_cv(x: np.ndarray, y: np.ndarray, groups: np.ndarray, folds: int = 5, ste
     return pred
 
 
+def r2_of(p: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """R^2 of predictions ``p`` per output column of ``y``."""
+    return 1 - ((p - y) ** 2).sum(0) / ((y - y.mean(0)) ** 2).sum(0)
+
+
 def scores(p: np.ndarray, y: np.ndarray, far: np.ndarray) -> tuple[float, np.ndarray, float]:
-    r2 = 1 - ((p - y) ** 2).sum(0) / ((y - y.mean(0)) ** 2).sum(0)
+    r2 = r2_of(p, y)
     cos = (p[far] * y[far]).sum(1) / (np.linalg.norm(p[far], axis=1) * np.linalg.norm(y[far], axis=1) + 1e-9)
     return r2.mean(), r2, (cos > np.cos(np.pi / 4)).mean()
 
@@ -195,13 +201,13 @@ def main() -> None:
         first = np.concatenate([[0], np.flatnonzero(np.diff(groups)) + 1])[groups]  # each episode's first step
         feats["touch change"] = feats["touch"] - feats["touch"][first]
         feats["touch+proprio"] = np.concatenate([feats["touch"], cat["proprio"]], axis=1)
+    feats["forces+proprio"] = np.concatenate([cat["forces"], cat["proprio"]], axis=1)
     press = (cat["force"] > args.min_force) & (cat["depth"] < 0.001)
     y = cat["offset_mm"][press, :2]
     g = groups[press]
     far = np.linalg.norm(y, axis=1) > 0.5
     print(f"{press.sum()} pressing steps in {len(np.unique(g))} of {len(eps)} episodes; offset rms "
           f"{np.sqrt((y ** 2).mean(0)).round(2)} mm; {far.sum()} of them more than 0.5 mm off the axis")
-    feats["forces+proprio"] = np.concatenate([cat["forces"], cat["proprio"]], axis=1)
     print("| input | dims | ridge R^2 x, y | ridge direction within 45 deg | MLP R^2 x, y | MLP direction |")
     print("|---|---|---|---|---|---|")
     for name, x in feats.items():
@@ -221,8 +227,7 @@ def main() -> None:
             for rows, part in ((slice(None), cat["forces"][:, 3 * i: 3 * i + 3]),
                                (press, cat["forces"][:, 12 + 3 * i: 15 + 3 * i])):
                 f = part[rows].astype(np.float64)
-                p = ridge_cv(x[rows], f, groups[rows], 1e-2)
-                r2 = 1 - ((p - f) ** 2).sum(0) / ((f - f.mean(0)) ** 2).sum(0)
+                r2 = r2_of(ridge_cv(x[rows], f, groups[rows], 1e-2), f)
                 row += [", ".join(f"{v:.2f}" for v in f.std(0)), ", ".join(f"{v:.2f}" for v in r2)]
             print("| " + " | ".join(row) + " |")
     if args.encoder:
@@ -236,9 +241,9 @@ def main() -> None:
         for name, tokens in pooled.items():
             x = tokens.reshape(len(tokens), -1)[press].astype(np.float64)
             best = max((scores(ridge_cv(x, y, g, alpha), y, far) for alpha in (1e-2, 1e-1, 1.0)), key=lambda s: s[0])
-            p = ridge_cv(x, change, g, 1e-1)
-            r2 = 1 - ((p - change) ** 2).sum(0) / ((change - change.mean(0)) ** 2).sum(0)
+            r2 = r2_of(ridge_cv(x, change, g, 1e-1), change)
             print(f"| {name} | {best[1][0]:.2f}, {best[1][1]:.2f} | {best[2]:.0%} | {r2.mean():.2f} |")
+
 
 if __name__ == "__main__":
     main()
